@@ -1,0 +1,511 @@
+"""The site file: cameras, robot models, robots and thresholds of one installation.
+
+A site file is YAML (see ``deploy/site.example.yaml`` for every key, documented). Loading it
+validates everything and raises :class:`~protocol.errors.SiteConfigError` naming the file and the
+dotted key that is wrong (``cameras[2].K``, ``thresholds.sync_windw_ms``...). Camera intrinsics can
+also come from an OpenCV ``FileStorage`` YAML or a ROS ``camera_info`` YAML
+(:func:`load_camera_calibration`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import yaml
+
+from protocol.camera import DISTORTION_LENGTHS, CameraModel, invert_transform
+from protocol.errors import SiteConfigError, ValidationError
+from protocol.validation import check_id
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RobotModel:
+    """Keypoints defined on the rigid robot base.
+
+    ``keypoints_base_m``: (M, 3) keypoint positions in the robot base frame (x forward, y left,
+    z up, origin on the ground at the rotation centre), metres, in the order the detector
+    outputs them. ``footprint_radius_m``: radius of the base. ``height_m``: height of the body
+    (used for occlusion and rendering in simulation).
+    """
+
+    name: str
+    keypoint_names: tuple[str, ...]
+    keypoints_base_m: np.ndarray
+    footprint_radius_m: float
+    height_m: float = 1.0
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoint_names)
+
+
+@dataclasses.dataclass(frozen=True)
+class Thresholds:
+    """Tunable parameters of the pipeline; all have defaults, units in the names.
+
+    Sync: ``sync_window_ms`` (stamps within this window form one frame-set),
+    ``sync_max_wait_ms`` (how long a frame-set waits for late cameras), ``camera_timeout_s``
+    (a camera silent for longer is considered gone), ``max_future_ms`` (stamps further in the
+    future than this are rejected). Pose: ``min_keypoint_score``, ``min_keypoints`` (per view),
+    ``max_reprojection_rmse_px`` (estimates above are rejected), ``single_camera_max_dtheta_deg``
+    and ``single_camera_max_ddepth_m`` (the paper's d_theta and d_depth), ``multi_frame_count``
+    (frame-sets averaged while static). Robot bridge: ``static_max_speed_mps``,
+    ``static_max_yaw_rate_radps``, ``static_dwell_s``, ``correction_min_offset_m``,
+    ``correction_min_offset_deg``, ``correction_max_jump_m``, ``correction_max_std_m``,
+    ``correction_min_interval_s``.
+    """
+
+    sync_window_ms: float = 20.0
+    sync_max_wait_ms: float = 100.0
+    camera_timeout_s: float = 2.0
+    max_future_ms: float = 500.0
+    min_keypoint_score: float = 0.3
+    min_keypoints: int = 4
+    max_reprojection_rmse_px: float = 20.0
+    single_camera_max_dtheta_deg: float = 10.0
+    single_camera_max_ddepth_m: float = 0.15
+    multi_frame_count: int = 5
+    static_max_speed_mps: float = 0.01
+    static_max_yaw_rate_radps: float = 0.02
+    static_dwell_s: float = 1.0
+    correction_min_offset_m: float = 0.05
+    correction_min_offset_deg: float = 2.0
+    correction_max_jump_m: float = 1.0
+    correction_max_std_m: float = 0.15
+    correction_min_interval_s: float = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Site:
+    """A loaded, validated site: ``cameras`` by id, ``robot_models`` by name, ``robots`` maps a
+    robot id to its model name."""
+
+    name: str
+    world_frame: str
+    cameras: Mapping[str, CameraModel]
+    robot_models: Mapping[str, RobotModel]
+    robots: Mapping[str, str]
+    thresholds: Thresholds = dataclasses.field(default_factory=Thresholds)
+    source_path: str = "<memory>"
+
+    def camera(self, camera_id: str) -> CameraModel:
+        """The camera with this id; ``KeyError`` naming the known ids if it is not in the site."""
+        try:
+            return self.cameras[camera_id]
+        except KeyError:
+            raise KeyError(
+                f"camera {camera_id!r} is not in site {self.name!r} ({self.source_path}); "
+                f"known: {sorted(self.cameras)}"
+            ) from None
+
+    def robot_model(self, robot_id: str | None = None) -> RobotModel:
+        """The robot model of ``robot_id`` (or of the only robot when ``None``)."""
+        if robot_id is None or robot_id == "":
+            if len(self.robots) != 1:
+                raise KeyError(f"site {self.name!r} has {len(self.robots)} robots; name one")
+            robot_id = next(iter(self.robots))
+        try:
+            return self.robot_models[self.robots[robot_id]]
+        except KeyError:
+            raise KeyError(
+                f"robot {robot_id!r} is not in site {self.name!r}; known: {sorted(self.robots)}"
+            ) from None
+
+
+# --------------------------------------------------------------------------------------------
+# parsing helpers: each names the file and the dotted key on failure
+# --------------------------------------------------------------------------------------------
+
+
+class _Ctx:
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def fail(self, key: str, reason: str) -> SiteConfigError:
+        return SiteConfigError(self.path, key, reason)
+
+    def mapping(self, key: str, value: Any) -> Mapping[str, Any]:
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
+        return value
+
+    def require(self, key: str, node: Mapping[str, Any], name: str) -> Any:
+        if name not in node:
+            raise self.fail(_join(key, name), "required key is missing")
+        return node[name]
+
+    def no_unknown(self, key: str, node: Mapping[str, Any], allowed: set[str]) -> None:
+        for name in node:
+            if name not in allowed:
+                raise self.fail(_join(key, str(name)), f"unknown key; allowed: {sorted(allowed)}")
+
+    def number(self, key: str, value: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        if not math.isfinite(value) or not lo <= value <= hi:
+            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
+        return float(value)
+
+    def integer(self, key: str, value: Any, lo: int = 0, hi: int = 2**62) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, f"expected an integer, got {value!r}")
+        if not lo <= value <= hi:
+            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
+        return value
+
+    def ident(self, key: str, value: Any) -> str:
+        try:
+            return check_id(key, value)
+        except ValidationError as exc:
+            raise self.fail(key, exc.reason) from None
+
+    def matrix(self, key: str, value: Any, rows: int | None, cols: int | None) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(key, "expected a list of numbers (or list of rows)") from None
+        if arr.ndim == 1 and rows is not None and cols is not None and arr.size == rows * cols:
+            arr = arr.reshape(rows, cols)
+        if cols is None:
+            if arr.ndim != 1:
+                raise self.fail(key, f"expected a flat list, got shape {arr.shape}")
+        elif arr.shape != (rows, cols):
+            raise self.fail(key, f"expected a {rows}x{cols} matrix, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(key, "contains NaN or infinity")
+        return arr
+
+
+def _join(key: str, name: str) -> str:
+    return f"{key}.{name}" if key else name
+
+
+def _rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw),
+        math.sin(yaw),
+    )
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    return Rz @ Ry @ Rx
+
+
+def look_at_T_world_cam(position_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
+    """(4, 4) camera→world for an optical frame at ``position_m`` looking at ``target_m``,
+    image "down" (optical y) pointing as close to world -z as possible."""
+    z = np.asarray(target_m, float) - np.asarray(position_m, float)
+    z /= np.linalg.norm(z)
+    down = np.array([0.0, 0.0, -1.0])
+    x = np.cross(down, z)
+    if np.linalg.norm(x) < 1e-6:  # looking straight down: pick world +x as image right
+        x = np.array([0.0, -1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = position_m
+    return T
+
+
+def _parse_transform(ctx: _Ctx, key: str, value: Any) -> np.ndarray:
+    """A rigid transform: a 4x4 matrix, or {translation_m, quaternion_xyzw | rpy_deg | matrix},
+    or {position_m, look_at_m} (only meaningful for T_world_cam)."""
+    if isinstance(value, list):
+        T = ctx.matrix(key, value, 4, 4)
+    else:
+        node = ctx.mapping(key, value)
+        if "look_at_m" in node:
+            ctx.no_unknown(key, node, {"position_m", "look_at_m"})
+            pos = ctx.matrix(_join(key, "position_m"), ctx.require(key, node, "position_m"), 3, None)
+            tgt = ctx.matrix(_join(key, "look_at_m"), node["look_at_m"], 3, None)
+            if pos.shape != (3,) or tgt.shape != (3,):
+                raise ctx.fail(key, "position_m and look_at_m need 3 numbers each")
+            if np.linalg.norm(tgt - pos) < 1e-6:
+                raise ctx.fail(_join(key, "look_at_m"), "coincides with position_m")
+            return look_at_T_world_cam(pos, tgt)
+        ctx.no_unknown(key, node, {"translation_m", "quaternion_xyzw", "rpy_deg", "matrix"})
+        t = ctx.matrix(_join(key, "translation_m"), ctx.require(key, node, "translation_m"), 3,
+                       None)
+        if t.shape != (3,):
+            raise ctx.fail(_join(key, "translation_m"), "expected 3 numbers")
+        given = [k for k in ("quaternion_xyzw", "rpy_deg", "matrix") if k in node]
+        if len(given) != 1:
+            raise ctx.fail(key, "give exactly one of quaternion_xyzw, rpy_deg, matrix")
+        rkey = _join(key, given[0])
+        if given[0] == "quaternion_xyzw":
+            q = ctx.matrix(rkey, node["quaternion_xyzw"], 4, None)
+            if q.shape != (4,) or np.linalg.norm(q) < 1e-9:
+                raise ctx.fail(rkey, "expected 4 numbers, not all zero")
+            R = _rotation_from_quaternion_xyzw(q)
+        elif given[0] == "rpy_deg":
+            rpy = ctx.matrix(rkey, node["rpy_deg"], 3, None)
+            if rpy.shape != (3,):
+                raise ctx.fail(rkey, "expected 3 numbers")
+            R = _rotation_from_rpy(*np.deg2rad(rpy))
+        else:
+            R = ctx.matrix(rkey, node["matrix"], 3, 3)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = t
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise ctx.fail(key, "rotation part is not a proper rotation matrix")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ctx.fail(key, "last row must be [0, 0, 0, 1]")
+    return T
+
+
+# --------------------------------------------------------------------------------------------
+# OpenCV / ROS calibration files
+# --------------------------------------------------------------------------------------------
+
+
+class _CalibLoader(yaml.SafeLoader):
+    """SafeLoader that understands OpenCV's ``!!opencv-matrix`` tag."""
+
+
+def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
+    return loader.construct_mapping(node, deep=True)  # type: ignore[arg-type]
+
+
+_CalibLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", _opencv_matrix)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraCalibration:
+    """Intrinsics (and optionally extrinsics) read from a calibration file."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray
+    T_cam_world: np.ndarray | None = None
+
+
+def _calib_matrix(ctx: _Ctx, key: str, value: Any, rows: int | None, cols: int | None) -> np.ndarray:
+    if isinstance(value, Mapping):  # OpenCV matrix or ROS {rows, cols, data}
+        data = ctx.require(key, value, "data")
+        r = ctx.integer(_join(key, "rows"), value.get("rows", rows or 1), lo=1, hi=16)
+        c = ctx.integer(_join(key, "cols"), value.get("cols", cols or len(data)), lo=1, hi=16)
+        arr = ctx.matrix(_join(key, "data"), data, r, c)
+        return arr if cols is not None else arr.reshape(-1)
+    return ctx.matrix(key, value, rows, cols)
+
+
+def load_camera_calibration(path: str | Path) -> CameraCalibration:
+    """Read intrinsics from an OpenCV ``FileStorage`` YAML (``camera_matrix``,
+    ``distortion_coefficients``, ``image_width``, ``image_height``; the ``%YAML:1.0`` header and
+    ``!!opencv-matrix`` tags are understood) or a ROS ``camera_info`` YAML (same key names with
+    plain ``{rows, cols, data}`` maps). An optional ``T_cam_world`` 4x4 matrix is read too."""
+    ctx = _Ctx(str(path))
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ctx.fail("", f"cannot read calibration file: {exc.strerror}") from None
+    text = re.sub(r"^%YAML:\s*1\.\d+\s*\n", "", text)
+    try:
+        doc = yaml.load(text, Loader=_CalibLoader)  # noqa: S506 - SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise ctx.fail("", f"not valid YAML: {exc}") from None
+    doc = ctx.mapping("", doc)
+    K = _calib_matrix(ctx, "camera_matrix", ctx.require("", doc, "camera_matrix"), 3, 3)
+    dist_node = doc.get("distortion_coefficients", [])
+    dist = _calib_matrix(ctx, "distortion_coefficients", dist_node, None, None).reshape(-1)
+    if dist.size not in DISTORTION_LENGTHS:
+        raise ctx.fail("distortion_coefficients", f"length {dist.size} not in {DISTORTION_LENGTHS}")
+    width = ctx.integer("image_width", ctx.require("", doc, "image_width"), lo=1, hi=65535)
+    height = ctx.integer("image_height", ctx.require("", doc, "image_height"), lo=1, hi=65535)
+    T = None
+    if "T_cam_world" in doc:
+        T = _parse_transform(ctx, "T_cam_world", _calib_matrix(ctx, "T_cam_world",
+                                                                doc["T_cam_world"], 4, 4).tolist())
+    return CameraCalibration(width, height, K, dist, T)
+
+
+# --------------------------------------------------------------------------------------------
+# site file
+# --------------------------------------------------------------------------------------------
+
+_CAMERA_KEYS: Final = {
+    "id", "resolution", "K", "intrinsics", "distortion", "T_cam_world", "T_world_cam",
+    "calibration_file", "clock_offset_ns",
+}
+_TOP_KEYS: Final = {"site", "world_frame", "cameras", "robot_models", "robots", "thresholds"}
+
+
+def _parse_K(ctx: _Ctx, key: str, node: Mapping[str, Any]) -> np.ndarray:
+    if "K" in node and "intrinsics" in node:
+        raise ctx.fail(key, "give either K or intrinsics, not both")
+    if "K" in node:
+        K = ctx.matrix(_join(key, "K"), node["K"], 3, 3)
+    elif "intrinsics" in node:
+        ik = _join(key, "intrinsics")
+        intr = ctx.mapping(ik, node["intrinsics"])
+        ctx.no_unknown(ik, intr, {"fx", "fy", "cx", "cy"})
+        fx, fy, cx, cy = (
+            ctx.number(_join(ik, n), ctx.require(ik, intr, n)) for n in ("fx", "fy", "cx", "cy")
+        )
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    else:
+        raise ctx.fail(_join(key, "K"), "required key is missing (or give intrinsics/calibration_file)")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise ctx.fail(_join(key, "K"), "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
+    return K
+
+
+def _parse_camera(ctx: _Ctx, key: str, value: Any, base_dir: Path) -> CameraModel:
+    node = ctx.mapping(key, value)
+    ctx.no_unknown(key, node, _CAMERA_KEYS)
+    cam_id = ctx.ident(_join(key, "id"), ctx.require(key, node, "id"))
+    T_cam_world: np.ndarray | None = None
+    if "calibration_file" in node:
+        for clash in ("K", "intrinsics", "distortion", "resolution"):
+            if clash in node:
+                raise ctx.fail(_join(key, clash), "also given by calibration_file; give one")
+        calib_path = Path(str(node["calibration_file"]))
+        if not calib_path.is_absolute():
+            calib_path = base_dir / calib_path
+        calib = load_camera_calibration(calib_path)
+        width, height, K, dist = calib.width, calib.height, calib.K, calib.dist
+        T_cam_world = calib.T_cam_world
+    else:
+        res_key = _join(key, "resolution")
+        res = ctx.require(key, node, "resolution")
+        if not isinstance(res, list) or len(res) != 2:
+            raise ctx.fail(res_key, "expected [width, height] in pixels")
+        width = ctx.integer(res_key, res[0], lo=1, hi=65535)
+        height = ctx.integer(res_key, res[1], lo=1, hi=65535)
+        K = _parse_K(ctx, key, node)
+        dist = ctx.matrix(_join(key, "distortion"), node.get("distortion", []), None, None)
+        if dist.size not in DISTORTION_LENGTHS:
+            raise ctx.fail(_join(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}")
+    given = [k for k in ("T_cam_world", "T_world_cam") if k in node]
+    if len(given) > 1:
+        raise ctx.fail(key, "give T_cam_world or T_world_cam, not both")
+    if given:
+        T = _parse_transform(ctx, _join(key, given[0]), node[given[0]])
+        T_cam_world = T if given[0] == "T_cam_world" else invert_transform(T)
+    if T_cam_world is None:
+        raise ctx.fail(_join(key, "T_world_cam"), "required key is missing (camera extrinsics)")
+    offset = ctx.integer(_join(key, "clock_offset_ns"), node.get("clock_offset_ns", 0),
+                         lo=-(10**15), hi=10**15)
+    return CameraModel(cam_id, width, height, K, dist, T_cam_world, offset)
+
+
+def _parse_robot_model(ctx: _Ctx, key: str, name: str, value: Any) -> RobotModel:
+    node = ctx.mapping(key, value)
+    ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m"})
+    kkey = _join(key, "keypoints")
+    kps = ctx.require(key, node, "keypoints")
+    if not isinstance(kps, list) or len(kps) < 3:
+        raise ctx.fail(kkey, "expected a list of at least 3 keypoints {name, xyz_m}")
+    names: list[str] = []
+    xyz: list[np.ndarray] = []
+    for i, kp in enumerate(kps):
+        ik = f"{kkey}[{i}]"
+        kp = ctx.mapping(ik, kp)
+        ctx.no_unknown(ik, kp, {"name", "xyz_m"})
+        kp_name = ctx.ident(_join(ik, "name"), ctx.require(ik, kp, "name"))
+        if kp_name in names:
+            raise ctx.fail(_join(ik, "name"), f"duplicate keypoint name {kp_name!r}")
+        p = ctx.matrix(_join(ik, "xyz_m"), ctx.require(ik, kp, "xyz_m"), 3, None)
+        if p.shape != (3,):
+            raise ctx.fail(_join(ik, "xyz_m"), "expected 3 numbers")
+        names.append(kp_name)
+        xyz.append(p)
+    radius = ctx.number(_join(key, "footprint_radius_m"),
+                        ctx.require(key, node, "footprint_radius_m"), lo=0.01, hi=10.0)
+    height = ctx.number(_join(key, "height_m"), node.get("height_m", 1.0), lo=0.01, hi=10.0)
+    pts = np.stack(xyz)
+    pts.setflags(write=False)
+    return RobotModel(name, tuple(names), pts, radius, height)
+
+
+def _parse_thresholds(ctx: _Ctx, value: Any) -> Thresholds:
+    node = ctx.mapping("thresholds", value)
+    fields = {f.name: f for f in dataclasses.fields(Thresholds)}
+    ctx.no_unknown("thresholds", node, set(fields))
+    kwargs: dict[str, Any] = {}
+    for name, val in node.items():
+        key = f"thresholds.{name}"
+        if isinstance(fields[name].default, int) and not isinstance(fields[name].default, bool):
+            kwargs[name] = ctx.integer(key, val, lo=1, hi=10**6)
+        else:
+            kwargs[name] = ctx.number(key, val, lo=0.0)
+    return Thresholds(**kwargs)
+
+
+def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -> Site:
+    """Validate an already-parsed YAML document as a site (``path`` is used in errors)."""
+    ctx = _Ctx(path)
+    base_dir = base_dir or Path(".")
+    top = ctx.mapping("", doc)
+    ctx.no_unknown("", top, _TOP_KEYS)
+    name = ctx.ident("site", ctx.require("", top, "site"))
+    world_frame = ctx.ident("world_frame", top.get("world_frame", "map"))
+    cams = ctx.require("", top, "cameras")
+    if not isinstance(cams, list) or not cams:
+        raise ctx.fail("cameras", "expected a non-empty list of cameras")
+    cameras: dict[str, CameraModel] = {}
+    for i, cam in enumerate(cams):
+        model = _parse_camera(ctx, f"cameras[{i}]", cam, base_dir)
+        if model.camera_id in cameras:
+            raise ctx.fail(f"cameras[{i}].id", f"duplicate camera id {model.camera_id!r}")
+        cameras[model.camera_id] = model
+    models_node = ctx.mapping("robot_models", ctx.require("", top, "robot_models"))
+    if not models_node:
+        raise ctx.fail("robot_models", "define at least one robot model")
+    robot_models = {
+        ctx.ident(f"robot_models.{n}", n): _parse_robot_model(ctx, f"robot_models.{n}", n, v)
+        for n, v in models_node.items()
+    }
+    robots_node = ctx.require("", top, "robots")
+    if not isinstance(robots_node, list) or not robots_node:
+        raise ctx.fail("robots", "expected a non-empty list of {id, model}")
+    robots: dict[str, str] = {}
+    for i, r in enumerate(robots_node):
+        rk = f"robots[{i}]"
+        r = ctx.mapping(rk, r)
+        ctx.no_unknown(rk, r, {"id", "model"})
+        rid = ctx.ident(_join(rk, "id"), ctx.require(rk, r, "id"))
+        model_name = ctx.require(rk, r, "model")
+        if model_name not in robot_models:
+            raise ctx.fail(_join(rk, "model"),
+                           f"unknown robot model {model_name!r}; defined: {sorted(robot_models)}")
+        if rid in robots:
+            raise ctx.fail(_join(rk, "id"), f"duplicate robot id {rid!r}")
+        robots[rid] = model_name
+    thresholds = _parse_thresholds(ctx, top.get("thresholds", {}) or {})
+    return Site(name, world_frame, cameras, robot_models, robots, thresholds, path)
+
+
+def load_site(path: str | Path) -> Site:
+    """Load and validate a site YAML file; :class:`SiteConfigError` names file and key."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise SiteConfigError(str(p), "", f"cannot read site file: {exc.strerror}") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise SiteConfigError(str(p), "", f"not valid YAML: {exc}") from None
+    return parse_site(doc, str(p), p.parent)
