@@ -1,0 +1,98 @@
+"""Frame-sets: the synchronized multi-view observations of one robot that one pose solve uses.
+
+A :class:`FrameSet` is whatever cameras saw the robot within the synchronization window; it is
+built by the synchronizer from :class:`protocol.RobotDetections` messages, or directly from
+arrays (simulation, tests).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from protocol.messages import Detection, RobotDetections
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanarPose:
+    """A planar pose (x, y in metres, theta in radians) of the robot base in some frame."""
+
+    x: float
+    y: float
+    theta: float
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.theta])
+
+    def T(self) -> np.ndarray:
+        """(4, 4) homogeneous transform of this pose (robot base → frame), z = 0."""
+        c, s = math.cos(self.theta), math.sin(self.theta)
+        out = np.eye(4)
+        out[:2, :2] = [[c, -s], [s, c]]
+        out[0, 3], out[1, 3] = self.x, self.y
+        return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraObservation:
+    """The keypoints of one robot seen by one camera.
+
+    ``stamp_ns``: detection stamp already corrected by the camera's clock offset.
+    ``keypoints_px``: (M, 2) float64 pixel coordinates (may contain NaN in hand-made frame-sets;
+    the solver treats non-finite keypoints as missing). ``keypoint_scores``: (M,) in [0, 1].
+    """
+
+    camera_id: str
+    stamp_ns: int
+    keypoints_px: np.ndarray
+    keypoint_scores: np.ndarray
+    bbox_xyxy: np.ndarray | None = None
+    score: float = 1.0
+
+    @classmethod
+    def from_detection(
+        cls, camera_id: str, stamp_ns: int, detection: Detection
+    ) -> CameraObservation:
+        return cls(
+            camera_id=camera_id,
+            stamp_ns=stamp_ns,
+            keypoints_px=np.asarray(detection.keypoints_px, dtype=np.float64),
+            keypoint_scores=np.asarray(detection.keypoint_scores, dtype=np.float64),
+            bbox_xyxy=np.asarray(detection.bbox_xyxy, dtype=np.float64),
+            score=float(detection.score),
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameSet:
+    """Synchronized observations of one robot: at most one :class:`CameraObservation` per
+    camera. ``stamp_ns`` is the frame-set's reference time on the common clock (the mean of its
+    observations' stamps)."""
+
+    robot_id: str
+    stamp_ns: int
+    observations: tuple[CameraObservation, ...]
+
+    @property
+    def camera_ids(self) -> tuple[str, ...]:
+        return tuple(o.camera_id for o in self.observations)
+
+    @classmethod
+    def from_observations(
+        cls, robot_id: str, observations: tuple[CameraObservation, ...] | list[CameraObservation]
+    ) -> FrameSet:
+        obs = tuple(observations)
+        stamp = int(round(np.mean([o.stamp_ns for o in obs]))) if obs else 0
+        return cls(robot_id, stamp, obs)
+
+
+def best_detection(msg: RobotDetections, robot_id: str = "") -> Detection | None:
+    """The detection of ``robot_id`` in ``msg`` (or, for unidentified detections, the one with
+    the highest score); ``None`` if the camera did not see it."""
+    candidates = [d for d in msg.detections if d.robot_id in (robot_id, "")]
+    if not candidates:
+        return None
+    named = [d for d in candidates if d.robot_id == robot_id and robot_id]
+    return max(named or candidates, key=lambda d: d.score)

@@ -1,0 +1,3 @@
+from smartedge.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,34 @@
+"""``smartedge bench <what>``: benchmarks print figures; results are recorded in
+docs/benchmarks.md with the machine and the command."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+from typing import Final
+
+#: benchmark → (module, function taking argv and returning an exit code, one-line help)
+BENCHES: Final[dict[str, tuple[str, str, str]]] = {
+    "codec": ("protocol.bench", "main", "encode+decode throughput of detections and clouds"),
+    "pose": ("backend_service.bench_pose", "main", "pose solve latency vs pyceres and scipy"),
+    "sim": ("simulation.bench", "main", "simulated seconds per wall second"),
+    "fusion": ("backend_service.bench_fusion", "main", "ISAM2 latency and memory over 1 h"),
+    "backend": ("backend_service.bench_backend", "main", "throughput/latency over real Zenoh"),
+}
+
+
+def main(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(prog="smartedge bench", description=__doc__)
+    parser.add_argument("what", choices=sorted(BENCHES), help="which benchmark")
+    args, rest = parser.parse_known_args(list(argv))
+    module_name, func_name, _ = BENCHES[args.what]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name == module_name:
+            print(f"smartedge bench {args.what}: not available in this version", file=sys.stderr)
+            return 2
+        raise
+    return int(getattr(module, func_name)(rest) or 0)
