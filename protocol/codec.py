@@ -17,6 +17,7 @@ own validation.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from typing import Any, Final, TypeVar
@@ -51,10 +52,12 @@ def _array_to_wire(arr: np.ndarray) -> dict[str, Any]:
 
 
 def _value_to_wire(value: Any) -> Any:
+    if value is None or isinstance(value, (str, int, float)):
+        return value
     if isinstance(value, np.ndarray):
         return _array_to_wire(value)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _value_to_wire(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {name: _value_to_wire(getattr(value, name)) for name in _field_names(type(value))}
     if isinstance(value, Mapping):
         return {str(k): _value_to_wire(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -62,6 +65,11 @@ def _value_to_wire(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 def encode(msg: Message) -> bytes:
@@ -112,19 +120,32 @@ def _field_kind(f: dataclasses.Field) -> str:
     return "scalar"
 
 
+@functools.cache
+def _field_specs(cls: type, schema: str) -> tuple[tuple[str, str, bool, type | None], ...]:
+    """(name, kind, required, nested type) per field, computed once per class."""
+    return tuple(
+        (
+            f.name,
+            _field_kind(f),
+            f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING,
+            _NESTED.get((schema, f.name)),
+        )
+        for f in dataclasses.fields(cls)
+    )
+
+
 def _record_from_wire(path: str, cls: type, obj: Any, schema: str) -> Any:
     if not isinstance(obj, dict):
         raise DecodeError(f"{path or cls.__name__}: expected a map, got {type(obj).__name__}")
     kwargs: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        where = f"{path}.{f.name}" if path else f.name
-        if f.name not in obj:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise DecodeError(f"{where}: required field missing")
+    for name, kind, required, nested in _field_specs(cls, schema):
+        if name not in obj:
+            if required:
+                raise DecodeError(f"{path}.{name}: required field missing" if path
+                                  else f"{name}: required field missing")
             continue
-        value = obj[f.name]
-        kind = _field_kind(f)
-        nested = _NESTED.get((schema, f.name))
+        where = f"{path}.{name}" if path else name
+        value = obj[name]
         if nested is not None:
             if not isinstance(value, list):
                 raise DecodeError(f"{where}: expected a list, got {type(value).__name__}")
@@ -142,7 +163,7 @@ def _record_from_wire(path: str, cls: type, obj: Any, schema: str) -> Any:
             value = tuple(value)
         elif kind == "scalar" and isinstance(value, (dict, list, bytes)):
             raise DecodeError(f"{where}: expected a scalar, got {type(value).__name__}")
-        kwargs[f.name] = value
+        kwargs[name] = value
     try:
         return cls(**kwargs)
     except ValidationError as exc:

@@ -353,7 +353,7 @@ _TOP_KEYS: Final = {"site", "world_frame", "cameras", "robot_models", "robots", 
 
 def _parse_K(ctx: _Ctx, key: str, node: Mapping[str, Any]) -> np.ndarray:
     if "K" in node and "intrinsics" in node:
-        raise ctx.fail(key, "give either K or intrinsics, not both")
+        raise ctx.fail(_join(key, "K"), "give either K or intrinsics, not both")
     if "K" in node:
         K = ctx.matrix(_join(key, "K"), node["K"], 3, 3)
     elif "intrinsics" in node:

@@ -1,0 +1,405 @@
+"""Multi-view robot pose solve (paper Eq. 2) with CasADi.
+
+The weighted nonlinear least-squares problem
+
+    argmin_q  1/2 * sum_ij rho( w_ij * || k_ij - Pi_i(T_cam_i_world * T_world_robot(q) * p_j) ||^2 )
+
+is formulated symbolically ONCE per (camera set, robot keypoint model, DoF, loss) and cached:
+the observed pixels ``k_ij``, the weights ``w_ij`` (keypoint confidences, 0 = missing) and the
+robust-loss scale are CasADi *parameters*, so a new frame-set only evaluates already-built
+functions. Cameras (intrinsics, OpenCV distortion, extrinsics) and the model keypoints ``p_j``
+are constants of the formulation (CasADi folds their zeros away); the full OpenCV rational/tangential distortion model is part of
+the symbolic projection, so distorted pixels are compared directly (no undistortion step).
+
+``q`` is ``(x, y, theta)`` of the robot base in the world frame (planar, the paper's 3 DoF) or
+``(x, y, z, roll, pitch, yaw)`` (the 6-DoF variant, ``R = Rz(yaw) Ry(pitch) Rx(roll)``).
+
+Methods (pick with :class:`SolverConfig`):
+
+- ``"ipopt"``: ``nlpsol('ipopt')`` with the exact Hessian.
+- ``"sqpmethod"``: ``nlpsol('sqpmethod')`` with the ``qrqp`` active-set QP solver (exact Hessian,
+  regularized when indefinite, e.g. for the Cauchy loss).
+- ``"lm"``: Levenberg-Marquardt (the algorithm the paper ran in Ceres) driven from numpy on a
+  CasADi-generated function returning the weighted residuals and their Jacobian; the robust
+  loss enters as iteratively re-weighted least squares.
+
+The default, :data:`DEFAULT_METHOD`, was chosen by measurement (``smartedge bench pose``,
+docs/benchmarks.md).
+
+Robust losses on the squared, weighted pixel error ``s`` of one keypoint (scale ``c`` in px):
+Huber ``rho(s) = s`` for ``s <= c^2`` else ``2 c sqrt(s) - c^2``; Cauchy
+``rho(s) = c^2 log(1 + s / c^2)``.
+
+Thread safety: a cached :class:`PoseProblem` holds CasADi functions with internal work memory;
+call it from one thread (the backend's worker loop) or hold :data:`PROBLEM_CACHE_LOCK`.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import hashlib
+import logging
+import math
+import threading
+from collections.abc import Sequence
+from typing import Final
+
+import casadi as ca
+import numpy as np
+
+from protocol.camera import CameraModel
+
+log = logging.getLogger(__name__)
+
+METHODS: Final = ("ipopt", "sqpmethod", "lm")
+LOSSES: Final = ("none", "huber", "cauchy")
+#: Chosen by ``smartedge bench pose``: sqpmethod+qrqp is ~4x faster than IPOPT on this
+#: problem and converges to the same minimum (see docs/benchmarks.md).
+DEFAULT_METHOD: Final = "sqpmethod"
+#: Points closer than this to a camera's image plane (or behind it) are clamped in the
+#: symbolic projection so the objective stays finite while the solver walks through them.
+_MIN_DEPTH_M: Final = 1e-3
+_CACHE_SIZE: Final = 64
+
+PROBLEM_CACHE_LOCK: Final = threading.RLock()
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """How :func:`backend_service.estimate.estimate_pose` solves a frame-set.
+
+    ``method``: one of :data:`METHODS`. ``robust_loss``: ``"none"``, ``"huber"`` or
+    ``"cauchy"`` with ``robust_scale_px`` (pixel error where the loss turns sub-quadratic).
+    ``min_keypoint_score``: keypoints below are ignored (``None``: the site's threshold).
+    ``use_single_camera_heuristic``: apply the paper's bearing-only heuristic when one camera
+    sees the robot and a prior exists. ``dof``: 3 (planar, the paper) or 6.
+    ``max_iterations``: solver iteration cap. ``covariance_floor_px``: the residual scale used
+    for the covariance never goes below this (a perfect fit is not infinitely certain).
+    ``try_pnp_fallback``: when the solve from the prior fails or fits badly, retry from PnP.
+    """
+
+    method: str = DEFAULT_METHOD
+    robust_loss: str = "none"
+    robust_scale_px: float = 5.0
+    min_keypoint_score: float | None = None
+    use_single_camera_heuristic: bool = True
+    dof: int = 3
+    max_iterations: int = 100
+    covariance_floor_px: float = 1.0
+    try_pnp_fallback: bool = True
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"SolverConfig.method {self.method!r} not in {METHODS}")
+        if self.robust_loss not in LOSSES:
+            raise ValueError(f"SolverConfig.robust_loss {self.robust_loss!r} not in {LOSSES}")
+        if not self.robust_scale_px > 0:
+            raise ValueError("SolverConfig.robust_scale_px must be > 0")
+        if self.dof not in (3, 6):
+            raise ValueError("SolverConfig.dof must be 3 or 6")
+        if self.max_iterations < 1:
+            raise ValueError("SolverConfig.max_iterations must be >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class SolveOutput:
+    """Result of one solve: ``q`` the parameters ((3,) or (6,)), ``success`` as reported by the
+    solver, ``iterations``, ``cost`` the final objective value (px^2)."""
+
+    q: np.ndarray
+    success: bool
+    iterations: int
+    cost: float
+
+
+# --------------------------------------------------------------------------------------------
+# symbolic building blocks
+# --------------------------------------------------------------------------------------------
+
+
+def _rotation_sym(q: ca.SX, dof: int) -> tuple[ca.SX, ca.SX]:
+    """(R (3x3), t (3x1)) of T_world_robot(q)."""
+    if dof == 3:
+        c, s = ca.cos(q[2]), ca.sin(q[2])
+        R = ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
+        t = ca.vertcat(q[0], q[1], 0)
+        return R, t
+    roll, pitch, yaw = q[3], q[4], q[5]
+    cr, sr, cp, sp, cy, sy = (ca.cos(roll), ca.sin(roll), ca.cos(pitch), ca.sin(pitch),
+                              ca.cos(yaw), ca.sin(yaw))
+    Rz = ca.vertcat(ca.horzcat(cy, -sy, 0), ca.horzcat(sy, cy, 0), ca.horzcat(0, 0, 1))
+    Ry = ca.vertcat(ca.horzcat(cp, 0, sp), ca.horzcat(0, 1, 0), ca.horzcat(-sp, 0, cp))
+    Rx = ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, cr, -sr), ca.horzcat(0, sr, cr))
+    return Rz @ Ry @ Rx, ca.vertcat(q[0], q[1], q[2])
+
+
+def _project_cam_sym(camera: CameraModel, pc: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """Distorted pixels (M x 2) and depths (M x 1) of camera-frame points (M x 3), OpenCV
+    model (the same maths as :meth:`protocol.camera.CameraModel.project_cam`)."""
+    z = pc[:, 2]
+    zs = ca.fmax(z, _MIN_DEPTH_M)
+    x = pc[:, 0] / zs
+    y = pc[:, 1] / zs
+    d = np.zeros(8)
+    d[: camera.dist.size] = camera.dist
+    if np.any(d != 0.0):
+        k1, k2, p1, p2, k3, k4, k5, k6 = (float(v) for v in d)
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        radial = (1 + k1 * r2 + k2 * r4 + k3 * r6)
+        if k4 != 0.0 or k5 != 0.0 or k6 != 0.0:
+            radial = radial / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    else:
+        xd, yd = x, y
+    K = camera.K
+    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+    v = K[1, 1] * yd + K[1, 2]
+    return ca.horzcat(u, v), z
+
+
+def _rho_sym(s: ca.SX, c: ca.SX, loss: str) -> ca.SX:
+    if loss == "huber":
+        c2 = c * c
+        return ca.if_else(s <= c2, s, 2 * c * ca.sqrt(ca.fmax(s, 1e-300)) - c2)
+    if loss == "cauchy":
+        c2 = c * c
+        return c2 * ca.log1p(s / c2)
+    return s
+
+
+def robust_weights(s_px2: np.ndarray, loss: str, scale_px: float) -> np.ndarray:
+    """rho'(s) for squared weighted errors ``s_px2`` (K,): the IRLS factor of each keypoint."""
+    if loss == "huber":
+        return np.where(s_px2 <= scale_px**2, 1.0, scale_px / np.sqrt(np.maximum(s_px2, 1e-300)))
+    if loss == "cauchy":
+        return 1.0 / (1.0 + s_px2 / scale_px**2)
+    return np.ones_like(s_px2)
+
+
+def wrap_angle(theta_rad: float) -> float:
+    """Angle wrapped to (-pi, pi]."""
+    out = math.remainder(theta_rad, 2.0 * math.pi)
+    return math.pi if out == -math.pi else out
+
+
+# --------------------------------------------------------------------------------------------
+# the cached problem
+# --------------------------------------------------------------------------------------------
+
+
+class PoseProblem:
+    """The symbolic reprojection problem of one camera set and keypoint count.
+
+    Built by :func:`get_problem` (cached). The cameras and the model keypoints
+    ``keypoints_base_m`` (M, 3) are constants; parameter layout (see :meth:`pack`): observed
+    pixels (N*M*2, camera-major), weights (N*M), robust scale (px).
+    """
+
+    def __init__(self, cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray, dof: int,
+                 loss: str) -> None:
+        kp_base = np.asarray(keypoints_base_m, dtype=np.float64).reshape(-1, 3)
+        self.camera_ids: tuple[str, ...] = tuple(c.camera_id for c in cameras)
+        self.num_cameras = len(cameras)
+        self.num_keypoints = int(kp_base.shape[0])
+        self.keypoints_base_m = kp_base
+        self.dof = int(dof)
+        self.loss = loss
+        N, M = self.num_cameras, self.num_keypoints
+        q = ca.SX.sym("q", dof)
+        uv = ca.SX.sym("uv", N * M * 2)
+        w = ca.SX.sym("w", N * M)
+        c = ca.SX.sym("c", 1)
+        p = ca.vertcat(uv, w, c)
+        R_wr, t_wr = _rotation_sym(q, dof)
+        res_parts, depth_parts, s_parts = [], [], []
+        for i, cam in enumerate(cameras):
+            # Composite camera<-robot transform first: the model keypoints are constants, so
+            # each keypoint costs one 3x3 product with known (often zero) coefficients.
+            R_cw = ca.DM(cam.T_cam_world[:3, :3])
+            R_cr = R_cw @ R_wr
+            t_cr = R_cw @ t_wr + ca.DM(cam.T_cam_world[:3, 3])
+            pts_cam = ca.DM(kp_base) @ R_cr.T + ca.repmat(t_cr.T, M, 1)
+            uv_hat, z = _project_cam_sym(cam, pts_cam)
+            obs = ca.reshape(uv[i * M * 2:(i + 1) * M * 2], 2, M).T
+            err = uv_hat - obs  # (M, 2)
+            w_i = w[i * M:(i + 1) * M]
+            sw = ca.sqrt(w_i)
+            r_i = ca.horzcat(sw * err[:, 0], sw * err[:, 1])
+            res_parts.append(ca.reshape(r_i.T, 2 * M, 1))
+            s_parts.append(w_i * (err[:, 0] ** 2 + err[:, 1] ** 2))
+            depth_parts.append(z)
+        r = ca.vertcat(*res_parts)
+        s = ca.vertcat(*s_parts)
+        depth = ca.vertcat(*depth_parts)
+        f = 0.5 * ca.sum1(_rho_sym(s, c, loss))
+        #: (q, p) -> (weighted residuals (2NM), Jacobian (2NM x dof), depths (NM))
+        self.residual_fn = ca.Function("pose_residuals", [q, p], [r, ca.jacobian(r, q), depth])
+        self._nlp = {"x": q, "p": p, "f": f}
+        self._solvers: dict[tuple[str, int], ca.Function] = {}
+
+    # -- parameters --------------------------------------------------------------------------
+
+    def pack(self, keypoints_px: np.ndarray, weights: np.ndarray,
+             scale_px: float = 1.0) -> np.ndarray:
+        """Parameter vector from (N, M, 2) observed pixels and (N, M) weights (camera order of
+        this problem). Non-finite pixels get weight 0 here (a missing keypoint)."""
+        uv = np.asarray(keypoints_px, dtype=np.float64)
+        w = np.asarray(weights, dtype=np.float64).reshape(uv.shape[:2]).copy()
+        finite = np.all(np.isfinite(uv), axis=-1)
+        w[~finite | ~np.isfinite(w)] = 0.0
+        uv = np.where(finite[..., None], uv, 0.0)
+        return np.concatenate([uv.reshape(-1), w.reshape(-1), [float(scale_px)]])
+
+    def evaluate(self, q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Weighted residuals (2NM,), Jacobian (2NM, dof), depths (NM,) in metres at ``q``."""
+        r, J, z = self.residual_fn(q, p)
+        return np.asarray(r).reshape(-1), np.asarray(J), np.asarray(z).reshape(-1)
+
+    # -- solvers -----------------------------------------------------------------------------
+
+    def _solver(self, method: str, max_iterations: int) -> ca.Function:
+        key = (method, max_iterations)
+        solver = self._solvers.get(key)
+        if solver is not None:
+            return solver
+        if method == "ipopt":
+            opts = {
+                "print_time": False,
+                "ipopt.print_level": 0,
+                "ipopt.sb": "yes",
+                "ipopt.max_iter": max_iterations,
+                "ipopt.tol": 1e-10,
+            }
+            solver = ca.nlpsol("pose_ipopt", "ipopt", self._nlp, opts)
+        elif method == "sqpmethod":
+            opts = {
+                "qpsol": "qrqp",
+                "qpsol_options": {"print_iter": False, "print_header": False,
+                                  "print_info": False, "error_on_fail": False},
+                "print_time": False,
+                "print_header": False,
+                "print_iteration": False,
+                "print_status": False,
+                "max_iter": max_iterations,
+                "tol_du": 1e-10,
+                "tol_pr": 1e-10,
+                "min_step_size": 1e-14,
+                "error_on_fail": False,
+                # Cauchy (and the clamped depth) make the exact Hessian indefinite far from the
+                # minimum; a regularized Hessian keeps every QP step a descent direction.
+                "convexify_strategy": "regularize",
+            }
+            solver = ca.nlpsol("pose_sqp", "sqpmethod", self._nlp, opts)
+        else:
+            raise ValueError(f"no CasADi nlpsol for method {method!r}")
+        self._solvers[key] = solver
+        return solver
+
+    def solve(self, q0: np.ndarray, p: np.ndarray, method: str = DEFAULT_METHOD,
+              max_iterations: int = 100) -> SolveOutput:
+        """Minimize from ``q0`` with parameters ``p`` (from :meth:`pack`)."""
+        q0 = np.asarray(q0, dtype=float).reshape(-1)
+        if method == "lm":
+            return self._solve_lm(q0, p, max_iterations)
+        solver = self._solver(method, max_iterations)
+        sol = solver(x0=q0, p=p)
+        stats = solver.stats()
+        q = np.asarray(sol["x"]).reshape(-1)
+        return SolveOutput(q, bool(stats.get("success", False)),
+                           int(stats.get("iter_count", 0)), float(sol["f"]))
+
+    def _robust_cost_and_irls(self, r: np.ndarray, scale_px: float) -> tuple[float, np.ndarray]:
+        s = r[0::2] ** 2 + r[1::2] ** 2
+        if self.loss == "none":
+            return 0.5 * float(s.sum()), np.ones_like(s)
+        c2 = scale_px**2
+        if self.loss == "huber":
+            rho = np.where(s <= c2, s, 2 * scale_px * np.sqrt(s) - c2)
+        else:
+            rho = c2 * np.log1p(s / c2)
+        return 0.5 * float(rho.sum()), robust_weights(s, self.loss, scale_px)
+
+    def _solve_lm(self, q0: np.ndarray, p: np.ndarray, max_iterations: int) -> SolveOutput:
+        scale = float(p[-1])
+        q = q0.copy()
+        r, J, _ = self.evaluate(q, p)
+        cost, rw = self._robust_cost_and_irls(r, scale)
+        lam = 1e-4
+        success = False
+        it = 0
+        for it in range(1, max_iterations + 1):  # noqa: B007 - iteration count is reported
+            sw = np.repeat(np.sqrt(rw), 2)
+            Jw, rw_vec = J * sw[:, None], r * sw
+            H = Jw.T @ Jw
+            g = Jw.T @ rw_vec
+            if float(np.max(np.abs(g))) < 1e-12:
+                success = True
+                break
+            accepted = False
+            while lam < 1e12:
+                A = H + lam * np.diag(np.maximum(np.diag(H), 1e-12))
+                try:
+                    dq = -np.linalg.solve(A, g)
+                except np.linalg.LinAlgError:
+                    lam *= 10.0
+                    continue
+                r_new, J_new, _ = self.evaluate(q + dq, p)
+                cost_new, rw_new = self._robust_cost_and_irls(r_new, scale)
+                if np.isfinite(cost_new) and cost_new <= cost:
+                    q, r, J, rw = q + dq, r_new, J_new, rw_new
+                    rel = (cost - cost_new) / max(cost, 1e-300)
+                    cost = cost_new
+                    lam = max(lam / 10.0, 1e-12)
+                    accepted = True
+                    break
+                lam *= 10.0
+            if not accepted:
+                success = True  # no decreasing step exists: at a (local) minimum
+                break
+            if float(np.max(np.abs(dq))) < 1e-12 or rel < 1e-15:
+                success = True
+                break
+        return SolveOutput(q, success, it, cost)
+
+
+_CACHE: collections.OrderedDict[tuple, PoseProblem] = collections.OrderedDict()
+
+
+def _camera_fingerprint(camera: CameraModel) -> tuple[str, str]:
+    h = hashlib.blake2b(digest_size=12)
+    for arr in (camera.K, camera.dist, camera.T_cam_world):
+        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    return camera.camera_id, h.hexdigest()
+
+
+def get_problem(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray, dof: int = 3,
+                loss: str = "none") -> PoseProblem:
+    """The cached :class:`PoseProblem` for this ordered camera set (identified by id and
+    calibration, so a recalibrated camera gets a new formulation), robot keypoint model
+    ((M, 3), base frame, metres), DoF and loss. Building takes milliseconds; a cache hit costs
+    a dictionary lookup."""
+    kp = np.ascontiguousarray(keypoints_base_m, dtype=np.float64).reshape(-1, 3)
+    kp_key = hashlib.blake2b(kp.tobytes(), digest_size=12).hexdigest()
+    key = (tuple(_camera_fingerprint(c) for c in cameras), kp.shape[0], kp_key, int(dof), loss)
+    with PROBLEM_CACHE_LOCK:
+        problem = _CACHE.get(key)
+        if problem is None:
+            problem = PoseProblem(cameras, kp, dof, loss)
+            _CACHE[key] = problem
+            while len(_CACHE) > _CACHE_SIZE:
+                _CACHE.popitem(last=False)
+            log.debug("built pose problem for cameras %s, M=%d, dof=%d, loss=%s",
+                      problem.camera_ids, kp.shape[0], dof, loss)
+        else:
+            _CACHE.move_to_end(key)
+        return problem
+
+
+def cache_size() -> int:
+    """Number of cached formulations (for tests and status)."""
+    with PROBLEM_CACHE_LOCK:
+        return len(_CACHE)

@@ -1,0 +1,447 @@
+"""ROS 2 (and ROS 1) robots over Zenoh: odometry in, pose corrections out, as ROS messages.
+
+The robot runs ``zenoh-bridge-ros2dds``, which maps the ROS 2 topic ``/x`` to the Zenoh key
+``x`` (prefixed with the bridge's ``namespace`` when one is configured) and carries the DDS
+payload unchanged: CDR with its 4-byte encapsulation header. This module
+
+* converts between ROS messages and the bridge's planar types with pure functions
+  (``nav_msgs/msg/Odometry`` → :class:`OdometrySample`; ``PoseWithCovarianceStamped`` or
+  ``PoseStamped`` → :class:`LocalizationPose`; :class:`PoseCorrection` →
+  ``geometry_msgs/msg/PoseWithCovarianceStamped`` with frame ``map``, the header stamp being the
+  estimate's time and the 6x6 covariance filled from the 3x3 (x, y, yaw));
+* serializes them with ``rosbags`` (CDR for ROS 2, ROS 1 serialization with ``ros1=True`` for
+  ``zenoh-plugin-ros1``, whose keys are ``<hex(type)>/<md5>/<topic>``);
+* isolates the Zenoh part in :class:`RosZenohAdapter` (zenoh is imported there only).
+
+Topics: HSR corrections ``laser_2d_correct_pose`` (odometry ``/hsrb/odom`` on ROS 1,
+``/switched_odom`` on ROS 2, localization ``/global_pose``); Nav2/AMCL ``initialpose``
+(odometry ``/odom``, localization ``/amcl_pose``). See ``docs/robot_bridge.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import math
+import re
+from typing import Any, Final
+
+import numpy as np
+
+from protocol.messages import PoseCorrection
+from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
+
+log = logging.getLogger(__name__)
+
+ODOMETRY_TYPE: Final = "nav_msgs/msg/Odometry"
+POSE_WITH_COVARIANCE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseWithCovarianceStamped"
+POSE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseStamped"
+LOCALIZATION_TYPES: Final = (POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_STAMPED_TYPE)
+
+HSR_CORRECTION_TOPIC: Final = "laser_2d_correct_pose"
+NAV2_INITIALPOSE_TOPIC: Final = "initialpose"
+
+#: (x, y, yaw) → index in the row-major 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
+_COV6_INDEX: Final = (0, 1, 5)
+_FRAME_BAD_CHARS: Final = re.compile(r"[^A-Za-z0-9_.\-]")
+_NS_PER_S: Final = 1_000_000_000
+
+
+class RosConversionError(ValueError):
+    """A ROS payload could not be turned into a bridge reading (the reason says why)."""
+
+
+# --------------------------------------------------------------------------------------------
+# topic names and keys
+# --------------------------------------------------------------------------------------------
+
+
+def _clean_topic(topic: str) -> str:
+    name = str(topic).strip().strip("/")
+    if not name or any(c in name for c in "*?$#") or "//" in name:
+        raise ValueError(f"invalid ROS topic name {topic!r}")
+    return name
+
+
+def ros2dds_key(topic: str, namespace: str = "") -> str:
+    """Zenoh key of a ROS 2 topic as ``zenoh-bridge-ros2dds`` routes it: ``/x`` → ``x``, with
+    the bridge's ``namespace`` (``/robot1`` or ``robot1``) prepended when it is not ``/``."""
+    name = _clean_topic(topic)
+    ns = str(namespace).strip().strip("/")
+    return f"{_clean_topic(ns)}/{name}" if ns else name
+
+
+def ros1_datatype(ros_type: str) -> str:
+    """ROS 1 spelling of a message type: ``nav_msgs/msg/Odometry`` → ``nav_msgs/Odometry``."""
+    parts = ros_type.split("/")
+    return f"{parts[0]}/{parts[-1]}"
+
+
+def ros1_key(topic: str, ros_type: str, namespace: str = "") -> str:
+    """Zenoh key of a ROS 1 topic as ``zenoh-plugin-ros1`` routes it:
+    ``<hex(datatype)>/<md5>/[<bridge_ns>/]<topic>``; ``md5`` is the ROS 1 message md5sum."""
+    _, md5 = typestore(ros1=True).generate_msgdef(ros_type)
+    datatype_hex = ros1_datatype(ros_type).encode().hex()
+    name = _clean_topic(topic)
+    ns = str(namespace).strip().strip("/")
+    prefix = f"{datatype_hex}/{md5}"
+    return f"{prefix}/{_clean_topic(ns)}/{name}" if ns else f"{prefix}/{name}"
+
+
+def ros1_key_pattern(topic: str, namespace: str = "") -> str:
+    """Subscription key matching a ROS 1 topic of any type through ``zenoh-plugin-ros1``."""
+    name = _clean_topic(topic)
+    ns = str(namespace).strip().strip("/")
+    return f"*/*/{_clean_topic(ns)}/{name}" if ns else f"*/*/{name}"
+
+
+def ros_frame_to_id(frame_id: str, default: str) -> str:
+    """A ROS frame id (``/odom``, ``hsrb/odom``) as a protocol id (``odom``, ``hsrb_odom``)."""
+    name = str(frame_id).strip().strip("/")
+    return _FRAME_BAD_CHARS.sub("_", name)[:64] or default
+
+
+# --------------------------------------------------------------------------------------------
+# pure conversions
+# --------------------------------------------------------------------------------------------
+
+
+@functools.cache
+def typestore(ros1: bool = False) -> Any:
+    """The ``rosbags`` typestore: ROS 2 Humble message definitions (CDR), or ROS 1 Noetic."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+
+
+def stamp_ns_to_ros(stamp_ns: int) -> tuple[int, int]:
+    """ns since the epoch → ``(sec, nanosec)`` of ``builtin_interfaces/Time``."""
+    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    return sec, nanosec
+
+
+def ros_to_stamp_ns(sec: int, nanosec: int) -> int:
+    """``builtin_interfaces/Time`` → ns since the epoch."""
+    return int(sec) * _NS_PER_S + int(nanosec)
+
+
+def yaw_to_quaternion_xyzw(theta_rad: float) -> tuple[float, float, float, float]:
+    """Planar heading (rad, about +z) → unit quaternion (x, y, z, w)."""
+    half = 0.5 * float(theta_rad)
+    return 0.0, 0.0, math.sin(half), math.cos(half)
+
+
+def quaternion_xyzw_to_yaw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rad, in (-pi, pi]) of a quaternion; it need not be normalised, must not be zero."""
+    q = np.array([x, y, z, w], dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or norm < 1e-9:
+        raise RosConversionError(f"invalid orientation quaternion {q.tolist()}")
+    x, y, z, w = q / norm
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def covariance_3x3_to_6x6(covariance: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of (x, y, yaw) → the (36,) row-major ROS covariance of
+    (x, y, z, roll, pitch, yaw). z, roll and pitch rows stay zero: a ground robot's pose has
+    none of that freedom, and AMCL / the HSR localizer read only the x, y and yaw entries."""
+    cov3 = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+    cov6 = np.zeros((6, 6))
+    for i, ri in enumerate(_COV6_INDEX):
+        for j, rj in enumerate(_COV6_INDEX):
+            cov6[ri, rj] = cov3[i, j]
+    return cov6.reshape(36)
+
+
+def covariance_6x6_to_3x3(covariance: Any) -> np.ndarray:
+    """(36,) ROS covariance → (3, 3) of (x, y, yaw). A covariance that is not finite or has a
+    negative variance (ROS's "unknown" convention puts -1 first) gives zeros: unknown."""
+    cov6 = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
+    idx = np.array(_COV6_INDEX)
+    cov3 = cov6[np.ix_(idx, idx)]
+    cov3 = 0.5 * (cov3 + cov3.T)
+    if not np.all(np.isfinite(cov3)) or np.any(np.diag(cov3) < 0.0):
+        return np.zeros((3, 3))
+    return cov3
+
+
+def correction_to_ros(
+    correction: PoseCorrection, *, frame_id: str = "map", ros1: bool = False
+) -> Any:
+    """A :class:`PoseCorrection` as a ``geometry_msgs/msg/PoseWithCovarianceStamped`` (rosbags
+    message object). Header stamp = the estimate's time (AMCL compensates motion since then),
+    frame ``frame_id``; ROS 1 headers get ``seq`` = the correction's seq."""
+    ts = typestore(ros1)
+    t = ts.types
+    sec, nanosec = stamp_ns_to_ros(correction.stamp_ns)
+    stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+    if ros1:
+        header = t["std_msgs/msg/Header"](seq=correction.seq, stamp=stamp, frame_id=frame_id)
+    else:
+        header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+    qx, qy, qz, qw = yaw_to_quaternion_xyzw(correction.theta)
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=correction.x, y=correction.y, z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+    pwc = t["geometry_msgs/msg/PoseWithCovariance"](
+        pose=pose, covariance=covariance_3x3_to_6x6(correction.covariance)
+    )
+    return t[POSE_WITH_COVARIANCE_STAMPED_TYPE](header=header, pose=pwc)
+
+
+def serialize_correction(
+    correction: PoseCorrection, *, frame_id: str = "map", ros1: bool = False
+) -> bytes:
+    """Wire bytes of :func:`correction_to_ros`: CDR (little endian, with the encapsulation
+    header) for ROS 2, ROS 1 serialization when ``ros1``."""
+    msg = correction_to_ros(correction, frame_id=frame_id, ros1=ros1)
+    ts = typestore(ros1)
+    if ros1:
+        return bytes(ts.serialize_ros1(msg, POSE_WITH_COVARIANCE_STAMPED_TYPE))
+    return bytes(ts.serialize_cdr(msg, POSE_WITH_COVARIANCE_STAMPED_TYPE))
+
+
+def _deserialize(payload: Any, ros_type: str, ros1: bool) -> Any:
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise RosConversionError(f"payload is {type(payload).__name__}, not bytes")
+    ts = typestore(ros1)
+    try:
+        if ros1:
+            return ts.deserialize_ros1(bytes(payload), ros_type)
+        return ts.deserialize_cdr(bytes(payload), ros_type)
+    except Exception as exc:  # rosbags raises several types on truncated/garbage bytes
+        raise RosConversionError(f"not a {ros_type}: {type(exc).__name__}: {exc}") from None
+
+
+def _finite(name: str, value: Any) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise RosConversionError(f"{name} is not finite")
+    return value
+
+
+def odometry_from_ros(msg: Any) -> OdometrySample:
+    """``nav_msgs/msg/Odometry`` (rosbags object, ROS 1 or 2) → :class:`OdometrySample`: the
+    planar pose (x, y, yaw) of ``child_frame_id`` in ``header.frame_id``, the body twist
+    (vx, vy, wz) and the (x, y, yaw) covariance."""
+    p = msg.pose.pose
+    tw = msg.twist.twist
+    stamp_ns = ros_to_stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+    if stamp_ns < 0:
+        raise RosConversionError("negative stamp")
+    o = p.orientation
+    return OdometrySample(
+        stamp_ns=stamp_ns,
+        x=_finite("position.x", p.position.x),
+        y=_finite("position.y", p.position.y),
+        theta=quaternion_xyzw_to_yaw(o.x, o.y, o.z, o.w),
+        vx=_finite("twist.linear.x", tw.linear.x),
+        vy=_finite("twist.linear.y", tw.linear.y),
+        wz=_finite("twist.angular.z", tw.angular.z),
+        covariance=covariance_6x6_to_3x3(msg.pose.covariance),
+        frame_id=ros_frame_to_id(msg.header.frame_id, "odom"),
+    )
+
+
+def deserialize_odometry(payload: Any, *, ros1: bool = False) -> OdometrySample:
+    """Odometry wire bytes (CDR, or ROS 1 when ``ros1``) → :class:`OdometrySample`;
+    :class:`RosConversionError` on anything else."""
+    return odometry_from_ros(_deserialize(payload, ODOMETRY_TYPE, ros1))
+
+
+def localization_from_ros(msg: Any, ros_type: str) -> LocalizationPose:
+    """``PoseWithCovarianceStamped`` (AMCL ``amcl_pose``) or ``PoseStamped`` (HSR
+    ``global_pose``) → :class:`LocalizationPose` in the message's frame."""
+    if ros_type == POSE_WITH_COVARIANCE_STAMPED_TYPE:
+        pose, cov = msg.pose.pose, covariance_6x6_to_3x3(msg.pose.covariance)
+    elif ros_type == POSE_STAMPED_TYPE:
+        pose, cov = msg.pose, None
+    else:
+        raise RosConversionError(f"unsupported localization type {ros_type}")
+    o = pose.orientation
+    return LocalizationPose(
+        stamp_ns=ros_to_stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec),
+        x=_finite("position.x", pose.position.x),
+        y=_finite("position.y", pose.position.y),
+        theta=quaternion_xyzw_to_yaw(o.x, o.y, o.z, o.w),
+        covariance=cov,
+        frame_id=ros_frame_to_id(msg.header.frame_id, "map"),
+    )
+
+
+def deserialize_localization(
+    payload: Any, ros_type: str = POSE_WITH_COVARIANCE_STAMPED_TYPE, *, ros1: bool = False
+) -> LocalizationPose:
+    """Localization wire bytes → :class:`LocalizationPose`; :class:`RosConversionError` on
+    anything else."""
+    if ros_type not in LOCALIZATION_TYPES:
+        raise RosConversionError(f"unsupported localization type {ros_type}")
+    return localization_from_ros(_deserialize(payload, ros_type, ros1), ros_type)
+
+
+# --------------------------------------------------------------------------------------------
+# Zenoh transport
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RosTopics:
+    """Which ROS topics the adapter uses (names without leading slash are fine).
+
+    ``correction_topic``: ``laser_2d_correct_pose`` (HSR) or ``initialpose`` (Nav2/AMCL).
+    ``localization_topic``: the robot's own map pose (``amcl_pose``, HSR ``global_pose``) or
+    ``None`` when the robot does not publish one (then every stop may send an initial pose).
+    ``namespace``: the ``namespace`` of zenoh-bridge-ros2dds (or of zenoh-plugin-ros1).
+    ``ros1``: ROS 1 serialization and zenoh-plugin-ros1 keys instead of CDR / ros2dds keys.
+    ``map_frame``: frame id written into corrections.
+    """
+
+    odometry_topic: str = "odom"
+    correction_topic: str = NAV2_INITIALPOSE_TOPIC
+    localization_topic: str | None = "amcl_pose"
+    localization_type: str = POSE_WITH_COVARIANCE_STAMPED_TYPE
+    namespace: str = ""
+    ros1: bool = False
+    map_frame: str = "map"
+
+    @classmethod
+    def hsr(cls, *, ros1: bool = False, namespace: str = "") -> RosTopics:
+        """Toyota HSR: odometry ``/hsrb/odom`` (ROS 1) or ``/switched_odom`` (ROS 2),
+        corrections on ``laser_2d_correct_pose``, localization ``global_pose``."""
+        return cls(
+            odometry_topic="hsrb/odom" if ros1 else "switched_odom",
+            correction_topic=HSR_CORRECTION_TOPIC,
+            localization_topic="global_pose",
+            localization_type=POSE_STAMPED_TYPE,
+            namespace=namespace,
+            ros1=ros1,
+        )
+
+    @classmethod
+    def nav2(cls, *, namespace: str = "") -> RosTopics:
+        """Nav2 with AMCL: ``odom``, ``initialpose``, ``amcl_pose``."""
+        return cls(namespace=namespace)
+
+    def odometry_key(self) -> str:
+        if self.ros1:
+            return ros1_key_pattern(self.odometry_topic, self.namespace)
+        return ros2dds_key(self.odometry_topic, self.namespace)
+
+    def correction_key(self) -> str:
+        if self.ros1:
+            return ros1_key(self.correction_topic, POSE_WITH_COVARIANCE_STAMPED_TYPE,
+                            self.namespace)
+        return ros2dds_key(self.correction_topic, self.namespace)
+
+    def localization_key(self) -> str | None:
+        if self.localization_topic is None:
+            return None
+        if self.ros1:
+            return ros1_key_pattern(self.localization_topic, self.namespace)
+        return ros2dds_key(self.localization_topic, self.namespace)
+
+
+class RosZenohAdapter(RobotAdapter):
+    """A ROS robot reached over Zenoh through zenoh-bridge-ros2dds (or zenoh-plugin-ros1).
+
+    Uses an open ``zenoh.Session`` (not owned: the caller closes it). Subscriptions hand
+    samples to bounded ring channels (oldest dropped under overload, never blocking Zenoh's
+    threads); :meth:`read_odometry` drains and decodes them. Undecodable payloads are counted
+    in :attr:`counters` (``invalid_odometry``, ``invalid_localization``) and dropped.
+    """
+
+    name = "ros2"
+
+    def __init__(self, session: Any, topics: RosTopics | None = None, *,
+                 queue_size: int = 512) -> None:
+        import zenoh
+
+        super().__init__()
+        self.topics = topics or RosTopics()
+        if self.topics.localization_type not in LOCALIZATION_TYPES:
+            raise ValueError(
+                f"localization_type {self.topics.localization_type!r}: expected one of "
+                f"{LOCALIZATION_TYPES}"
+            )
+        self.name = "ros1" if self.topics.ros1 else "ros2"
+        self._session = session
+        self._latest_localization: LocalizationPose | None = None
+        self._closed = False
+        self._odom_sub = session.declare_subscriber(
+            self.topics.odometry_key(), zenoh.handlers.RingChannel(queue_size)
+        )
+        loc_key = self.topics.localization_key()
+        self._loc_sub = (
+            session.declare_subscriber(loc_key, zenoh.handlers.RingChannel(16))
+            if loc_key is not None
+            else None
+        )
+        # Corrections are rare and must not be dropped by congestion control.
+        self._publisher = session.declare_publisher(
+            self.topics.correction_key(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+
+    @staticmethod
+    def _drain(subscriber: Any) -> list[bytes]:
+        out = []
+        while True:
+            sample = subscriber.try_recv()
+            if sample is None:
+                return out
+            out.append(sample.payload.to_bytes())
+
+    def read_odometry(self) -> list[OdometrySample]:
+        if self._closed:
+            return []
+        samples = []
+        for payload in self._drain(self._odom_sub):
+            try:
+                samples.append(deserialize_odometry(payload, ros1=self.topics.ros1))
+            except RosConversionError as exc:
+                self._count("invalid_odometry")
+                log.debug("dropped odometry: %s", exc)
+        self._count("odometry", len(samples))
+        return samples
+
+    def read_localization(self) -> LocalizationPose | None:
+        if self._loc_sub is not None and not self._closed:
+            for payload in self._drain(self._loc_sub):
+                try:
+                    self._latest_localization = deserialize_localization(
+                        payload, self.topics.localization_type, ros1=self.topics.ros1
+                    )
+                    self._count("localization")
+                except RosConversionError as exc:
+                    self._count("invalid_localization")
+                    log.debug("dropped localization: %s", exc)
+        return self._latest_localization
+
+    def apply_correction(self, correction: PoseCorrection) -> bool:
+        if self._closed:
+            return False
+        try:
+            payload = serialize_correction(
+                correction, frame_id=self.topics.map_frame, ros1=self.topics.ros1
+            )
+            self._publisher.put(payload)
+        except Exception as exc:  # a dead session must not take the bridge down
+            self._count("correction_publish_failed")
+            log.warning("could not publish correction: %s", exc)
+            return False
+        self._count("corrections_published")
+        return True
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for entity in (self._odom_sub, self._loc_sub, self._publisher):
+            if entity is not None:
+                try:
+                    entity.undeclare()
+                except Exception:  # session already closed
+                    log.debug("undeclare failed", exc_info=True)

@@ -1,0 +1,463 @@
+"""The robot bridge core: robot odometry in, ``Odometry`` to the backend out, pose corrections
+to the robot when it is static.
+
+Transport-free: a :class:`RobotBridge` is fed readings and messages through ``on_*`` methods and
+returns an :class:`Outbox` of messages to publish (``odometry`` → backend) and poses to push
+(``corrections`` → the robot adapter, and to the correction key for monitoring). The Zenoh
+service shell owns the sessions, subscriptions, status publication and liveliness; tests feed
+the core directly.
+
+Local autonomy: nothing here waits for the backend. Odometry is converted and returned at once
+whatever the link state; when no pose or heartbeat arrived for ``backend_timeout_s`` the status
+says ``backend lost`` and the robot keeps navigating on its own localization.
+
+Bad input (wrong types, NaN, stamps in the future or going backwards, other robots' poses) is
+counted in :attr:`RobotBridge.counters` and dropped; no ``on_*`` method raises.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Mapping
+from typing import Any, Final
+
+from protocol.errors import ProtocolError
+from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
+from protocol.site import Thresholds
+from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
+from robot_bridge.policy import (
+    NS_PER_S,
+    SEND,
+    CorrectionDecision,
+    CorrectionPolicy,
+    MotionState,
+    StaticDetector,
+    localization_known,
+    wrap_angle,
+)
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME: Final = "robot-bridge"
+#: Source preference when both a fused and a camera-only estimate exist for the current stop.
+SOURCE_PREFERENCE: Final = ("fused", "cameras")
+
+
+@dataclasses.dataclass(frozen=True)
+class BridgeConfig:
+    """Configuration of one bridge (one robot).
+
+    ``backend_timeout_s``: no pose estimate or heartbeat from the backend for this long means
+    the backend (or the link) is lost. ``robot_timeout_s``: the same for robot odometry.
+    ``world_frame``: the frame estimates must be expressed in (the site's world frame).
+    """
+
+    robot_id: str
+    thresholds: Thresholds = dataclasses.field(default_factory=Thresholds)
+    backend_timeout_s: float = 3.0
+    robot_timeout_s: float = 1.0
+    world_frame: str = "map"
+
+
+@dataclasses.dataclass(frozen=True)
+class Outbox:
+    """What one call produced: ``odometry`` to publish to the backend, ``corrections`` to push
+    to the robot (and to publish on the correction key)."""
+
+    odometry: tuple[Odometry, ...] = ()
+    corrections: tuple[PoseCorrection, ...] = ()
+
+    def __add__(self, other: Outbox) -> Outbox:
+        return Outbox(self.odometry + other.odometry, self.corrections + other.corrections)
+
+    def __bool__(self) -> bool:
+        return bool(self.odometry or self.corrections)
+
+
+@dataclasses.dataclass(frozen=True)
+class BridgeStatus:
+    """Health of the bridge at ``now_ns``.
+
+    ``state``: ``starting`` (nothing heard yet), ``ok``, or ``degraded`` (backend or robot
+    silent); ``detail`` says which in words. ``last_decision``: reason of the latest correction
+    decision (``send``, ``moving``, ``offset_below_threshold``...).
+    """
+
+    now_ns: int
+    state: str
+    detail: str
+    backend_alive: bool
+    robot_alive: bool
+    localization_known: bool
+    is_static: bool
+    stop_id: int
+    last_decision: str
+    counters: Mapping[str, int]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+class RobotBridge:
+    """Bridge core for one robot (see module docstring). Not thread-safe: one worker loop
+    calls it."""
+
+    def __init__(self, config: BridgeConfig) -> None:
+        self.config = config
+        th = config.thresholds
+        self._max_future_ns = round(th.max_future_ms * 1e6)
+        self._backend_timeout_ns = round(config.backend_timeout_s * NS_PER_S)
+        self._robot_timeout_ns = round(config.robot_timeout_s * NS_PER_S)
+        self._static = StaticDetector(th)
+        self._policy = CorrectionPolicy(th)
+        self._counters: dict[str, int] = {}
+        self._now_ns = 0
+        self._odom_seq = 0
+        self._correction_seq = 0
+        self._last_odom_stamp_ns: int | None = None
+        self._last_odom_rx_ns: int | None = None
+        self._last_backend_ns: int | None = None
+        self._backend_gone = False
+        self._localization: LocalizationPose | None = None
+        self._estimates: dict[str, PoseEstimate] = {}
+        self._last_decision: CorrectionDecision = CorrectionDecision("moving")
+        self._last_counted: tuple[Any, str] | None = None
+
+    # ---------------------------------------------------------------------------------------
+    # inputs
+    # ---------------------------------------------------------------------------------------
+
+    def on_robot_odometry(self, sample: Any, receive_ns: int | None = None) -> Outbox:
+        """One odometry reading from the robot adapter (:class:`OdometrySample`).
+
+        Returns the :class:`Odometry` message to publish to the backend (at once, whatever the
+        backend's state), plus a correction when this sample completes a stop's dwell time.
+        ``receive_ns``: when it arrived on the bridge's clock (``None``: use its stamp).
+        """
+        try:
+            return self._on_odometry(sample, receive_ns)
+        except Exception:  # the robot must never be stopped by a bridge bug
+            log.exception("unexpected error on robot odometry")
+            self._count("internal_error")
+            return Outbox()
+
+    def on_robot_localization(self, pose: Any, receive_ns: int | None = None) -> Outbox:
+        """The robot's own map-frame pose (:class:`LocalizationPose`), or ``None`` when the
+        robot has none (never localized)."""
+        try:
+            if pose is not None and not isinstance(pose, LocalizationPose):
+                return self._reject("invalid_localization", f"type {type(pose).__name__}")
+            if pose is not None and (not _is_int(pose.stamp_ns) or pose.stamp_ns < 0):
+                return self._reject("invalid_localization", "bad stamp")
+            if pose is not None and not pose.lost and not pose.is_finite:
+                return self._reject("invalid_localization", "non-finite pose")
+            if pose is not None and pose.frame_id != self.config.world_frame:
+                return self._reject("wrong_frame_localization", pose.frame_id)
+            self._advance(receive_ns)
+            self._count("received_localization")
+            self._localization = pose
+            return self._evaluate()
+        except Exception:
+            log.exception("unexpected error on robot localization")
+            self._count("internal_error")
+            return Outbox()
+
+    def on_pose_estimate(self, estimate: Any, receive_ns: int | None = None) -> Outbox:
+        """A pose estimate of the backend (``source`` ``fused`` or ``cameras``). Counts as a
+        sign of life of the backend; may produce a correction when the robot is static."""
+        try:
+            return self._on_estimate(estimate, receive_ns)
+        except Exception:
+            log.exception("unexpected error on pose estimate")
+            self._count("internal_error")
+            return Outbox()
+
+    def on_backend_heartbeat(self, receive_ns: int | None = None) -> None:
+        """The backend is alive (its status message or liveliness token was seen)."""
+        self._advance(receive_ns)
+        self._last_backend_ns = self._now_ns
+        self._backend_gone = False
+
+    def on_backend_gone(self, receive_ns: int | None = None) -> None:
+        """The backend's liveliness token disappeared: lost now, without waiting the timeout."""
+        self._advance(receive_ns)
+        self._backend_gone = True
+
+    def on_correction_result(self, correction: PoseCorrection, accepted: bool) -> None:
+        """What the adapter said when the correction was pushed (counted for the status)."""
+        self._count("corrections_accepted" if accepted else "corrections_refused")
+        if not accepted:
+            log.warning("robot refused %s (seq %d)", correction.kind, correction.seq)
+
+    def tick(self, now_ns: int) -> Outbox:
+        """Advance the bridge clock to ``now_ns`` (ns, same clock as the odometry stamps) and
+        re-evaluate the correction rule. Call it periodically (e.g. 10 Hz)."""
+        try:
+            if not _is_int(now_ns) or now_ns < 0:
+                return self._reject("invalid_tick", repr(now_ns)[:40])
+            self._advance(now_ns)
+            return self._evaluate()
+        except Exception:
+            log.exception("unexpected error on tick")
+            self._count("internal_error")
+            return Outbox()
+
+    def pump(self, adapter: RobotAdapter, now_ns: int) -> Outbox:
+        """One step of a worker loop between a robot adapter and this core (no transport).
+
+        Reads the adapter's new odometry and its latest localization, feeds them in, ticks at
+        ``now_ns``, pushes any corrections to the robot with ``adapter.apply_correction`` and
+        returns everything produced (odometry to publish; corrections to publish for
+        monitoring). Adapter exceptions are counted as ``adapter_error``, never raised.
+        """
+        out = Outbox()
+        try:
+            samples = list(adapter.read_odometry())
+        except Exception:
+            log.exception("adapter %s: read_odometry failed", adapter.name)
+            self._count("adapter_error")
+            samples = []
+        for sample in samples:
+            out = out + self.on_robot_odometry(sample, now_ns)
+        try:
+            localization = adapter.read_localization()
+        except Exception:
+            log.exception("adapter %s: read_localization failed", adapter.name)
+            self._count("adapter_error")
+        else:
+            if localization is not None and localization is not self._localization:
+                out = out + self.on_robot_localization(localization, now_ns)
+        out = out + self.tick(now_ns)
+        for correction in out.corrections:
+            try:
+                accepted = bool(adapter.apply_correction(correction))
+            except Exception:
+                log.exception("adapter %s: apply_correction failed", adapter.name)
+                self._count("adapter_error")
+                accepted = False
+            self.on_correction_result(correction, accepted)
+        return out
+
+    # ---------------------------------------------------------------------------------------
+    # status
+    # ---------------------------------------------------------------------------------------
+
+    @property
+    def counters(self) -> Mapping[str, int]:
+        return dict(self._counters)
+
+    @property
+    def motion(self) -> MotionState:
+        return self._static.state
+
+    def backend_alive(self, now_ns: int | None = None) -> bool:
+        """A pose or heartbeat from the backend arrived within ``backend_timeout_s``."""
+        now = self._now_ns if now_ns is None else max(now_ns, self._now_ns)
+        return (
+            not self._backend_gone
+            and self._last_backend_ns is not None
+            and now - self._last_backend_ns <= self._backend_timeout_ns
+        )
+
+    def status(self, now_ns: int | None = None) -> BridgeStatus:
+        """Health at ``now_ns`` (default: the bridge clock)."""
+        now = self._now_ns if now_ns is None else max(int(now_ns), self._now_ns)
+        backend = self.backend_alive(now)
+        robot = (
+            self._last_odom_rx_ns is not None
+            and now - self._last_odom_rx_ns <= self._robot_timeout_ns
+        )
+        problems = []
+        if self._last_odom_rx_ns is None and self._last_backend_ns is None:
+            state = "starting"
+            problems.append("waiting for robot odometry and backend")
+        else:
+            if not robot:
+                problems.append(
+                    "robot lost: no odometry"
+                    if self._last_odom_rx_ns is None
+                    else f"robot lost: no odometry for {(now - self._last_odom_rx_ns) / 1e9:.1f} s"
+                )
+            if not backend:
+                if self._last_backend_ns is None:
+                    problems.append("backend lost: never heard")
+                elif self._backend_gone:
+                    problems.append("backend lost: liveliness gone")
+                else:
+                    silent_s = (now - self._last_backend_ns) / 1e9
+                    problems.append(f"backend lost: no pose or heartbeat for {silent_s:.1f} s")
+                problems.append("robot navigates on its own localization")
+            state = "degraded" if problems else "ok"
+        return BridgeStatus(
+            now_ns=now,
+            state=state,
+            detail="; ".join(problems),
+            backend_alive=backend,
+            robot_alive=robot,
+            localization_known=localization_known(self._localization),
+            is_static=self._static.state.is_static,
+            stop_id=self._static.state.stop_id,
+            last_decision=self._last_decision.reason,
+            counters=dict(self._counters),
+        )
+
+    def service_status(self, now_ns: int, seq: int, uptime_s: float = 0.0) -> ServiceStatus:
+        """The :class:`ServiceStatus` message of this bridge (``robot-bridge/<robot_id>``)."""
+        st = self.status(now_ns)
+        peers = ("backend",) if st.backend_alive else ()
+        return ServiceStatus(
+            service=SERVICE_NAME,
+            instance_id=self.config.robot_id,
+            stamp_ns=st.now_ns,
+            seq=seq,
+            state=st.state,
+            uptime_s=max(0.0, float(uptime_s)),
+            counters=st.counters,
+            peers_alive=peers,
+            detail=(st.detail or f"static={st.is_static} last_decision={st.last_decision}")[
+                :1000
+            ],
+        )
+
+    # ---------------------------------------------------------------------------------------
+    # internals
+    # ---------------------------------------------------------------------------------------
+
+    def _count(self, what: str, n: int = 1) -> None:
+        self._counters[what] = self._counters.get(what, 0) + n
+
+    def _reject(self, counter: str, why: str) -> Outbox:
+        self._count(counter)
+        log.debug("dropped (%s): %s", counter, why)
+        return Outbox()
+
+    def _advance(self, now_ns: int | None) -> None:
+        if _is_int(now_ns) and now_ns > self._now_ns:  # type: ignore[operator]
+            self._now_ns = int(now_ns)  # type: ignore[arg-type]
+
+    def _future(self, stamp_ns: int, receive_ns: int | None) -> bool:
+        ref = receive_ns if _is_int(receive_ns) else self._now_ns
+        return ref > 0 and stamp_ns > ref + self._max_future_ns  # type: ignore[operator]
+
+    def _on_odometry(self, sample: Any, receive_ns: int | None) -> Outbox:
+        if not isinstance(sample, OdometrySample):
+            return self._reject("invalid_odometry", f"type {type(sample).__name__}")
+        if not _is_int(sample.stamp_ns) or sample.stamp_ns < 0:
+            return self._reject("invalid_odometry", "bad stamp")
+        if self._future(sample.stamp_ns, receive_ns):
+            return self._reject("future_stamp_odometry", str(sample.stamp_ns))
+        if self._last_odom_stamp_ns is not None and sample.stamp_ns <= self._last_odom_stamp_ns:
+            return self._reject("out_of_order_odometry", str(sample.stamp_ns))
+        try:
+            theta = float(sample.theta)
+            msg = Odometry(
+                robot_id=self.config.robot_id,
+                stamp_ns=sample.stamp_ns,
+                seq=self._odom_seq,
+                x=sample.x,
+                y=sample.y,
+                theta=wrap_angle(theta) if math.isfinite(theta) else theta,
+                vx=sample.vx,
+                vy=sample.vy,
+                wz=sample.wz,
+                covariance=sample.covariance,
+                frame_id=sample.frame_id,
+            )
+        except (ProtocolError, TypeError, ValueError) as exc:
+            return self._reject("invalid_odometry", str(exc))
+        self._odom_seq += 1
+        self._last_odom_stamp_ns = msg.stamp_ns
+        self._advance(msg.stamp_ns)
+        self._advance(receive_ns)
+        self._last_odom_rx_ns = self._now_ns
+        self._count("received_odometry")
+        self._static.update(msg.stamp_ns, msg.vx, msg.vy, msg.wz)
+        return Outbox(odometry=(msg,)) + self._evaluate()
+
+    def _on_estimate(self, estimate: Any, receive_ns: int | None) -> Outbox:
+        if not isinstance(estimate, PoseEstimate):
+            return self._reject("invalid_estimate", f"type {type(estimate).__name__}")
+        if estimate.robot_id != self.config.robot_id:
+            return self._reject("other_robot_estimate", estimate.robot_id)
+        if estimate.frame_id != self.config.world_frame:
+            return self._reject("wrong_frame_estimate", estimate.frame_id)
+        if self._future(estimate.stamp_ns, receive_ns):
+            return self._reject("future_stamp_estimate", str(estimate.stamp_ns))
+        self._advance(receive_ns)
+        self._count(f"received_estimate_{estimate.source}")
+        self._last_backend_ns = self._now_ns
+        self._backend_gone = False
+        prev = self._estimates.get(estimate.source)
+        if prev is None or estimate.stamp_ns >= prev.stamp_ns:
+            self._estimates[estimate.source] = estimate
+        else:
+            self._count("late_estimate")
+        return self._evaluate()
+
+    def _best_estimate(self, motion: MotionState) -> PoseEstimate | None:
+        """The preferred estimate observed during the current stop (fused over camera-only)."""
+        if motion.still_since_ns is None:
+            return None
+        for source in SOURCE_PREFERENCE:
+            est = self._estimates.get(source)
+            if est is not None and est.stamp_ns >= motion.still_since_ns:
+                return est
+        return None
+
+    def _evaluate(self) -> Outbox:
+        motion = self._static.state
+        estimate = self._best_estimate(motion)
+        decision = self._policy.decide(estimate, self._localization, motion, self._now_ns)
+        self._last_decision = decision
+        if decision.estimate is not None:
+            # count each (estimate, reason) once, not once per tick
+            key = (
+                (decision.estimate.source, decision.estimate.seq, decision.estimate.stamp_ns),
+                decision.reason,
+            )
+            if key != self._last_counted:
+                self._last_counted = key
+                if not decision.send:
+                    self._count(f"skip_{decision.reason}")
+        if not decision.send:
+            return Outbox()
+        est = decision.estimate
+        assert est is not None and decision.kind is not None
+        try:
+            correction = PoseCorrection(
+                robot_id=self.config.robot_id,
+                stamp_ns=est.stamp_ns,
+                seq=self._correction_seq,
+                x=est.x,
+                y=est.y,
+                theta=wrap_angle(est.theta),
+                covariance=est.covariance,
+                kind=decision.kind,
+                offset_m=decision.offset_m,
+                offset_rad=decision.offset_rad,
+                frame_id=self.config.world_frame,
+            )
+        except ProtocolError as exc:
+            return self._reject("invalid_correction", str(exc))
+        self._correction_seq += 1
+        self._policy.mark_sent(motion, self._now_ns)
+        self._count("initializations_sent" if decision.kind == "initialization" else
+                    "corrections_sent")
+        log.info(
+            "%s for %s: (%.3f, %.3f, %.1f deg), offset %.3f m / %.1f deg",
+            decision.kind, self.config.robot_id, est.x, est.y, math.degrees(est.theta),
+            decision.offset_m, math.degrees(decision.offset_rad),
+        )
+        return Outbox(corrections=(correction,))
+
+
+__all__ = [
+    "SEND",
+    "BridgeConfig",
+    "BridgeStatus",
+    "Outbox",
+    "RobotBridge",
+]

@@ -1,0 +1,381 @@
+"""Scenario files: what happens on a simulated site (room, obstacles, waypoints, trajectories,
+motion, sensor noise, seeds). The cameras and the robot model come from the site file the
+scenario names, so the simulation and the services read the very same calibration.
+
+Loading validates everything and raises :class:`ScenarioError` naming the file and the dotted
+key (``waypoints.WP3.xy_m``, ``noise.sigma_px``...). Unknown keys are errors.
+See ``simulation/sites/paper_lab.scenario.yaml`` for every key, documented.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import yaml
+
+from protocol.errors import SiteConfigError
+from protocol.site import Site, load_site
+
+SITES_DIR: Final = Path(__file__).resolve().parent / "sites"
+PAPER_SCENARIO: Final = SITES_DIR / "paper_lab.scenario.yaml"
+
+
+class ScenarioError(ValueError):
+    """A scenario file is missing or invalid; names the file and the key."""
+
+    def __init__(self, path: str, key: str, reason: str) -> None:
+        where = f"{path}: {key}" if key else path
+        super().__init__(f"{where}: {reason}")
+        self.path = path
+        self.key = key
+        self.reason = reason
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Box:
+    """An obstacle: a box standing on the floor (or raised by ``z_min_m``).
+
+    ``center_xy_m``: (2,) centre in the world frame; ``size_m``: (3,) extent along its own
+    x, y and z; ``yaw_rad``: rotation about world z; ``z_min_m``: height of its bottom face.
+    """
+
+    name: str
+    center_xy_m: np.ndarray
+    size_m: np.ndarray
+    yaw_rad: float = 0.0
+    z_min_m: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Waypoint:
+    """A named stop pose (x, y in metres, theta in radians) in the world frame."""
+
+    name: str
+    x: float
+    y: float
+    theta: float
+
+
+@dataclasses.dataclass(frozen=True)
+class MotionConfig:
+    """Differential drive: straight legs and turns in place with trapezoidal profiles."""
+
+    max_speed_mps: float = 0.3
+    accel_mps2: float = 0.3
+    max_yaw_rate_radps: float = 0.6
+    yaw_accel_radps2: float = 1.0
+    stop_s: float = 6.0
+    start_s: float = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryConfig:
+    """Wheel odometry: rate, systematic scale errors and random walk per metre / radian."""
+
+    rate_hz: float = 20.0
+    scale_sigma: float = 0.01
+    yaw_scale_sigma: float = 0.01
+    sigma_m_per_sqrt_m: float = 0.005
+    sigma_rad_per_sqrt_m: float = 0.004
+    sigma_rad_per_sqrt_rad: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalizationConfig:
+    """Internal (LiDAR/particle-filter) localization error: an Ornstein-Uhlenbeck process over
+    travelled distance (mean-reverting: it does not grow without bound, like AMCL on a map
+    that does not match the cluttered room). Stationary std per axis ``stationary_sigma_m``,
+    correlation length ``correlation_length_m``; heading likewise."""
+
+    stationary_sigma_m: float = 0.16
+    correlation_length_m: float = 6.0
+    stationary_sigma_deg: float = 1.2
+    correlation_length_rad: float = 6.0
+    init_sigma_m: float = 0.02
+    init_sigma_deg: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSimConfig:
+    """Camera timing and calibration error.
+
+    ``rate_hz`` frames per second; ``latency_ms`` mean capture→arrival delay, ``jitter_ms`` its
+    std (arrival only, half-normal); ``clock_residual_ms``: std of each camera's remaining clock
+    error after the site's ``clock_offset_ns`` is applied; ``calib_translation_sigma_m`` /
+    ``calib_rotation_sigma_deg``: std of the difference between the true camera pose and the
+    calibrated one in the site file; ``max_range_m``: robot farther away is not detected.
+    """
+
+    rate_hz: float = 15.0
+    latency_ms: float = 60.0
+    jitter_ms: float = 8.0
+    clock_residual_ms: float = 1.0
+    calib_translation_sigma_m: float = 0.01
+    calib_rotation_sigma_deg: float = 0.15
+    max_range_m: float = 11.0
+    min_visible_keypoints: int = 6
+    miss_probability: float = 0.02
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseConfig:
+    """Keypoint detector error model (pixels unless stated).
+
+    Each detection gets a common shift (``sigma_shift_px``) and a relative scale error about its
+    centroid (``sigma_scale``: top-down detectors resize a crop, so bounding-box errors move
+    all keypoints together), then independent noise per keypoint ``sigma_px`` (times
+    ``self_occluded_factor`` for keypoints on the far side of the robot). Keypoints drop out
+    with ``dropout_probability`` (score 0) and become gross outliers with
+    ``outlier_probability`` (displaced uniformly by up to ``outlier_max_px``, high score).
+    """
+
+    sigma_px: float = 1.5
+    sigma_shift_px: float = 0.5
+    sigma_scale: float = 0.02
+    self_occluded_factor: float = 2.0
+    dropout_probability: float = 0.03
+    outlier_probability: float = 0.01
+    outlier_max_px: float = 25.0
+    obstacle_occluded_score: float = 0.15
+
+
+@dataclasses.dataclass(frozen=True)
+class Seeds:
+    """``calibration``: the (fixed) calibration error of the site; ``run``: base of per-run
+    seeds (motion noise, odometry, localization, detections)."""
+
+    calibration: int = 7
+    run: int = 0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scenario:
+    """A loaded, validated scenario with its site."""
+
+    name: str
+    site: Site
+    robot_id: str
+    room_min_xy_m: np.ndarray
+    room_max_xy_m: np.ndarray
+    room_height_m: float
+    obstacles: tuple[Box, ...]
+    waypoints: Mapping[str, Waypoint]
+    trajectories: Mapping[str, tuple[str, ...]]
+    motion: MotionConfig
+    odometry: OdometryConfig
+    localization: LocalizationConfig
+    cameras: CameraSimConfig
+    noise: NoiseConfig
+    seeds: Seeds
+    start_stamp_ns: int
+    source_path: str = "<memory>"
+
+    def trajectory(self, name: str, reverse: bool = False) -> tuple[Waypoint, ...]:
+        """The waypoints of a trajectory, in order (reversed for the reverse run)."""
+        try:
+            names = self.trajectories[name]
+        except KeyError:
+            raise KeyError(
+                f"trajectory {name!r} is not in {self.source_path}; known: "
+                f"{sorted(self.trajectories)}"
+            ) from None
+        seq = tuple(self.waypoints[n] for n in names)
+        return tuple(reversed(seq)) if reverse else seq
+
+    def with_overrides(self, **changes: Any) -> Scenario:
+        """A copy with some top-level fields replaced (e.g. ``noise=...``, ``motion=...``)."""
+        return dataclasses.replace(self, **changes)
+
+
+# --------------------------------------------------------------------------------------------
+# parsing
+# --------------------------------------------------------------------------------------------
+
+_TOP_KEYS: Final = {
+    "scenario", "site_file", "robot_id", "room", "obstacles", "waypoints", "trajectories",
+    "motion", "odometry", "localization", "cameras", "noise", "seeds", "start_stamp_s",
+}
+
+
+class _Ctx:
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def fail(self, key: str, reason: str) -> ScenarioError:
+        return ScenarioError(self.path, key, reason)
+
+    def mapping(self, key: str, value: Any) -> Mapping[str, Any]:
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
+        return value
+
+    def no_unknown(self, key: str, node: Mapping[str, Any], allowed: set[str]) -> None:
+        for k in node:
+            if k not in allowed:
+                where = f"{key}.{k}" if key else str(k)
+                raise self.fail(where, f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+    def number(self, key: str, value: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        v = float(value)
+        if not math.isfinite(v) or v < lo or v > hi:
+            raise self.fail(key, f"{v} is outside [{lo}, {hi}]")
+        return v
+
+    def vector(self, key: str, value: Any, n: int) -> np.ndarray:
+        if not isinstance(value, list) or len(value) != n:
+            raise self.fail(key, f"expected a list of {n} numbers")
+        return np.array([self.number(f"{key}[{i}]", v) for i, v in enumerate(value)])
+
+    def config(self, key: str, value: Any, cls: type) -> Any:
+        node = self.mapping(key, value if value is not None else {})
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        self.no_unknown(key, node, set(fields))
+        kwargs: dict[str, Any] = {}
+        for name, val in node.items():
+            default = fields[name].default
+            if isinstance(default, int) and not isinstance(default, bool):
+                if isinstance(val, bool) or not isinstance(val, int):
+                    raise self.fail(f"{key}.{name}", f"expected an integer, got {val!r}")
+                kwargs[name] = int(val)
+            else:
+                kwargs[name] = self.number(f"{key}.{name}", val, lo=0.0)
+        for name, val in kwargs.items():
+            if name.endswith("probability") and val > 1.0:
+                raise self.fail(f"{key}.{name}", "a probability must lie in [0, 1]")
+            if name.endswith("rate_hz") and val <= 0:
+                raise self.fail(f"{key}.{name}", "must be > 0")
+        return cls(**kwargs)
+
+
+def parse_scenario(doc: Any, path: str = "<memory>", base_dir: Path | None = None,
+                   site: Site | None = None) -> Scenario:
+    """Validate an already-parsed scenario document; ``site`` overrides ``site_file``."""
+    ctx = _Ctx(path)
+    base_dir = base_dir or Path(".")
+    top = ctx.mapping("", doc)
+    ctx.no_unknown("", top, _TOP_KEYS)
+    name = str(top.get("scenario", Path(path).stem))
+    if site is None:
+        if "site_file" not in top:
+            raise ctx.fail("site_file", "required key is missing")
+        site_path = Path(str(top["site_file"]))
+        if not site_path.is_absolute():
+            site_path = base_dir / site_path
+        try:
+            site = load_site(site_path)
+        except SiteConfigError as exc:
+            raise ctx.fail("site_file", f"invalid site file: {exc}") from None
+    robot_id = str(top.get("robot_id", next(iter(site.robots))))
+    if robot_id not in site.robots:
+        raise ctx.fail("robot_id", f"{robot_id!r} is not a robot of the site {sorted(site.robots)}")
+
+    room = ctx.mapping("room", top.get("room"))
+    ctx.no_unknown("room", room, {"min_xy_m", "max_xy_m", "height_m"})
+    if "min_xy_m" not in room or "max_xy_m" not in room:
+        raise ctx.fail("room", "needs min_xy_m and max_xy_m")
+    rmin = ctx.vector("room.min_xy_m", room["min_xy_m"], 2)
+    rmax = ctx.vector("room.max_xy_m", room["max_xy_m"], 2)
+    if np.any(rmax <= rmin):
+        raise ctx.fail("room.max_xy_m", "must be larger than min_xy_m on both axes")
+    height = ctx.number("room.height_m", room.get("height_m", 3.0), lo=0.5, hi=100.0)
+
+    obstacles: list[Box] = []
+    obs_node = top.get("obstacles", []) or []
+    if not isinstance(obs_node, list):
+        raise ctx.fail("obstacles", "expected a list of boxes")
+    for i, ob in enumerate(obs_node):
+        key = f"obstacles[{i}]"
+        ob = ctx.mapping(key, ob)
+        ctx.no_unknown(key, ob, {"name", "center_xy_m", "size_m", "yaw_deg", "z_min_m"})
+        for req in ("center_xy_m", "size_m"):
+            if req not in ob:
+                raise ctx.fail(f"{key}.{req}", "required key is missing")
+        size = ctx.vector(f"{key}.size_m", ob["size_m"], 3)
+        if np.any(size <= 0):
+            raise ctx.fail(f"{key}.size_m", "sizes must be > 0")
+        obstacles.append(Box(
+            name=str(ob.get("name", f"box{i}")),
+            center_xy_m=ctx.vector(f"{key}.center_xy_m", ob["center_xy_m"], 2),
+            size_m=size,
+            yaw_rad=math.radians(ctx.number(f"{key}.yaw_deg", ob.get("yaw_deg", 0.0))),
+            z_min_m=ctx.number(f"{key}.z_min_m", ob.get("z_min_m", 0.0), lo=0.0),
+        ))
+
+    wp_node = ctx.mapping("waypoints", top.get("waypoints"))
+    if len(wp_node) < 2:
+        raise ctx.fail("waypoints", "define at least two waypoints")
+    waypoints: dict[str, Waypoint] = {}
+    for wp_name, wp in wp_node.items():
+        key = f"waypoints.{wp_name}"
+        wp = ctx.mapping(key, wp)
+        ctx.no_unknown(key, wp, {"xy_m", "theta_deg"})
+        if "xy_m" not in wp:
+            raise ctx.fail(f"{key}.xy_m", "required key is missing")
+        xy = ctx.vector(f"{key}.xy_m", wp["xy_m"], 2)
+        if np.any(xy <= rmin) or np.any(xy >= rmax):
+            raise ctx.fail(f"{key}.xy_m", "lies outside the room")
+        for b in obstacles:
+            if point_in_box_xy(xy, b):
+                raise ctx.fail(f"{key}.xy_m", f"lies inside obstacle {b.name!r}")
+        theta = math.radians(ctx.number(f"{key}.theta_deg", wp.get("theta_deg", 0.0),
+                                        lo=-360, hi=360))
+        theta = math.atan2(math.sin(theta), math.cos(theta))
+        waypoints[str(wp_name)] = Waypoint(str(wp_name), float(xy[0]), float(xy[1]), theta)
+
+    tr_node = ctx.mapping("trajectories", top.get("trajectories"))
+    if not tr_node:
+        raise ctx.fail("trajectories", "define at least one trajectory")
+    trajectories: dict[str, tuple[str, ...]] = {}
+    for tr_name, seq in tr_node.items():
+        key = f"trajectories.{tr_name}"
+        if not isinstance(seq, list) or len(seq) < 2:
+            raise ctx.fail(key, "expected a list of at least two waypoint names")
+        for j, wp_name in enumerate(seq):
+            if str(wp_name) not in waypoints:
+                raise ctx.fail(f"{key}[{j}]", f"unknown waypoint {wp_name!r}")
+            if j and str(seq[j - 1]) == str(wp_name):
+                raise ctx.fail(f"{key}[{j}]", "repeats the previous waypoint")
+        trajectories[str(tr_name)] = tuple(str(s) for s in seq)
+
+    seeds = ctx.config("seeds", top.get("seeds"), Seeds)
+    start_s = ctx.number("start_stamp_s", top.get("start_stamp_s", 1.7e9), lo=0.0, hi=4e9)
+    return Scenario(
+        name=name, site=site, robot_id=robot_id, room_min_xy_m=rmin, room_max_xy_m=rmax,
+        room_height_m=height, obstacles=tuple(obstacles), waypoints=waypoints,
+        trajectories=trajectories,
+        motion=ctx.config("motion", top.get("motion"), MotionConfig),
+        odometry=ctx.config("odometry", top.get("odometry"), OdometryConfig),
+        localization=ctx.config("localization", top.get("localization"), LocalizationConfig),
+        cameras=ctx.config("cameras", top.get("cameras"), CameraSimConfig),
+        noise=ctx.config("noise", top.get("noise"), NoiseConfig),
+        seeds=seeds, start_stamp_ns=int(round(start_s * 1e9)), source_path=path,
+    )
+
+
+def load_scenario(path: str | Path = PAPER_SCENARIO, site: Site | None = None) -> Scenario:
+    """Load and validate a scenario file (default: the paper's lab)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ScenarioError(str(p), "", f"cannot read scenario file: {exc.strerror}") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ScenarioError(str(p), "", f"not valid YAML: {exc}") from None
+    return parse_scenario(doc, str(p), p.parent, site)
+
+
+def point_in_box_xy(xy: np.ndarray, box: Box, margin_m: float = 0.0) -> bool:
+    """Whether a floor point lies inside a box's footprint (grown by ``margin_m``)."""
+    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+    d = np.asarray(xy, float) - box.center_xy_m
+    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    return bool(np.all(np.abs(local) <= box.size_m[:2] / 2 + margin_m))

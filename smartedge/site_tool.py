@@ -1,0 +1,50 @@
+"""``smartedge site check FILE`` / ``smartedge site calib FILE``: validate a site file or a
+camera calibration file and print what was understood."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+
+from protocol.errors import SiteConfigError
+from protocol.site import load_camera_calibration, load_site
+
+
+def main(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(prog="smartedge site", description=__doc__)
+    sub = parser.add_subparsers(dest="action", required=True)
+    check = sub.add_parser("check", help="validate a site file and summarize it")
+    check.add_argument("path")
+    calib = sub.add_parser("calib", help="read an OpenCV/ROS camera calibration YAML")
+    calib.add_argument("path")
+    args = parser.parse_args(list(argv))
+    try:
+        if args.action == "calib":
+            c = load_camera_calibration(args.path)
+            print(f"{args.path}: {c.width}x{c.height}\nK=\n{c.K}\ndist={c.dist.tolist()}")
+            return 0
+        site = load_site(args.path)
+    except SiteConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"site {site.name!r} ({args.path}), world frame {site.world_frame!r}")
+    for cam in site.cameras.values():
+        pos = cam.position_world
+        axis = cam.optical_axis_world
+        tilt = math.degrees(math.asin(-axis[2]))
+        yaw = math.degrees(math.atan2(axis[1], axis[0]))
+        hfov = math.degrees(2 * math.atan(cam.width / (2 * cam.K[0, 0])))
+        print(f"  camera {cam.camera_id}: {cam.width}x{cam.height}, hfov {hfov:.0f} deg, at "
+              f"({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}) m, looking yaw {yaw:.0f} deg, "
+              f"down {tilt:.0f} deg")
+    for rid, model_name in site.robots.items():
+        model = site.robot_models[model_name]
+        span = np.ptp(model.keypoints_base_m, axis=0)
+        print(f"  robot {rid}: model {model_name}, {model.num_keypoints} keypoints spanning "
+              f"{span[0]:.2f} x {span[1]:.2f} x {span[2]:.2f} m")
+    print("ok")
+    return 0

@@ -1,0 +1,176 @@
+"""Site file: the example loads; each kind of mistake names the key and the file."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from protocol.site import SiteConfigError, load_camera_calibration, load_site
+from tests.conftest import EXAMPLE_SITE
+
+
+def _doc() -> dict:
+    return yaml.safe_load(EXAMPLE_SITE.read_text())
+
+
+def _write(tmp_path: Path, doc: dict, name: str = "site.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_example_site_loads(example_site) -> None:
+    assert example_site.name == "lab"
+    assert sorted(example_site.cameras) == ["cam_ne", "cam_nw", "cam_se", "cam_sw"]
+    model = example_site.robot_model("hsr")
+    assert model.keypoints_base_m.shape == (12, 3)
+    assert example_site.thresholds.single_camera_max_ddepth_m == pytest.approx(0.15)
+    for cam in example_site.cameras.values():
+        # every camera is 2.5 m high and looks down at the room centre
+        assert cam.position_world[2] == pytest.approx(2.5)
+        uv, depth = cam.project(np.array([[10.0, 6.0, 0.0]]))
+        assert depth[0] > 0 and cam.in_image(uv)[0]
+
+
+def test_quaternion_and_look_at_give_the_same_extrinsics(example_site) -> None:
+    # cam_nw is written with a quaternion; it equals the look-at it was derived from
+    from protocol.site import look_at_T_world_cam
+
+    T = look_at_T_world_cam(np.array([7.0, 9.0, 2.5]), np.array([10.5, 5.5, 0.0]))
+    assert np.allclose(example_site.camera("cam_nw").T_world_cam, T, atol=1e-6)
+
+
+def test_projection_matches_opencv(example_site) -> None:
+    cv2 = pytest.importorskip("cv2")
+    cam = example_site.camera("cam_se")
+    pts = np.random.default_rng(0).uniform([8, 4, 0], [12, 8, 1], size=(50, 3))
+    uv, _ = cam.project(pts)
+    rvec, _ = cv2.Rodrigues(cam.T_cam_world[:3, :3])
+    uv_cv, _ = cv2.projectPoints(pts, rvec, cam.T_cam_world[:3, 3], cam.K, cam.dist)
+    assert np.allclose(uv, uv_cv.reshape(-1, 2), atol=1e-6)
+
+
+MISTAKES = [
+    # (mutation, expected key in the message, expected reason fragment)
+    (lambda d: d.pop("site"), "site", "required key is missing"),
+    (lambda d: d.update(sitee="x"), "sitee", "unknown key"),
+    (lambda d: d["cameras"][1].pop("resolution"), "cameras[1].resolution", "missing"),
+    (lambda d: d["cameras"][1].update(K=[[1, 0], [0, 1]]), "cameras[1].K", "3x3"),
+    (lambda d: d["cameras"][0].update(K=np.eye(3).tolist()), "cameras[0].K", "not both"),
+    (lambda d: d["cameras"][0]["intrinsics"].update(fx="wide"), "cameras[0].intrinsics.fx",
+     "expected a number"),
+    (lambda d: d["cameras"][2].update(distortion=[0.1, 0.2, 0.3]), "cameras[2].distortion",
+     "length 3"),
+    (lambda d: d["cameras"][0].pop("T_world_cam"), "cameras[0].T_world_cam", "missing"),
+    (lambda d: d["cameras"][0].update(T_cam_world=np.eye(4).tolist()), "cameras[0]",
+     "not both"),
+    (lambda d: d["cameras"][3]["T_world_cam"].update(quaternion_xyzw=[0, 0, 0, 0]),
+     "cameras[3].T_world_cam.quaternion_xyzw", "not all zero"),
+    (lambda d: d["cameras"][0].update(T_world_cam=(2 * np.eye(4)).tolist()),
+     "cameras[0].T_world_cam", "rotation"),
+    (lambda d: d["cameras"][1].update(id="cam_sw"), "cameras[1].id", "duplicate"),
+    (lambda d: d["cameras"][1].update(id="cam/1"), "cameras[1].id", "invalid id"),
+    (lambda d: d["robot_models"]["hsr"]["keypoints"][2].update(xyz_m=[0, 1]),
+     "robot_models.hsr.keypoints[2].xyz_m", "3 numbers"),
+    (lambda d: d["robot_models"]["hsr"].pop("footprint_radius_m"),
+     "robot_models.hsr.footprint_radius_m", "missing"),
+    (lambda d: d["robots"][0].update(model="pepper"), "robots[0].model", "unknown robot model"),
+    (lambda d: d["thresholds"].update(sync_windw_ms=3), "thresholds.sync_windw_ms", "unknown key"),
+    (lambda d: d["thresholds"].update(multi_frame_count=2.5), "thresholds.multi_frame_count",
+     "integer"),
+    (lambda d: d["thresholds"].update(sync_window_ms=-1), "thresholds.sync_window_ms", "outside"),
+    (lambda d: d.update(cameras=[]), "cameras", "non-empty"),
+]
+
+
+@pytest.mark.parametrize(("mutate", "key", "reason"), MISTAKES, ids=[m[1] for m in MISTAKES])
+def test_each_mistake_names_key_and_file(tmp_path: Path, mutate, key: str, reason: str) -> None:
+    doc = copy.deepcopy(_doc())
+    mutate(doc)
+    path = _write(tmp_path, doc, "broken_site.yaml")
+    with pytest.raises(SiteConfigError) as info:
+        load_site(path)
+    text = str(info.value)
+    assert str(path) in text and info.value.path == str(path)
+    assert info.value.key == key, text
+    assert reason in text
+
+
+def test_unreadable_and_invalid_yaml(tmp_path: Path) -> None:
+    with pytest.raises(SiteConfigError, match="cannot read"):
+        load_site(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("site: [unclosed\n")
+    with pytest.raises(SiteConfigError, match="not valid YAML"):
+        load_site(bad)
+
+
+OPENCV_CALIB = """%YAML:1.0
+---
+image_width: 848
+image_height: 480
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 430.5, 0., 421.25, 0., 431.0, 238.75, 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ -0.05, 0.06, 0.001, -0.0005, -0.02 ]
+"""
+
+ROS_CALIB = """image_width: 640
+image_height: 480
+camera_name: cam
+camera_matrix: {rows: 3, cols: 3, data: [500, 0, 320, 0, 500, 240, 0, 0, 1]}
+distortion_model: plumb_bob
+distortion_coefficients: {rows: 1, cols: 5, data: [0.1, -0.2, 0, 0, 0]}
+"""
+
+
+def test_opencv_and_ros_calibration_files(tmp_path: Path) -> None:
+    cv_file = tmp_path / "cam_cv.yaml"
+    cv_file.write_text(OPENCV_CALIB)
+    calib = load_camera_calibration(cv_file)
+    assert (calib.width, calib.height) == (848, 480)
+    assert calib.K[0, 0] == 430.5 and calib.K[1, 2] == 238.75
+    assert np.allclose(calib.dist, [-0.05, 0.06, 0.001, -0.0005, -0.02])
+    ros_file = tmp_path / "cam_ros.yaml"
+    ros_file.write_text(ROS_CALIB)
+    assert load_camera_calibration(ros_file).K[0, 2] == 320
+
+
+def test_site_camera_from_calibration_file(tmp_path: Path) -> None:
+    (tmp_path / "cam_cv.yaml").write_text(OPENCV_CALIB)
+    doc = _doc()
+    cam = doc["cameras"][0]
+    for key in ("resolution", "intrinsics", "distortion"):
+        cam.pop(key)
+    cam["calibration_file"] = "cam_cv.yaml"
+    site = load_site(_write(tmp_path, doc))
+    assert site.camera("cam_sw").K[0, 0] == 430.5
+    cam["K"] = np.eye(3).tolist()
+    with pytest.raises(SiteConfigError) as info:
+        load_site(_write(tmp_path, doc))
+    assert info.value.key == "cameras[0].K" and "calibration_file" in str(info.value)
+
+
+def test_bad_calibration_file_names_file_and_key(tmp_path: Path) -> None:
+    path = tmp_path / "broken_calib.yaml"
+    path.write_text(OPENCV_CALIB.replace("rows: 3\n   cols: 3", "rows: 2\n   cols: 3", 1))
+    with pytest.raises(SiteConfigError) as info:
+        load_camera_calibration(path)
+    assert info.value.path == str(path) and info.value.key.startswith("camera_matrix")
+
+
+def test_unknown_camera_and_robot_lookups_name_the_known_ids(example_site) -> None:
+    with pytest.raises(KeyError, match="cam_sw"):
+        example_site.camera("cam_x")
+    with pytest.raises(KeyError, match="hsr"):
+        example_site.robot_model("r2d2")
