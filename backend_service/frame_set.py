@@ -84,7 +84,7 @@ class FrameSet:
         cls, robot_id: str, observations: tuple[CameraObservation, ...] | list[CameraObservation]
     ) -> FrameSet:
         obs = tuple(observations)
-        stamp = int(round(np.mean([o.stamp_ns for o in obs]))) if obs else 0
+        stamp = sum(o.stamp_ns for o in obs) // len(obs) if obs else 0  # exact integer ns
         return cls(robot_id, stamp, obs)
 
 

@@ -67,8 +67,9 @@ class CameraModel:
         object.__setattr__(
             self, "K", check_array("K", self.K, dtypes=("float64",), shape=(3, 3)).copy()
         )
-        dist = check_array("dist", np.asarray(self.dist, dtype=np.float64), dtypes=("float64",),
-                           shape=(None,))
+        dist = check_array(
+            "dist", np.asarray(self.dist, dtype=np.float64), dtypes=("float64",), shape=(None,)
+        )
         if dist.size not in DISTORTION_LENGTHS:
             from protocol.errors import ValidationError
 

@@ -48,7 +48,11 @@ M = TypeVar("M", bound=Message)
 
 def _array_to_wire(arr: np.ndarray) -> dict[str, Any]:
     le = arr.astype(arr.dtype.newbyteorder("<"), copy=False)
-    return {"dtype": le.dtype.str, "shape": list(arr.shape), "data": np.ascontiguousarray(le).tobytes()}
+    return {
+        "dtype": le.dtype.str,
+        "shape": list(arr.shape),
+        "data": np.ascontiguousarray(le).tobytes(),
+    }
 
 
 def _value_to_wire(value: Any) -> Any:
@@ -141,8 +145,11 @@ def _record_from_wire(path: str, cls: type, obj: Any, schema: str) -> Any:
     for name, kind, required, nested in _field_specs(cls, schema):
         if name not in obj:
             if required:
-                raise DecodeError(f"{path}.{name}: required field missing" if path
-                                  else f"{name}: required field missing")
+                raise DecodeError(
+                    f"{path}.{name}: required field missing"
+                    if path
+                    else f"{name}: required field missing"
+                )
             continue
         where = f"{path}.{name}" if path else name
         value = obj[name]

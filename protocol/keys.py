@@ -135,8 +135,9 @@ def parse_key(key: str) -> ParsedKey:
             raise ValidationError("key", f"unknown {scope} topic {b!r} in {key!r}")
         return ParsedKey(site, scope, check_id("key.id", a), b, msg_type)
     if scope == "status":
-        return ParsedKey(site, scope, check_id("key.id", b), check_id("key.service", a),
-                         ServiceStatus)
+        return ParsedKey(
+            site, scope, check_id("key.id", b), check_id("key.service", a), ServiceStatus
+        )
     if scope == "alive":
         return ParsedKey(site, scope, check_id("key.id", b), check_id("key.service", a), None)
     raise ValidationError("key", f"unknown scope {scope!r} in {key!r}")

@@ -58,7 +58,7 @@ def _values_equal(a: Any, b: Any) -> bool:
             and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
         )
     if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
-        return len(a) == len(b) and all(_values_equal(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_values_equal(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, Mapping) and isinstance(b, Mapping):
         return a.keys() == b.keys() and all(_values_equal(a[k], b[k]) for k in a)
     if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
@@ -158,7 +158,9 @@ class RobotDetections(Message):
         _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
         _freeze(self, "seq", check_int("seq", self.seq))
         _freeze(
-            self, "image_width", check_int("image_width", self.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX)
+            self,
+            "image_width",
+            check_int("image_width", self.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX),
         )
         _freeze(
             self,
@@ -401,7 +403,9 @@ class ServiceStatus(Message):
             "counters",
             MappingProxyType(dict(check_number_map("counters", self.counters, integer=True))),
         )
-        _freeze(self, "peers_alive", check_str_tuple("peers_alive", self.peers_alive, max_items=4096))
+        _freeze(
+            self, "peers_alive", check_str_tuple("peers_alive", self.peers_alive, max_items=4096)
+        )
         _freeze(self, "detail", check_text("detail", self.detail))
 
 

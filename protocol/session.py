@@ -40,15 +40,36 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the zenoh example flags to a parser."""
     group = parser.add_argument_group("zenoh")
     group.add_argument("--mode", "-m", choices=MODES, help="zenoh session mode")
-    group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to connect to (repeatable), e.g. tcp/10.0.0.2:7447")
-    group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to listen on (repeatable)")
-    group.add_argument("--config", "-c", dest="zenoh_config", metavar="FILE",
-                       help=f"zenoh json5 config file (default: ${ENV_CONFIG} or embedded)")
-    group.add_argument("--no-multicast-scouting", dest="multicast_scouting",
-                       action="store_false", default=None,
-                       help="disable multicast scouting (already off in the embedded default)")
+    group.add_argument(
+        "--connect",
+        "-e",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to connect to (repeatable), e.g. tcp/10.0.0.2:7447",
+    )
+    group.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on (repeatable)",
+    )
+    group.add_argument(
+        "--config",
+        "-c",
+        dest="zenoh_config",
+        metavar="FILE",
+        help=f"zenoh json5 config file (default: ${ENV_CONFIG} or embedded)",
+    )
+    group.add_argument(
+        "--no-multicast-scouting",
+        dest="multicast_scouting",
+        action="store_false",
+        default=None,
+        help="disable multicast scouting (already off in the embedded default)",
+    )
 
 
 def options_from_args(args: argparse.Namespace) -> SessionOptions:
@@ -86,7 +107,9 @@ def make_config(options: SessionOptions | None = None, *, env: os._Environ | dic
         try:
             conf = zenoh.Config.from_file(env[ENV_CONFIG])
         except Exception as exc:
-            raise ValueError(f"${ENV_CONFIG}={env[ENV_CONFIG]}: invalid zenoh config: {exc}") from None
+            raise ValueError(
+                f"${ENV_CONFIG}={env[ENV_CONFIG]}: invalid zenoh config: {exc}"
+            ) from None
     else:
         conf = zenoh.Config.from_json5(json.dumps(_default_json()))
     if options.mode:

@@ -199,7 +199,11 @@ def _rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
 
 def _rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     cr, sr, cp, sp, cy, sy = (
-        math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw),
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
         math.sin(yaw),
     )
     Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
@@ -234,7 +238,9 @@ def _parse_transform(ctx: _Ctx, key: str, value: Any) -> np.ndarray:
         node = ctx.mapping(key, value)
         if "look_at_m" in node:
             ctx.no_unknown(key, node, {"position_m", "look_at_m"})
-            pos = ctx.matrix(_join(key, "position_m"), ctx.require(key, node, "position_m"), 3, None)
+            pos = ctx.matrix(
+                _join(key, "position_m"), ctx.require(key, node, "position_m"), 3, None
+            )
             tgt = ctx.matrix(_join(key, "look_at_m"), node["look_at_m"], 3, None)
             if pos.shape != (3,) or tgt.shape != (3,):
                 raise ctx.fail(key, "position_m and look_at_m need 3 numbers each")
@@ -242,8 +248,9 @@ def _parse_transform(ctx: _Ctx, key: str, value: Any) -> np.ndarray:
                 raise ctx.fail(_join(key, "look_at_m"), "coincides with position_m")
             return look_at_T_world_cam(pos, tgt)
         ctx.no_unknown(key, node, {"translation_m", "quaternion_xyzw", "rpy_deg", "matrix"})
-        t = ctx.matrix(_join(key, "translation_m"), ctx.require(key, node, "translation_m"), 3,
-                       None)
+        t = ctx.matrix(
+            _join(key, "translation_m"), ctx.require(key, node, "translation_m"), 3, None
+        )
         if t.shape != (3,):
             raise ctx.fail(_join(key, "translation_m"), "expected 3 numbers")
         given = [k for k in ("quaternion_xyzw", "rpy_deg", "matrix") if k in node]
@@ -300,7 +307,9 @@ class CameraCalibration:
     T_cam_world: np.ndarray | None = None
 
 
-def _calib_matrix(ctx: _Ctx, key: str, value: Any, rows: int | None, cols: int | None) -> np.ndarray:
+def _calib_matrix(
+    ctx: _Ctx, key: str, value: Any, rows: int | None, cols: int | None
+) -> np.ndarray:
     if isinstance(value, Mapping):  # OpenCV matrix or ROS {rows, cols, data}
         data = ctx.require(key, value, "data")
         r = ctx.integer(_join(key, "rows"), value.get("rows", rows or 1), lo=1, hi=16)
@@ -322,7 +331,7 @@ def load_camera_calibration(path: str | Path) -> CameraCalibration:
         raise ctx.fail("", f"cannot read calibration file: {exc.strerror}") from None
     text = re.sub(r"^%YAML:\s*1\.\d+\s*\n", "", text)
     try:
-        doc = yaml.load(text, Loader=_CalibLoader)  # noqa: S506 - SafeLoader subclass
+        doc = yaml.load(text, Loader=_CalibLoader)
     except yaml.YAMLError as exc:
         raise ctx.fail("", f"not valid YAML: {exc}") from None
     doc = ctx.mapping("", doc)
@@ -335,8 +344,9 @@ def load_camera_calibration(path: str | Path) -> CameraCalibration:
     height = ctx.integer("image_height", ctx.require("", doc, "image_height"), lo=1, hi=65535)
     T = None
     if "T_cam_world" in doc:
-        T = _parse_transform(ctx, "T_cam_world", _calib_matrix(ctx, "T_cam_world",
-                                                                doc["T_cam_world"], 4, 4).tolist())
+        T = _parse_transform(
+            ctx, "T_cam_world", _calib_matrix(ctx, "T_cam_world", doc["T_cam_world"], 4, 4).tolist()
+        )
     return CameraCalibration(width, height, K, dist, T)
 
 
@@ -345,8 +355,15 @@ def load_camera_calibration(path: str | Path) -> CameraCalibration:
 # --------------------------------------------------------------------------------------------
 
 _CAMERA_KEYS: Final = {
-    "id", "resolution", "K", "intrinsics", "distortion", "T_cam_world", "T_world_cam",
-    "calibration_file", "clock_offset_ns",
+    "id",
+    "resolution",
+    "K",
+    "intrinsics",
+    "distortion",
+    "T_cam_world",
+    "T_world_cam",
+    "calibration_file",
+    "clock_offset_ns",
 }
 _TOP_KEYS: Final = {"site", "world_frame", "cameras", "robot_models", "robots", "thresholds"}
 
@@ -365,7 +382,9 @@ def _parse_K(ctx: _Ctx, key: str, node: Mapping[str, Any]) -> np.ndarray:
         )
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     else:
-        raise ctx.fail(_join(key, "K"), "required key is missing (or give intrinsics/calibration_file)")
+        raise ctx.fail(
+            _join(key, "K"), "required key is missing (or give intrinsics/calibration_file)"
+        )
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
         raise ctx.fail(_join(key, "K"), "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
     return K
@@ -396,7 +415,9 @@ def _parse_camera(ctx: _Ctx, key: str, value: Any, base_dir: Path) -> CameraMode
         K = _parse_K(ctx, key, node)
         dist = ctx.matrix(_join(key, "distortion"), node.get("distortion", []), None, None)
         if dist.size not in DISTORTION_LENGTHS:
-            raise ctx.fail(_join(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}")
+            raise ctx.fail(
+                _join(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}"
+            )
     given = [k for k in ("T_cam_world", "T_world_cam") if k in node]
     if len(given) > 1:
         raise ctx.fail(key, "give T_cam_world or T_world_cam, not both")
@@ -405,8 +426,9 @@ def _parse_camera(ctx: _Ctx, key: str, value: Any, base_dir: Path) -> CameraMode
         T_cam_world = T if given[0] == "T_cam_world" else invert_transform(T)
     if T_cam_world is None:
         raise ctx.fail(_join(key, "T_world_cam"), "required key is missing (camera extrinsics)")
-    offset = ctx.integer(_join(key, "clock_offset_ns"), node.get("clock_offset_ns", 0),
-                         lo=-(10**15), hi=10**15)
+    offset = ctx.integer(
+        _join(key, "clock_offset_ns"), node.get("clock_offset_ns", 0), lo=-(10**15), hi=10**15
+    )
     return CameraModel(cam_id, width, height, K, dist, T_cam_world, offset)
 
 
@@ -431,8 +453,12 @@ def _parse_robot_model(ctx: _Ctx, key: str, name: str, value: Any) -> RobotModel
             raise ctx.fail(_join(ik, "xyz_m"), "expected 3 numbers")
         names.append(kp_name)
         xyz.append(p)
-    radius = ctx.number(_join(key, "footprint_radius_m"),
-                        ctx.require(key, node, "footprint_radius_m"), lo=0.01, hi=10.0)
+    radius = ctx.number(
+        _join(key, "footprint_radius_m"),
+        ctx.require(key, node, "footprint_radius_m"),
+        lo=0.01,
+        hi=10.0,
+    )
     height = ctx.number(_join(key, "height_m"), node.get("height_m", 1.0), lo=0.01, hi=10.0)
     pts = np.stack(xyz)
     pts.setflags(write=False)
@@ -488,8 +514,10 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
         rid = ctx.ident(_join(rk, "id"), ctx.require(rk, r, "id"))
         model_name = ctx.require(rk, r, "model")
         if model_name not in robot_models:
-            raise ctx.fail(_join(rk, "model"),
-                           f"unknown robot model {model_name!r}; defined: {sorted(robot_models)}")
+            raise ctx.fail(
+                _join(rk, "model"),
+                f"unknown robot model {model_name!r}; defined: {sorted(robot_models)}",
+            )
         if rid in robots:
             raise ctx.fail(_join(rk, "id"), f"duplicate robot id {rid!r}")
         robots[rid] = model_name

@@ -110,7 +110,7 @@ def check_array(
     else:
         raise ValidationError(field, f"expected an array, got {type(value).__name__}")
     if arr.ndim != len(shape) or any(
-        want is not None and got != want for got, want in zip(arr.shape, shape)
+        want is not None and got != want for got, want in zip(arr.shape, shape, strict=True)
     ):
         want_txt = "x".join("N" if d is None else str(d) for d in shape)
         raise ValidationError(field, f"shape {arr.shape} does not match ({want_txt})")

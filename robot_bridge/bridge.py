@@ -135,7 +135,9 @@ class RobotBridge:
 
         Returns the :class:`Odometry` message to publish to the backend (at once, whatever the
         backend's state), plus a correction when this sample completes a stop's dwell time.
-        ``receive_ns``: when it arrived on the bridge's clock (``None``: use its stamp).
+        ``receive_ns``: when it arrived, on the same clock as the stamps (the service passes
+        its wall clock): stamps more than ``max_future_ms`` after it are rejected. ``None``:
+        unknown (replay), the stamp is trusted.
         """
         try:
             return self._on_odometry(sample, receive_ns)
@@ -339,8 +341,11 @@ class RobotBridge:
             self._now_ns = int(now_ns)  # type: ignore[arg-type]
 
     def _future(self, stamp_ns: int, receive_ns: int | None) -> bool:
-        ref = receive_ns if _is_int(receive_ns) else self._now_ns
-        return ref > 0 and stamp_ns > ref + self._max_future_ns  # type: ignore[operator]
+        # Only a receive time can tell: without one, a stamp after a gap in the data would look
+        # like the future.
+        if not _is_int(receive_ns):
+            return False
+        return stamp_ns > receive_ns + self._max_future_ns  # type: ignore[operator]
 
     def _on_odometry(self, sample: Any, receive_ns: int | None) -> Outbox:
         if not isinstance(sample, OdometrySample):

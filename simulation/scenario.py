@@ -63,7 +63,9 @@ class Waypoint:
 
 @dataclasses.dataclass(frozen=True)
 class MotionConfig:
-    """Differential drive: straight legs and turns in place with trapezoidal profiles."""
+    """Differential drive: straight legs and turns in place with trapezoidal profiles; the robot
+    dwells ``stop_s`` at each waypoint (``start_s`` at the first) and stops within
+    ``goal_sigma_m``/``goal_sigma_deg`` (std) of it, like a navigation goal tolerance."""
 
     max_speed_mps: float = 0.3
     accel_mps2: float = 0.3
@@ -71,6 +73,8 @@ class MotionConfig:
     yaw_accel_radps2: float = 1.0
     stop_s: float = 6.0
     start_s: float = 2.0
+    goal_sigma_m: float = 0.02
+    goal_sigma_deg: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,12 +94,14 @@ class LocalizationConfig:
     """Internal (LiDAR/particle-filter) localization error: an Ornstein-Uhlenbeck process over
     travelled distance (mean-reverting: it does not grow without bound, like AMCL on a map
     that does not match the cluttered room). Stationary std per axis ``stationary_sigma_m``,
-    correlation length ``correlation_length_m``; heading likewise."""
+    correlation length ``correlation_length_m``; heading likewise, turning in place counting as
+    ``turn_equivalent_m_per_rad`` metres per radian. ``init_*``: error right after the
+    initialization from the cameras at the start of a run."""
 
     stationary_sigma_m: float = 0.16
     correlation_length_m: float = 6.0
     stationary_sigma_deg: float = 1.2
-    correlation_length_rad: float = 6.0
+    turn_equivalent_m_per_rad: float = 0.5
     init_sigma_m: float = 0.02
     init_sigma_deg: float = 0.5
 

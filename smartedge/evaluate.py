@@ -24,8 +24,9 @@ def _ate(args: argparse.Namespace) -> int:
     try:
         ref = read_tum(args.gt)
         est = read_tum(args.est)
-        result = ape(ref, est, align=args.align, correct_scale=args.correct_scale,
-                     max_diff_s=args.max_diff)
+        result = ape(
+            ref, est, align=args.align, correct_scale=args.correct_scale, max_diff_s=args.max_diff
+        )
     except (TrajectoryFileError, MetricsError) as exc:
         print(f"smartedge evaluate ate: {exc}", file=sys.stderr)
         return 1
@@ -70,28 +71,44 @@ def _paper(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="smartedge evaluate", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="smartedge evaluate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="what", metavar="WHAT", required=True)
     p_ate = sub.add_parser("ate", help="absolute trajectory error of EST against GT (TUM files)")
     p_ate.add_argument("gt", help="reference trajectory (TUM)")
     p_ate.add_argument("est", help="estimated trajectory (TUM)")
     p_ate.add_argument("--align", "-a", action="store_true", help="SE(3) Umeyama alignment")
-    p_ate.add_argument("--correct-scale", "-s", action="store_true",
-                       help="also estimate a scale (Sim(3))")
-    p_ate.add_argument("--max-diff", type=float, default=0.01,
-                       help="max. stamp difference for associating poses, s (default 0.01)")
+    p_ate.add_argument(
+        "--correct-scale", "-s", action="store_true", help="also estimate a scale (Sim(3))"
+    )
+    p_ate.add_argument(
+        "--max-diff",
+        type=float,
+        default=0.01,
+        help="max. stamp difference for associating poses, s (default 0.01)",
+    )
     p_paper = sub.add_parser("paper", help="the paper's experiments on the simulated site")
     p_paper.add_argument("--out", required=True, help="output folder for tables and plots")
-    p_paper.add_argument("--runs", type=int, default=3,
-                         help="iterations of each trajectory and direction (paper: 3)")
+    p_paper.add_argument(
+        "--runs", type=int, default=3, help="iterations of each trajectory and direction (paper: 3)"
+    )
     p_paper.add_argument("--seed", type=int, default=0, help="base random seed")
-    p_paper.add_argument("--trajectories", default="",
-                         help="comma-separated trajectory names (default: all of the scenario)")
-    p_paper.add_argument("--scenario", default=None,
-                         help="scenario file (default: simulation/sites/paper_lab.scenario.yaml)")
-    p_paper.add_argument("--stop-s", type=float, default=None,
-                         help="override the dwell time at each waypoint, s")
+    p_paper.add_argument(
+        "--trajectories",
+        default="",
+        help="comma-separated trajectory names (default: all of the scenario)",
+    )
+    p_paper.add_argument(
+        "--scenario",
+        default=None,
+        help="scenario file (default: simulation/sites/paper_lab.scenario.yaml)",
+    )
+    p_paper.add_argument(
+        "--stop-s", type=float, default=None, help="override the dwell time at each waypoint, s"
+    )
     return parser
 
 

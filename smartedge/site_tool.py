@@ -38,13 +38,17 @@ def main(argv: Sequence[str]) -> int:
         tilt = math.degrees(math.asin(-axis[2]))
         yaw = math.degrees(math.atan2(axis[1], axis[0]))
         hfov = math.degrees(2 * math.atan(cam.width / (2 * cam.K[0, 0])))
-        print(f"  camera {cam.camera_id}: {cam.width}x{cam.height}, hfov {hfov:.0f} deg, at "
-              f"({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}) m, looking yaw {yaw:.0f} deg, "
-              f"down {tilt:.0f} deg")
+        print(
+            f"  camera {cam.camera_id}: {cam.width}x{cam.height}, hfov {hfov:.0f} deg, at "
+            f"({pos[0]:.2f}, {pos[1]:.2f}, {pos[2]:.2f}) m, looking yaw {yaw:.0f} deg, "
+            f"down {tilt:.0f} deg"
+        )
     for rid, model_name in site.robots.items():
         model = site.robot_models[model_name]
         span = np.ptp(model.keypoints_base_m, axis=0)
-        print(f"  robot {rid}: model {model_name}, {model.num_keypoints} keypoints spanning "
-              f"{span[0]:.2f} x {span[1]:.2f} x {span[2]:.2f} m")
+        print(
+            f"  robot {rid}: model {model_name}, {model.num_keypoints} keypoints spanning "
+            f"{span[0]:.2f} x {span[1]:.2f} x {span[2]:.2f} m"
+        )
     print("ok")
     return 0

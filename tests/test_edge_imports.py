@@ -40,7 +40,10 @@ SCRIPT = textwrap.dedent(
 def test_protocol_and_edge_agent_import_with_edge_extra_only() -> None:
     proc = subprocess.run(
         [sys.executable, "-c", SCRIPT.format(blocked=BLOCKED)],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=120,
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip().endswith("ok")

@@ -86,17 +86,30 @@ def semantic_clouds(draw, max_points: int = 2000) -> SemanticCloud:
 @st.composite
 def odometries(draw) -> Odometry:
     return Odometry(
-        robot_id=draw(ids), stamp_ns=draw(stamps), seq=draw(seqs), x=draw(finite), y=draw(finite),
-        theta=draw(angles), vx=draw(finite), vy=draw(finite), wz=draw(finite),
-        covariance=draw(covariances()), frame_id=draw(ids),
+        robot_id=draw(ids),
+        stamp_ns=draw(stamps),
+        seq=draw(seqs),
+        x=draw(finite),
+        y=draw(finite),
+        theta=draw(angles),
+        vx=draw(finite),
+        vy=draw(finite),
+        wz=draw(finite),
+        covariance=draw(covariances()),
+        frame_id=draw(ids),
     )
 
 
 @st.composite
 def pose_estimates(draw) -> PoseEstimate:
     return PoseEstimate(
-        robot_id=draw(ids), stamp_ns=draw(stamps), seq=draw(seqs), x=draw(finite), y=draw(finite),
-        theta=draw(angles), covariance=draw(covariances()),
+        robot_id=draw(ids),
+        stamp_ns=draw(stamps),
+        seq=draw(seqs),
+        x=draw(finite),
+        y=draw(finite),
+        theta=draw(angles),
+        covariance=draw(covariances()),
         source=draw(st.sampled_from(["cameras", "fused"])),
         camera_ids=tuple(draw(st.lists(ids, max_size=8))),
         reprojection_rmse_px=draw(st.one_of(st.just(math.nan), st.floats(0, 1e3))),
@@ -107,10 +120,16 @@ def pose_estimates(draw) -> PoseEstimate:
 @st.composite
 def pose_corrections(draw) -> PoseCorrection:
     return PoseCorrection(
-        robot_id=draw(ids), stamp_ns=draw(stamps), seq=draw(seqs), x=draw(finite), y=draw(finite),
-        theta=draw(angles), covariance=draw(covariances()),
+        robot_id=draw(ids),
+        stamp_ns=draw(stamps),
+        seq=draw(seqs),
+        x=draw(finite),
+        y=draw(finite),
+        theta=draw(angles),
+        covariance=draw(covariances()),
         kind=draw(st.sampled_from(["initialization", "correction"])),
-        offset_m=draw(st.floats(0, 100)), offset_rad=draw(st.floats(0, 7)),
+        offset_m=draw(st.floats(0, 100)),
+        offset_rad=draw(st.floats(0, 7)),
     )
 
 
@@ -119,7 +138,9 @@ def service_statuses(draw) -> ServiceStatus:
     names = st.text(min_size=1, max_size=20)
     return ServiceStatus(
         service=draw(st.sampled_from(["edge-agent", "backend", "robot-bridge"])),
-        instance_id=draw(ids), stamp_ns=draw(stamps), seq=draw(seqs),
+        instance_id=draw(ids),
+        stamp_ns=draw(stamps),
+        seq=draw(seqs),
         state=draw(st.sampled_from(["starting", "ok", "degraded", "error", "stopping"])),
         uptime_s=draw(st.floats(0, 1e7)),
         rates_hz=draw(st.dictionaries(names, st.floats(0, 1e4), max_size=5)),
@@ -132,19 +153,40 @@ def service_statuses(draw) -> ServiceStatus:
 
 
 any_message = st.one_of(
-    robot_detections(), semantic_clouds(200), odometries(), pose_estimates(), pose_corrections(),
+    robot_detections(),
+    semantic_clouds(200),
+    odometries(),
+    pose_estimates(),
+    pose_corrections(),
     service_statuses(),
 )
 
 
 def sample_odometry() -> Odometry:
     """A fixed valid odometry message (for tests that mutate a known payload)."""
-    return Odometry("hsr", 1_700_000_000_000_000_000, 3, 1.0, -2.0, 0.5, 0.1, 0.0, 0.02,
-                    np.diag([0.01, 0.01, 0.001]))
+    return Odometry(
+        "hsr",
+        1_700_000_000_000_000_000,
+        3,
+        1.0,
+        -2.0,
+        0.5,
+        0.1,
+        0.0,
+        0.02,
+        np.diag([0.01, 0.01, 0.001]),
+    )
 
 
 def sample_cloud(n: int, seed: int = 0) -> SemanticCloud:
     """A fixed valid cloud of ``n`` points."""
     rng = np.random.default_rng(seed)
-    return SemanticCloud("cam0", 5, 0, "map", rng.normal(size=(n, 3)).astype(np.float32),
-                         rng.integers(0, 20, n).astype(np.uint8), rng.random(n).astype(np.float32))
+    return SemanticCloud(
+        "cam0",
+        5,
+        0,
+        "map",
+        rng.normal(size=(n, 3)).astype(np.float32),
+        rng.integers(0, 20, n).astype(np.uint8),
+        rng.random(n).astype(np.float32),
+    )

@@ -50,7 +50,12 @@ def test_empty_detections_and_empty_cloud_roundtrip() -> None:
     back = decode(encode(msg))
     assert back.detections[0].keypoints_px.shape == (0, 2)
     cloud = SemanticCloud(
-        "cam0", 1, 0, "map", np.zeros((0, 3), np.float32), np.zeros(0, np.uint8),
+        "cam0",
+        1,
+        0,
+        "map",
+        np.zeros((0, 3), np.float32),
+        np.zeros(0, np.uint8),
         np.zeros(0, np.float32),
     )
     assert decode(encode(cloud)) == cloud
@@ -60,7 +65,10 @@ def test_large_cloud_roundtrip_is_exact() -> None:
     rng = np.random.default_rng(0)
     n = 300_000
     cloud = SemanticCloud(
-        "robot_1", 123, 7, "map",
+        "robot_1",
+        123,
+        7,
+        "map",
         rng.normal(size=(n, 3)).astype(np.float32),
         rng.integers(0, 65535, size=n).astype(np.uint16),
         rng.random(n).astype(np.float32),
@@ -72,8 +80,12 @@ def test_large_cloud_roundtrip_is_exact() -> None:
 
 
 def test_arrays_travel_as_little_endian_bytes_with_schema() -> None:
-    det = Detection(np.array([1.0, 2, 3, 4]), 0.9, np.array([[1.5, 2.5]], np.float32),
-                    np.array([0.25], np.float32))
+    det = Detection(
+        np.array([1.0, 2, 3, 4]),
+        0.9,
+        np.array([[1.5, 2.5]], np.float32),
+        np.array([0.25], np.float32),
+    )
     wire = msgpack.unpackb(encode(RobotDetections("c", 5, 1, 10, 10, "m", (det,))), raw=False)
     assert wire["schema"] == "RobotDetections" and wire["schema_version"] == 1
     kp = wire["detections"][0]["keypoints_px"]
@@ -83,8 +95,9 @@ def test_arrays_travel_as_little_endian_bytes_with_schema() -> None:
 
 def test_big_endian_input_array_is_encoded_little_endian() -> None:
     pts = np.arange(6, dtype=">f4").reshape(2, 3)
-    cloud = SemanticCloud("s", 0, 0, "map", pts.astype(np.float32), np.zeros(2, np.uint8),
-                          np.zeros(2, np.float32))
+    cloud = SemanticCloud(
+        "s", 0, 0, "map", pts.astype(np.float32), np.zeros(2, np.uint8), np.zeros(2, np.float32)
+    )
     assert np.array_equal(decode(encode(cloud)).points_xyz, pts)
 
 
@@ -139,5 +152,6 @@ def test_construction_validates_like_decode() -> None:
     with pytest.raises(protocol.ValidationError, match="keypoint_scores"):
         Detection(np.zeros(4), 0.5, np.zeros((3, 2)), np.zeros(2))
     with pytest.raises(protocol.ValidationError, match="points_xyz"):
-        SemanticCloud("s", 0, 0, "map", np.zeros((2, 3)), np.zeros(2, np.uint8),
-                      np.zeros(2, np.float32))
+        SemanticCloud(
+            "s", 0, 0, "map", np.zeros((2, 3)), np.zeros(2, np.uint8), np.zeros(2, np.float32)
+        )

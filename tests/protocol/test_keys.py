@@ -17,7 +17,11 @@ def test_builders_and_parser_agree() -> None:
     for key, scope, source, topic, msg_type in cases:
         parsed = keys.parse_key(key)
         assert (parsed.site, parsed.scope, parsed.source_id, parsed.topic) == (
-            "lab", scope, source, topic)
+            "lab",
+            scope,
+            source,
+            topic,
+        )
         assert parsed.message_type is msg_type
     assert keys.detections_key("lab", "cam_1") == "smartedge/lab/edge/cam_1/detections"
 
@@ -31,8 +35,16 @@ def test_wildcards_only_where_allowed() -> None:
 
 
 @pytest.mark.parametrize(
-    "bad", ["", "smartedge/lab", "other/lab/edge/c/detections", "smartedge/lab/edge/c/video",
-            "smartedge/lab/space/c/detections", "smartedge/l*b/edge/c/detections"])
+    "bad",
+    [
+        "",
+        "smartedge/lab",
+        "other/lab/edge/c/detections",
+        "smartedge/lab/edge/c/video",
+        "smartedge/lab/space/c/detections",
+        "smartedge/l*b/edge/c/detections",
+    ],
+)
 def test_parse_rejects_foreign_keys(bad: str) -> None:
     with pytest.raises(ValidationError):
         keys.parse_key(bad)

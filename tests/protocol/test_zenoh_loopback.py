@@ -25,20 +25,35 @@ SITE = "testsite"
 
 
 def _messages() -> list[tuple[str, object]]:
-    det = Detection(np.array([10.0, 20, 110, 220]), 0.93,
-                    np.random.default_rng(0).random((12, 2)) * 400, np.linspace(0, 1, 12))
+    det = Detection(
+        np.array([10.0, 20, 110, 220]),
+        0.93,
+        np.random.default_rng(0).random((12, 2)) * 400,
+        np.linspace(0, 1, 12),
+    )
     cov = np.diag([1e-4, 1e-4, 1e-3])
     return [
-        (keys.detections_key(SITE, "cam_a"), RobotDetections("cam_a", 11, 0, 848, 480, "m1", (det,))),
+        (
+            keys.detections_key(SITE, "cam_a"),
+            RobotDetections("cam_a", 11, 0, 848, 480, "m1", (det,)),
+        ),
         (keys.edge_cloud_key(SITE, "cam_a"), sample_cloud(100_000)),
         (keys.odom_key(SITE, "hsr"), sample_odometry()),
         (keys.robot_cloud_key(SITE, "hsr"), sample_cloud(10, seed=3)),
-        (keys.pose_key(SITE, "hsr"),
-         PoseEstimate("hsr", 12, 0, 1.0, 2.0, 0.3, cov, "fused", ("cam_a", "cam_b"))),
-        (keys.correction_key(SITE, "hsr"),
-         PoseCorrection("hsr", 13, 0, 1.0, 2.0, 0.3, cov, "initialization", 0.4, 0.1)),
-        (keys.status_key(SITE, "backend", "main"),
-         ServiceStatus("backend", "main", 14, 0, counters={"invalid": 2}, rates_hz={"pose": 30.0})),
+        (
+            keys.pose_key(SITE, "hsr"),
+            PoseEstimate("hsr", 12, 0, 1.0, 2.0, 0.3, cov, "fused", ("cam_a", "cam_b")),
+        ),
+        (
+            keys.correction_key(SITE, "hsr"),
+            PoseCorrection("hsr", 13, 0, 1.0, 2.0, 0.3, cov, "initialization", 0.4, 0.1),
+        ),
+        (
+            keys.status_key(SITE, "backend", "main"),
+            ServiceStatus(
+                "backend", "main", 14, 0, counters={"invalid": 2}, rates_hz={"pose": 30.0}
+            ),
+        ),
     ]
 
 
@@ -82,8 +97,7 @@ def test_liveliness_token_appears_and_disappears(zenoh_pair) -> None:
     def on_change(sample) -> None:
         events.append((str(sample.kind), str(sample.key_expr)))
 
-    sub = b.liveliness().declare_subscriber(keys.alive_key(SITE, "*", "*"), on_change,
-                                            history=True)
+    sub = b.liveliness().declare_subscriber(keys.alive_key(SITE, "*", "*"), on_change, history=True)
     token = a.liveliness().declare_token(token_key)
     assert wait_until(lambda: any("PUT" in k and key == token_key for k, key in events))
     token.undeclare()
@@ -94,10 +108,14 @@ def test_liveliness_token_appears_and_disappears(zenoh_pair) -> None:
 def test_odometry_survives_a_burst_with_block_congestion_control(zenoh_pair) -> None:
     a, b, _ = zenoh_pair
     got: list[bytes] = []
-    sub = b.declare_subscriber(keys.odom_key(SITE, "hsr"), lambda s: got.append(s.payload.to_bytes()))
-    pub = a.declare_publisher(keys.odom_key(SITE, "hsr"),
-                              congestion_control=zenoh.CongestionControl.BLOCK,
-                              reliability=zenoh.Reliability.RELIABLE)
+    sub = b.declare_subscriber(
+        keys.odom_key(SITE, "hsr"), lambda s: got.append(s.payload.to_bytes())
+    )
+    pub = a.declare_publisher(
+        keys.odom_key(SITE, "hsr"),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
     # let the subscription propagate before the burst
     probe = Odometry("hsr", 0, 0, 0.0, 0.0, 0.0)
     assert wait_until(lambda: (pub.put(encode(probe)), bool(got))[1], timeout_s=10, step_s=0.1)

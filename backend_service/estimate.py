@@ -1,0 +1,352 @@
+"""Public entry point of the multi-view robot pose estimation: :func:`estimate_pose`.
+
+One frame-set in, one :class:`PoseResult` out. Steps (paper Sec. III-B):
+
+1. validate the observations: unknown cameras, wrong keypoint counts, non-finite keypoints and
+   keypoints below the score threshold are dropped (weights = confidences of the rest);
+2. initialize from the prior or, without one, from per-view PnP (:mod:`.pose_init`);
+3. solve Eq. 2 with the cached CasADi formulation (:mod:`.pose_solver`), optionally with a
+   robust loss; if the solve from the prior fails or fits badly, retry from PnP;
+4. reject impossible solutions (keypoints behind a camera, reprojection RMSE above
+   ``thresholds.max_reprojection_rmse_px``);
+5. single camera with a prior: the bearing-only heuristic (:mod:`.single_camera`);
+6. covariance = s^2 (J^T W J)^-1: the Gauss-Newton information of the weighted reprojection
+   errors scaled by the residual variance s^2 (floored at ``covariance_floor_px``^2). The
+   information sums over all views, so the covariance shrinks inversely with the number of
+   cameras and grows with the residual, as the paper prescribes for the pose-graph weights.
+
+Bad input never raises: the result then has ``estimate=None`` and a ``reason``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Final
+
+import numpy as np
+
+from backend_service.frame_set import FrameSet, PlanarPose
+from backend_service.pose_init import View, init_from_prior, init_without_prior
+from backend_service.pose_solver import (
+    PoseProblem,
+    SolverConfig,
+    StackedCameras,
+    get_problem,
+    robust_weights,
+    weighted_residuals,
+    wrap_angle,
+)
+from backend_service.single_camera import apply_single_camera_heuristic
+from protocol.messages import PoseEstimate
+from protocol.site import Site
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PoseResult", "SolverConfig", "estimate_pose"]
+
+#: A keypoint this close to (or behind) a camera's image plane makes the solution impossible.
+MIN_DEPTH_M: Final = 0.05
+#: Minimum number of usable keypoints over all views (3 unknowns need >= 4 equations).
+MIN_TOTAL_KEYPOINTS: Final = 2
+#: Inlier threshold (multiples of the robust scale) for the RMSE reported under a robust loss.
+_INLIER_SCALES: Final = 3.0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PoseResult:
+    """Outcome of one :func:`estimate_pose` call.
+
+    ``estimate``: the :class:`protocol.PoseEstimate` (``source="cameras"``, ``seq=0``: the
+    publisher sets it) or ``None``. ``pose``: the same planar pose (world frame) for in-process
+    callers. ``reason``: ``""`` when ok, else why there is no estimate. ``T_world_robot``:
+    (4, 4) robot base -> world of the solution (full 6-DoF for ``dof=6``). ``iterations``:
+    solver iterations.
+    """
+
+    estimate: PoseEstimate | None
+    pose: PlanarPose | None
+    reason: str = ""
+    T_world_robot: np.ndarray | None = None
+    iterations: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return self.estimate is not None and not self.reason
+
+
+def _fail(reason: str) -> PoseResult:
+    return PoseResult(None, None, reason)
+
+
+def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = None,
+                  config: SolverConfig | None = None) -> PoseResult:
+    """Estimate the robot's planar pose (world frame) from one synchronized frame-set.
+
+    ``prior``: the robot's current pose in the world (map) frame, or ``None`` (kidnapped robot:
+    PnP initialization). ``config``: solver options (defaults: :class:`SolverConfig`);
+    thresholds come from ``site.thresholds``. Never raises on bad input.
+    """
+    try:
+        return _estimate(frame_set, site, prior, config or SolverConfig())
+    except Exception as exc:  # noqa: BLE001 - a service-facing function must not raise
+        log.exception("pose estimation failed unexpectedly")
+        return _fail(f"internal error: {type(exc).__name__}: {exc}")
+
+
+def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
+                   min_score: float) -> tuple[list[View], list[str]]:
+    M = kp_base.shape[0]
+    views: list[View] = []
+    problems: list[str] = []
+    seen: set[str] = set()
+    for obs in frame_set.observations:
+        cam = site.cameras.get(obs.camera_id)
+        if cam is None:
+            problems.append(f"unknown camera {obs.camera_id!r}")
+            continue
+        if obs.camera_id in seen:
+            problems.append(f"camera {obs.camera_id!r} appears twice")
+            continue
+        uv = np.asarray(obs.keypoints_px, dtype=np.float64)
+        scores = np.asarray(obs.keypoint_scores, dtype=np.float64)
+        if uv.shape != (M, 2) or scores.shape != (M,):
+            problems.append(f"camera {obs.camera_id!r}: keypoints {uv.shape} / scores "
+                            f"{scores.shape}, model has {M}")
+            continue
+        finite = np.all(np.isfinite(uv), axis=1) & np.isfinite(scores)
+        w = np.where(finite & (scores >= min_score) & (scores > 0), scores, 0.0)
+        if not np.any(w > 0):
+            problems.append(f"camera {obs.camera_id!r}: no usable keypoints")
+            continue
+        seen.add(obs.camera_id)
+        views.append(View(cam, np.where(finite[:, None], uv, np.nan), np.clip(w, 0.0, 1.0)))
+    return views, problems
+
+
+def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
+              config: SolverConfig) -> PoseResult:
+    th = site.thresholds
+    try:
+        model = site.robot_model(frame_set.robot_id or None)
+    except KeyError as exc:
+        return _fail(f"robot model: {exc.args[0] if exc.args else exc}")
+    kp_base = np.asarray(model.keypoints_base_m, dtype=np.float64)
+    min_score = th.min_keypoint_score if config.min_keypoint_score is None \
+        else config.min_keypoint_score
+    views, problems = _prepare_views(frame_set, site, kp_base, float(min_score))
+    if not views:
+        detail = "; ".join(problems) if problems else "empty frame-set"
+        return _fail(f"no usable view: {detail}")
+    total = int(sum(v.valid.sum() for v in views))
+    if total < MIN_TOTAL_KEYPOINTS or (len(views) == 1 and total < 3):
+        return _fail(f"only {total} valid keypoints (need >= {MIN_TOTAL_KEYPOINTS}, "
+                     "3 for one camera)")
+    if prior is not None and not all(math.isfinite(v) for v in (prior.x, prior.y, prior.theta)):
+        prior = None
+
+    views.sort(key=lambda v: v.camera.camera_id)  # one formulation per camera *set*
+    cameras = [v.camera for v in views]
+    problem = get_problem(cameras, kp_base, config.dof, config.robust_loss)
+    uv = np.stack([v.keypoints_px for v in views])
+    w = np.stack([np.where(v.valid, v.weights, 0.0) for v in views])
+    p = problem.pack(uv, w, config.robust_scale_px)
+
+    flags: list[str] = []
+    attempts: list[tuple[str, np.ndarray, np.ndarray | None]] = []
+    if prior is not None:
+        attempts.append(("prior_init", _q0(init_from_prior(prior), None, config.dof), None))
+    pnp_reason = ""
+
+    def pnp_attempt() -> tuple[str, np.ndarray, np.ndarray | None] | None:
+        nonlocal pnp_reason
+        init = init_without_prior(views, kp_base, th.min_keypoints)
+        if init.pose is None:
+            pnp_reason = init.reason
+            return None
+        q0 = _q0(init_from_prior(init.pose), init.T_world_robot, config.dof)
+        return ("pnp_init", q0, init.T_world_robot)
+
+    if prior is None:
+        first = pnp_attempt()
+        if first is None:
+            return _fail(f"no prior and no initialization: {pnp_reason}")
+        attempts.append(first)
+
+    best: tuple[PoseResult, float] | None = None
+    last_reason = ""
+    tried_pnp = prior is None
+    i = 0
+    while i < len(attempts):
+        init_flag, q0, _ = attempts[i]
+        i += 1
+        outcome = _solve_once(problem, p, q0, config, th.max_reprojection_rmse_px)
+        if isinstance(outcome, str):
+            last_reason = outcome
+        else:
+            q, rmse, iterations = outcome
+            if best is None or rmse < best[1]:
+                best = (PoseResult(None, None, "", None, iterations), rmse)
+                best_q, best_flag = q, init_flag
+        good = best is not None and best[1] <= th.max_reprojection_rmse_px
+        if not good and not tried_pnp and config.try_pnp_fallback:
+            tried_pnp = True
+            nxt = pnp_attempt()
+            if nxt is not None:
+                attempts.append(nxt)
+    if best is None:
+        return _fail(last_reason or "solver failed")
+    q, rmse, iterations = best_q, best[1], best[0].iterations
+    if rmse > th.max_reprojection_rmse_px:
+        return _fail(f"reprojection RMSE {rmse:.1f} px > {th.max_reprojection_rmse_px} px")
+    flags.append(best_flag)
+    if config.robust_loss != "none":
+        flags.append("robust_loss")
+    if config.dof == 6:
+        flags.append("6dof")
+
+    cov_q = _covariance(problem, p, q, config)
+    if cov_q is None:
+        return _fail("degenerate geometry: the information matrix is singular")
+    idx = [0, 1, 2] if config.dof == 3 else [0, 1, 5]
+    cov = cov_q[np.ix_(idx, idx)]
+    pose = PlanarPose(float(q[idx[0]]), float(q[idx[1]]), wrap_angle(float(q[idx[2]])))
+    T_world_robot = _T_from_q(q, config.dof)
+
+    if len(views) == 1:
+        flags.append("single_camera")
+        if prior is not None and config.use_single_camera_heuristic:
+            stacked = StackedCameras.from_cameras(cameras)
+
+            def residual_fn(qb: np.ndarray) -> np.ndarray:
+                return weighted_residuals(stacked, kp_base, qb, uv, w)
+
+            outcome = apply_single_camera_heuristic(
+                cameras[0], prior, pose, math.radians(th.single_camera_max_dtheta_deg),
+                th.single_camera_max_ddepth_m, residual_fn)
+            if outcome.applied:
+                flags.append("lateral_only")
+                pose = outcome.pose
+                T_world_robot = pose.T()
+                cov = _lateral_only_covariance(cameras[0], pose, cov,
+                                               th.single_camera_max_ddepth_m,
+                                               math.radians(th.single_camera_max_dtheta_deg))
+                rmse = _weighted_rmse(residual_fn(pose.as_array()[None])[0], w, config)
+
+    cov = 0.5 * (cov + cov.T)
+    estimate = PoseEstimate(
+        robot_id=frame_set.robot_id or next(iter(site.robots)),
+        stamp_ns=max(int(frame_set.stamp_ns), 0),
+        seq=0,
+        x=pose.x,
+        y=pose.y,
+        theta=pose.theta,
+        covariance=cov,
+        source="cameras",
+        camera_ids=tuple(v.camera.camera_id for v in views),
+        reprojection_rmse_px=float(rmse),
+        flags=tuple(flags),
+        frame_id=site.world_frame,
+    )
+    return PoseResult(estimate, pose, "", T_world_robot, iterations)
+
+
+def _q0(start: np.ndarray, T_world_robot: np.ndarray | None, dof: int) -> np.ndarray:
+    if dof == 3:
+        return start
+    if T_world_robot is None:
+        return np.array([start[0], start[1], 0.0, 0.0, 0.0, start[2]])
+    R = T_world_robot[:3, :3]
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    roll = math.atan2(R[2, 1], R[2, 2])
+    t = T_world_robot[:3, 3]
+    return np.array([t[0], t[1], t[2], roll, pitch, yaw])
+
+
+def _T_from_q(q: np.ndarray, dof: int) -> np.ndarray:
+    if dof == 3:
+        return PlanarPose(float(q[0]), float(q[1]), float(q[2])).T()
+    roll, pitch, yaw = q[3], q[4], q[5]
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, 3] = q[:3]
+    return T
+
+
+def _weighted_rmse(r: np.ndarray, w: np.ndarray, config: SolverConfig) -> float:
+    """sqrt(sum w e^2 / sum w) over valid keypoints; under a robust loss only over keypoints
+    within a few robust scales (the outliers the loss ignored would dominate otherwise)."""
+    s = r[0::2] ** 2 + r[1::2] ** 2  # w * |e|^2 per keypoint
+    wf = w.reshape(-1)
+    valid = wf > 0
+    if config.robust_loss != "none":
+        e = np.sqrt(s[valid] / wf[valid])
+        keep = e <= _INLIER_SCALES * config.robust_scale_px
+        if keep.sum() >= 2:
+            valid_idx = np.flatnonzero(valid)[keep]
+            return float(math.sqrt(s[valid_idx].sum() / wf[valid_idx].sum()))
+    return float(math.sqrt(s[valid].sum() / max(wf[valid].sum(), 1e-12)))
+
+
+def _solve_once(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: SolverConfig,
+                max_rmse_px: float) -> tuple[np.ndarray, float, int] | str:
+    out = problem.solve(q0, p, config.method, config.max_iterations)
+    q = out.q
+    if not np.all(np.isfinite(q)):
+        return "solver returned a non-finite pose"
+    if config.dof == 3:
+        q = np.array([q[0], q[1], wrap_angle(float(q[2]))])
+    r, _, depth = problem.evaluate(q, p)
+    w = p[problem.num_cameras * problem.num_keypoints * 2:-1]
+    if np.any(depth[w > 0] < MIN_DEPTH_M):
+        return "robot behind a camera: no solution in front of every camera that sees it"
+    if not np.all(np.isfinite(r)):
+        return "non-finite reprojection residuals"
+    if not out.success:
+        log.debug("solver %s did not report success (%d iterations)", config.method,
+                  out.iterations)
+    return q, _weighted_rmse(r, w, config), out.iterations
+
+
+def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray,
+                config: SolverConfig) -> np.ndarray | None:
+    r, J, _ = problem.evaluate(q, p)
+    if config.robust_loss != "none":
+        s = r[0::2] ** 2 + r[1::2] ** 2
+        sw = np.repeat(np.sqrt(robust_weights(s, config.robust_loss, config.robust_scale_px)), 2)
+        r, J = r * sw, J * sw[:, None]
+    H = J.T @ J
+    n_res = int(np.count_nonzero(np.abs(J).sum(axis=1) > 0))
+    dof_res = n_res - J.shape[1]
+    s2 = float(r @ r) / dof_res if dof_res > 0 else 0.0
+    s2 = max(s2, config.covariance_floor_px**2)
+    try:
+        if np.linalg.cond(H) > 1e12:
+            return None
+        return s2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _lateral_only_covariance(camera, pose: PlanarPose, cov: np.ndarray,
+                             depth_std_m: float, theta_std_rad: float) -> np.ndarray:
+    """Covariance of a heuristic pose: the along-ray and orientation components come from the
+    prior, not from this frame-set, so they get at least the heuristic's thresholds as std."""
+    c_xy = camera.position_world[:2]
+    ray = np.array([pose.x - c_xy[0], pose.y - c_xy[1]])
+    ray /= max(np.linalg.norm(ray), 1e-9)
+    lat = np.array([-ray[1], ray[0]])
+    var_lat = float(lat @ cov[:2, :2] @ lat)
+    var_ray = max(float(ray @ cov[:2, :2] @ ray), depth_std_m**2)
+    B = np.stack([ray, lat], axis=1)
+    out = np.zeros((3, 3))
+    out[:2, :2] = B @ np.diag([var_ray, var_lat]) @ B.T
+    out[2, 2] = max(float(cov[2, 2]), theta_std_rad**2)
+    return out

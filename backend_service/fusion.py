@@ -1,0 +1,865 @@
+"""Pose-graph fusion of camera pose estimates with robot odometry (paper Sec. III-B, last part).
+
+One :class:`PoseGraphFusion` per robot keeps an incremental GTSAM ISAM2 pose graph over planar
+keyframes (``Pose2`` variables of the robot base in the map frame):
+
+- odometry between consecutive keyframes is a ``BetweenFactorPose2``; keyframes are created by a
+  distance / angle / time policy (:class:`FusionConfig`) from the buffered odometry samples;
+- each camera pose estimate is a unary ``PriorFactorPose2`` at the estimate's own ``stamp_ns``
+  with the estimate's covariance (the solver scales it with the reprojection residual and
+  inversely with the number of cameras), wrapped in a robust (Huber or Cauchy) noise model.
+  Estimates arrive late (edge latency): when the stamp falls between two keyframes, a keyframe
+  is inserted there by interpolating the odometry and the between factor is split in two;
+- the graph is optimized (one ISAM2 update) per new keyframe and per camera estimate;
+- the fused pose is published at odometry rate: the latest optimized keyframe composed with the
+  odometry since that keyframe, with its marginal covariance propagated along the odometry;
+- memory stays bounded: when keyframes fall out of a sliding window (time and count), the old
+  part of the graph is marginalized into a Gaussian prior on the oldest kept keyframe and ISAM2
+  is rebuilt over the kept keyframes.
+
+Initialization: the odometry frame has no anchor in the map frame until the first camera
+estimate (or :meth:`PoseGraphFusion.set_initial_pose`). Before that, odometry is only buffered
+(bounded) and no fused pose is produced (``None``, counted as ``uninitialized``).
+
+Frames and units: odometry poses ``T_odom_robot`` (x, y metres, theta radians) in the robot's odom
+frame; fused and camera poses ``T_world_robot`` in the map frame. ``PoseEstimate.covariance``
+is taken to be the (3, 3) covariance of (x, y, theta) along the map-frame axes; GTSAM keeps
+covariances in the body frame of the pose, conversions happen at the boundary. Time comes only
+from message stamps. Bad input never raises: it returns ``None`` and increments
+``counters[reason]`` (see docs/fusion.md for the reasons).
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import dataclasses
+import logging
+import math
+from typing import Final
+
+import gtsam
+import numpy as np
+
+from protocol.messages import Odometry, PoseEstimate
+
+logger = logging.getLogger(__name__)
+
+ROBUST_KERNELS: Final = ("huber", "cauchy", "none")
+_NS_PER_S: Final = 1e9
+
+
+@dataclasses.dataclass(frozen=True)
+class FusionConfig:
+    """Parameters of :class:`PoseGraphFusion` (SI units; sigmas are standard deviations).
+
+    Keyframe policy: a new keyframe when the odometry moved ``keyframe_distance_m`` or turned
+    ``keyframe_angle_rad`` since the last keyframe, or ``keyframe_interval_s`` passed while the
+    robot moved at all (more than ``static_motion_m`` / ``static_motion_rad``: a static robot
+    adds no keyframes). A camera estimate whose odometry pose is within ``static_motion_*`` of an
+    existing keyframe is attached to that keyframe instead of creating a new one.
+
+    Odometry noise is a random walk, so variances add up along the path and splitting a between
+    factor at a late camera stamp does not change the information it carries:
+    ``var_xy = a² d + b² |dθ| + c² dt + floor²`` with ``a = odom_sigma_xy_m_per_sqrt_m`` etc.
+    With ``use_odometry_covariance`` the increment of the message covariances between the two
+    keyframes is used instead when it is positive definite.
+
+    Camera priors: robust kernel ``robust_kernel`` (``huber``, ``cauchy`` or ``none``) with
+    threshold ``robust_threshold`` in sigmas; ``camera_sigma_floor_*`` is added in quadrature
+    to guard against over-confident estimates; estimates with a sigma above
+    ``max_camera_sigma_m`` / ``max_camera_sigma_rad`` carry no information and are rejected.
+
+    Window: keyframes older than ``window_s`` before the latest one, or beyond
+    ``max_keyframes``, are marginalized in batches of ``marginalize_batch`` (so the graph holds
+    at most ``max_keyframes + marginalize_batch - 1`` keyframes).
+    """
+
+    keyframe_distance_m: float = 0.25
+    keyframe_angle_rad: float = 0.2
+    keyframe_interval_s: float = 2.0
+    static_motion_m: float = 0.002
+    static_motion_rad: float = 0.002
+
+    odom_sigma_xy_m_per_sqrt_m: float = 0.05
+    odom_sigma_xy_m_per_sqrt_rad: float = 0.01
+    odom_sigma_xy_m_per_sqrt_s: float = 0.0
+    odom_sigma_theta_rad_per_sqrt_m: float = 0.03
+    odom_sigma_theta_rad_per_sqrt_rad: float = 0.05
+    odom_sigma_theta_rad_per_sqrt_s: float = 0.0
+    odom_sigma_floor_m: float = 1e-4
+    odom_sigma_floor_rad: float = 1e-4
+    use_odometry_covariance: bool = False
+    max_odometry_speed_m_s: float = 5.0
+    max_odometry_rate_rad_s: float = 10.0
+    odometry_jump_sigma_m: float = 0.1
+    odometry_jump_sigma_rad: float = 0.1
+
+    robust_kernel: str = "huber"
+    robust_threshold: float = 1.345
+    camera_sigma_floor_m: float = 0.005
+    camera_sigma_floor_rad: float = 0.002
+    max_camera_sigma_m: float = 5.0
+    max_camera_sigma_rad: float = 3.0
+    max_future_s: float = 1.0
+    max_pending: int = 16
+    extra_iterations: int = 1
+    relinearize_threshold: float = 0.01
+
+    window_s: float = 300.0
+    max_keyframes: int = 400
+    marginalize_batch: int = 50
+    pre_anchor_buffer_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "keyframe_distance_m",
+            "keyframe_angle_rad",
+            "keyframe_interval_s",
+            "odom_sigma_floor_m",
+            "odom_sigma_floor_rad",
+            "max_odometry_speed_m_s",
+            "max_odometry_rate_rad_s",
+            "odometry_jump_sigma_m",
+            "odometry_jump_sigma_rad",
+            "robust_threshold",
+            "camera_sigma_floor_m",
+            "camera_sigma_floor_rad",
+            "max_camera_sigma_m",
+            "max_camera_sigma_rad",
+            "relinearize_threshold",
+            "window_s",
+            "pre_anchor_buffer_s",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"FusionConfig.{name} must be a positive number, got {value!r}")
+        for name in (f.name for f in dataclasses.fields(self)):
+            value = getattr(self, name)
+            if isinstance(value, float) and not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"FusionConfig.{name} must be finite and >= 0, got {value!r}")
+        if self.robust_kernel not in ROBUST_KERNELS:
+            raise ValueError(f"FusionConfig.robust_kernel must be one of {ROBUST_KERNELS}")
+        if self.max_keyframes < 2 or self.marginalize_batch < 1 or self.max_pending < 1:
+            raise ValueError("FusionConfig: max_keyframes >= 2, marginalize_batch >= 1, "
+                             "max_pending >= 1")
+        if self.extra_iterations < 0 or self.max_future_s < 0:
+            raise ValueError("FusionConfig: extra_iterations and max_future_s must be >= 0")
+
+
+# --------------------------------------------------------------------------------------------
+# small planar helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _finite(*values: object) -> bool:
+    try:
+        return all(math.isfinite(float(v)) for v in values)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return False
+
+
+def _rot3(theta_rad: float) -> np.ndarray:
+    """(3, 3) map from body-frame (x, y, theta) perturbations to map-frame axes."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _cov_body_to_world(cov_body: np.ndarray, theta_rad: float) -> np.ndarray:
+    J = _rot3(theta_rad)
+    cov = J @ cov_body @ J.T
+    return 0.5 * (cov + cov.T)
+
+
+def _cov_world_to_body(cov_world: np.ndarray, theta_rad: float) -> np.ndarray:
+    J = _rot3(theta_rad)
+    cov = J.T @ cov_world @ J
+    return 0.5 * (cov + cov.T)
+
+
+def _interpolate(a: gtsam.Pose2, b: gtsam.Pose2, alpha: float) -> gtsam.Pose2:
+    """The pose a fraction ``alpha`` in [0, 1] along the geodesic from ``a`` to ``b``."""
+    return a.compose(gtsam.Pose2.Expmap(alpha * gtsam.Pose2.Logmap(a.between(b))))
+
+
+def _motion(delta: gtsam.Pose2) -> tuple[float, float]:
+    return math.hypot(delta.x(), delta.y()), abs(delta.theta())
+
+
+@dataclasses.dataclass
+class _Keyframe:
+    key: int
+    stamp_ns: int
+    T_odom_robot: gtsam.Pose2
+    cov_odom: np.ndarray | None
+
+
+@dataclasses.dataclass
+class _Factor:
+    """What a factor in the graph is, so the graph can be rebuilt after marginalization.
+
+    ``kind``: ``between`` (key_from → key_to), ``camera`` / ``initial`` / ``marginal`` (unary on
+    key_to). ``cov_body``: (3, 3) in the body frame of ``measured``. ``index``: slot in ISAM2.
+    """
+
+    kind: str
+    key_from: int
+    key_to: int
+    measured: gtsam.Pose2
+    cov_body: np.ndarray
+    robust: bool
+    index: int = -1
+
+    def factor(self, config: FusionConfig) -> gtsam.NonlinearFactor:
+        noise = gtsam.noiseModel.Gaussian.Covariance(self.cov_body)
+        if self.robust:
+            threshold = config.robust_threshold
+            if config.robust_kernel == "cauchy":
+                kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(threshold)
+            else:
+                kernel = gtsam.noiseModel.mEstimator.Huber.Create(threshold)
+            noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+        if self.kind == "between":
+            return gtsam.BetweenFactorPose2(self.key_from, self.key_to, self.measured, noise)
+        return gtsam.PriorFactorPose2(self.key_to, self.measured, noise)
+
+
+@dataclasses.dataclass
+class _Batch:
+    """New factors and values for one ISAM2 update; records get their slot after it."""
+
+    graph: gtsam.NonlinearFactorGraph = dataclasses.field(
+        default_factory=gtsam.NonlinearFactorGraph
+    )
+    values: gtsam.Values = dataclasses.field(default_factory=gtsam.Values)
+    remove: list[int] = dataclasses.field(default_factory=list)
+    records: list[_Factor] = dataclasses.field(default_factory=list)
+
+    def add(self, record: _Factor, config: FusionConfig) -> None:
+        self.graph.add(record.factor(config))
+        self.records.append(record)
+
+
+@dataclasses.dataclass(frozen=True)
+class _PendingPrior:
+    stamp_ns: int
+    T_world_robot: gtsam.Pose2
+    cov_world: np.ndarray
+    robust: bool
+    kind: str
+
+
+class PoseGraphFusion:
+    """Incremental (ISAM2) pose graph of one robot: odometry keyframes + camera priors.
+
+    Feed every :class:`protocol.Odometry` of the robot to :meth:`add_odometry` (it returns the
+    fused pose at that stamp) and every camera :class:`protocol.PoseEstimate` to
+    :meth:`add_camera_estimate`, in arrival order. ``counters`` counts events and rejection
+    reasons; ``last_reject_reason`` names the latest rejection.
+    """
+
+    def __init__(self, robot_id: str, config: FusionConfig | None = None) -> None:
+        self.robot_id = robot_id
+        self.config = config if config is not None else FusionConfig()
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.last_reject_reason = ""
+        self._seq = 0
+        self._next_key = 0
+        # odometry buffer, sorted by stamp: interpolation source for keyframes at any stamp
+        self._odom_stamps: list[int] = []
+        self._odom_poses: list[gtsam.Pose2] = []
+        self._odom_covs: list[np.ndarray | None] = []
+        self._pending: list[_PendingPrior] = []
+        self._reset_graph()
+
+    # ----------------------------------------------------------------------------------------
+    # public API
+    # ----------------------------------------------------------------------------------------
+
+    @property
+    def anchored(self) -> bool:
+        """Whether the odometry is anchored in the map frame (a fused pose is available)."""
+        return bool(self._kfs)
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self._kfs)
+
+    @property
+    def oldest_keyframe_stamp_ns(self) -> int | None:
+        return self._kf_stamps[0] if self._kf_stamps else None
+
+    def graph_size(self) -> tuple[int, int]:
+        """(variables, factors) currently held by ISAM2 (removed factor slots not counted)."""
+        factors = self._isam.getFactorsUnsafe()
+        live = sum(1 for i in range(factors.size()) if factors.exists(i))
+        return int(self._isam.size()), live
+
+    def buffer_sizes(self) -> dict[str, int]:
+        """Sizes of the internal buffers (for boundedness checks and status)."""
+        return {
+            "keyframes": len(self._kfs),
+            "odometry_samples": len(self._odom_stamps),
+            "factor_records": len(self._between) + sum(len(v) for v in self._priors.values()),
+            "pending_camera": len(self._pending),
+        }
+
+    def reset(self) -> None:
+        """Forget the graph, the odometry buffer and pending estimates (counters are kept)."""
+        self._odom_stamps.clear()
+        self._odom_poses.clear()
+        self._odom_covs.clear()
+        self._pending.clear()
+        self._reset_graph()
+
+    def add_odometry(self, msg: Odometry) -> PoseEstimate | None:
+        """Add one odometry sample (``T_odom_robot`` at ``msg.stamp_ns``).
+
+        Returns the fused ``T_world_robot`` at ``msg.stamp_ns`` (source ``"fused"``, covariance
+        (3, 3) along map axes), or ``None`` when not yet anchored or the message is rejected.
+        """
+        self.counters["odometry_received"] += 1
+        reason = self._odometry_reason(msg)
+        if reason:
+            return self._reject(reason)
+        stamp = int(msg.stamp_ns)
+        T_odom = gtsam.Pose2(float(msg.x), float(msg.y), float(msg.theta))
+        cov = None
+        if self.config.use_odometry_covariance:
+            cov = np.asarray(msg.covariance, dtype=np.float64)
+        if self._odom_stamps:
+            last_stamp = self._odom_stamps[-1]
+            if stamp <= last_stamp:
+                return self._reject("odometry_out_of_order")
+            if self._is_jump(self._odom_poses[-1], T_odom, (stamp - last_stamp) / _NS_PER_S):
+                return self._restart_after_jump(stamp, T_odom, cov)
+        self._odom_stamps.append(stamp)
+        self._odom_poses.append(T_odom)
+        self._odom_covs.append(cov)
+        self.counters["odometry_accepted"] += 1
+        if not self.anchored:
+            self._prune_pre_anchor_buffer()
+        self._process_pending(stamp)
+        if not self.anchored:
+            self.counters["uninitialized"] += 1
+            return None
+        self._apply_keyframe_policy(len(self._odom_stamps) - 1)
+        return self._fused_at_latest()
+
+    def add_camera_estimate(self, est: PoseEstimate) -> PoseEstimate | None:
+        """Add a camera pose estimate ``T_world_robot`` at its own ``est.stamp_ns``.
+
+        Attached as a robust unary prior at that stamp (a keyframe is interpolated there if
+        needed) and the graph is optimized. An estimate newer than the latest odometry is held
+        until odometry covers its stamp (``camera_deferred``). Returns the fused pose at the
+        latest odometry stamp after the update, or ``None`` (deferred / rejected).
+        """
+        self.counters["camera_received"] += 1
+        if isinstance(est, PoseEstimate) and est.source == "fused":
+            return self._reject("camera_fused_source")
+        return self._add_prior(est, robust=self.config.robust_kernel != "none", kind="camera")
+
+    def set_initial_pose(self, pose: PoseEstimate) -> PoseEstimate | None:
+        """Anchor (or re-anchor) with a known ``T_world_robot`` at ``pose.stamp_ns``.
+
+        For a robot that starts from a known pose (its own localization, a PnP initialization):
+        a plain Gaussian prior (no robust kernel) with ``pose.covariance``. Same return and
+        rejection rules as :meth:`add_camera_estimate`.
+        """
+        self.counters["initial_pose_received"] += 1
+        return self._add_prior(pose, robust=False, kind="initial")
+
+    def pose_at(self, stamp_ns: int) -> PoseEstimate | None:
+        """Fused (smoothed) ``T_world_robot`` at any ``stamp_ns`` covered by the window.
+
+        Between two keyframes the odometry is composed onto the earlier keyframe and the
+        residual to the later keyframe's estimate is spread linearly in time. ``None`` outside
+        the window or the odometry buffer.
+        """
+        if not self._kfs or stamp_ns < self._kf_stamps[0] or stamp_ns > self._odom_stamps[-1]:
+            return None
+        i = bisect.bisect_right(self._kf_stamps, stamp_ns) - 1
+        kf = self._kfs[i]
+        T_odom = self._odom_at(stamp_ns)
+        if T_odom is None:
+            return None
+        T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
+        delta = kf.T_odom_robot.between(T_odom[0])
+        T_world = T_world_kf.compose(delta)
+        if i + 1 < len(self._kfs):
+            nxt = self._kfs[i + 1]
+            T_world_nxt = self._isam.calculateEstimatePose2(nxt.key)
+            predicted = T_world_kf.compose(kf.T_odom_robot.between(nxt.T_odom_robot))
+            alpha = (stamp_ns - kf.stamp_ns) / max(1, nxt.stamp_ns - kf.stamp_ns)
+            residual = gtsam.Pose2.Logmap(predicted.between(T_world_nxt))
+            T_world = T_world.compose(gtsam.Pose2.Expmap(alpha * residual))
+        cov_body = self._propagate(cov_kf, kf, T_odom, stamp_ns)
+        return self._make_estimate(stamp_ns, T_world, cov_body)
+
+    def latest(self) -> PoseEstimate | None:
+        """Fused pose at the latest odometry stamp (``None`` if not anchored)."""
+        return self._fused_at_latest() if self.anchored else None
+
+    def keyframes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframes in the window: stamps (K,) int64 ns and optimized poses (K, 3) x, y, theta
+        of ``T_world_robot`` (metres, radians)."""
+        stamps = np.array(self._kf_stamps, dtype=np.int64)
+        poses = np.zeros((len(self._kfs), 3))
+        if self._kfs:
+            values = self._isam.calculateEstimate()
+            for i, kf in enumerate(self._kfs):
+                p = values.atPose2(kf.key)
+                poses[i] = (p.x(), p.y(), p.theta())
+        return stamps, poses
+
+    # ----------------------------------------------------------------------------------------
+    # input checks
+    # ----------------------------------------------------------------------------------------
+
+    def _reject(self, reason: str) -> None:
+        self.counters[reason] += 1
+        self.last_reject_reason = reason
+        logger.debug("robot %s: rejected (%s)", self.robot_id, reason)
+        return None
+
+    def _odometry_reason(self, msg: object) -> str:
+        if not isinstance(msg, Odometry):
+            return "odometry_invalid"
+        if msg.robot_id != self.robot_id:
+            return "odometry_wrong_robot"
+        stamp = msg.stamp_ns
+        if not isinstance(stamp, (int, np.integer)) or stamp < 0:
+            return "odometry_invalid"
+        if not _finite(msg.x, msg.y, msg.theta):
+            return "odometry_invalid"
+        if self.config.use_odometry_covariance:
+            cov = np.asarray(msg.covariance)
+            if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+                return "odometry_invalid"
+        return ""
+
+    def _prior_input(self, est: object) -> tuple[str, gtsam.Pose2 | None, np.ndarray | None]:
+        """(reason, T_world_robot, covariance along map axes with floors) of a pose estimate."""
+        if not isinstance(est, PoseEstimate):
+            return "camera_invalid", None, None
+        if est.robot_id != self.robot_id:
+            return "camera_wrong_robot", None, None
+        stamp = est.stamp_ns
+        if not isinstance(stamp, (int, np.integer)) or stamp < 0:
+            return "camera_invalid", None, None
+        if not _finite(est.x, est.y, est.theta):
+            return "camera_invalid", None, None
+        try:
+            cov = np.array(est.covariance, dtype=np.float64)
+        except (TypeError, ValueError):
+            return "camera_bad_covariance", None, None
+        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+            return "camera_bad_covariance", None, None
+        cov = 0.5 * (cov + cov.T)
+        cfg = self.config
+        if float(np.min(np.linalg.eigvalsh(cov))) < -1e-12 * max(1.0, float(np.max(np.abs(cov)))):
+            return "camera_bad_covariance", None, None
+        if max(cov[0, 0], cov[1, 1]) > cfg.max_camera_sigma_m**2 or (
+            cov[2, 2] > cfg.max_camera_sigma_rad**2
+        ):
+            return "camera_uninformative", None, None
+        cov = cov + np.diag(
+            [cfg.camera_sigma_floor_m**2, cfg.camera_sigma_floor_m**2, cfg.camera_sigma_floor_rad**2]
+        )
+        return "", gtsam.Pose2(float(est.x), float(est.y), float(est.theta)), cov
+
+    def _is_jump(self, a: gtsam.Pose2, b: gtsam.Pose2, dt_s: float) -> bool:
+        dist_m, angle_rad = _motion(a.between(b))
+        # a small allowance so that a single late sample after a short gap is not a "jump"
+        return (
+            dist_m > self.config.max_odometry_speed_m_s * dt_s + 0.05
+            or angle_rad > self.config.max_odometry_rate_rad_s * dt_s + 0.05
+        )
+
+    # ----------------------------------------------------------------------------------------
+    # odometry buffer and keyframes
+    # ----------------------------------------------------------------------------------------
+
+    def _odom_at(self, stamp_ns: int) -> tuple[gtsam.Pose2, np.ndarray | None] | None:
+        """Odometry pose (and covariance) interpolated at ``stamp_ns``; None outside buffer."""
+        stamps = self._odom_stamps
+        if not stamps or stamp_ns < stamps[0] or stamp_ns > stamps[-1]:
+            return None
+        j = bisect.bisect_left(stamps, stamp_ns)
+        if stamps[j] == stamp_ns:
+            return self._odom_poses[j], self._odom_covs[j]
+        t0, t1 = stamps[j - 1], stamps[j]
+        alpha = (stamp_ns - t0) / (t1 - t0)
+        pose = _interpolate(self._odom_poses[j - 1], self._odom_poses[j], alpha)
+        c0, c1 = self._odom_covs[j - 1], self._odom_covs[j]
+        cov = None if c0 is None or c1 is None else (1 - alpha) * c0 + alpha * c1
+        return pose, cov
+
+    def _odometry_noise(
+        self,
+        T_a: gtsam.Pose2,
+        cov_a: np.ndarray | None,
+        T_b: gtsam.Pose2,
+        cov_b: np.ndarray | None,
+        dt_s: float,
+    ) -> np.ndarray:
+        """(3, 3) covariance of the odometry increment a → b in the body frame of b."""
+        cfg = self.config
+        if cov_a is not None and cov_b is not None:
+            increment = _cov_world_to_body(cov_b - cov_a, T_b.theta())
+            if float(np.min(np.linalg.eigvalsh(increment))) > cfg.odom_sigma_floor_m**2:
+                return increment
+            self.counters["odometry_covariance_fallback"] += 1
+        dist_m, angle_rad = _motion(T_a.between(T_b))
+        dt_s = max(0.0, dt_s)
+        var_xy = (
+            cfg.odom_sigma_xy_m_per_sqrt_m**2 * dist_m
+            + cfg.odom_sigma_xy_m_per_sqrt_rad**2 * angle_rad
+            + cfg.odom_sigma_xy_m_per_sqrt_s**2 * dt_s
+            + cfg.odom_sigma_floor_m**2
+        )
+        var_theta = (
+            cfg.odom_sigma_theta_rad_per_sqrt_m**2 * dist_m
+            + cfg.odom_sigma_theta_rad_per_sqrt_rad**2 * angle_rad
+            + cfg.odom_sigma_theta_rad_per_sqrt_s**2 * dt_s
+            + cfg.odom_sigma_floor_rad**2
+        )
+        return np.diag([var_xy, var_xy, var_theta])
+
+    def _new_key(self) -> int:
+        key = gtsam.symbol("x", self._next_key)
+        self._next_key += 1
+        return key
+
+    def _between_record(self, a: _Keyframe, b: _Keyframe) -> _Factor:
+        cov = self._odometry_noise(
+            a.T_odom_robot, a.cov_odom, b.T_odom_robot, b.cov_odom,
+            (b.stamp_ns - a.stamp_ns) / _NS_PER_S,
+        )
+        measured = a.T_odom_robot.between(b.T_odom_robot)
+        return _Factor("between", a.key, b.key, measured, cov, robust=False)
+
+    def _apply_keyframe_policy(self, sample_index: int) -> None:
+        stamp = self._odom_stamps[sample_index]
+        T_odom = self._odom_poses[sample_index]
+        last = self._kfs[-1]
+        if stamp <= last.stamp_ns:
+            return
+        cfg = self.config
+        dist_m, angle_rad = _motion(last.T_odom_robot.between(T_odom))
+        moved = dist_m > cfg.static_motion_m or angle_rad > cfg.static_motion_rad
+        dt_s = (stamp - last.stamp_ns) / _NS_PER_S
+        if (
+            dist_m >= cfg.keyframe_distance_m
+            or angle_rad >= cfg.keyframe_angle_rad
+            or (moved and dt_s >= cfg.keyframe_interval_s)
+        ):
+            batch = _Batch()
+            self._insert_keyframe(stamp, T_odom, self._odom_covs[sample_index], batch)
+            if self._update(batch):
+                self.counters["keyframes_created"] += 1
+                self._maybe_marginalize()
+
+    def _insert_keyframe(
+        self, stamp: int, T_odom: gtsam.Pose2, cov_odom: np.ndarray | None, batch: _Batch
+    ) -> int:
+        """Add a keyframe at ``stamp`` (after the first one) to ``batch``: appended to the chain
+        or, for a stamp between two keyframes, splitting their between factor in two."""
+        kf = _Keyframe(self._new_key(), stamp, T_odom, cov_odom)
+        i = bisect.bisect_right(self._kf_stamps, stamp) - 1
+        prev = self._kfs[i]
+        before = self._between_record(prev, kf)
+        T_world_prev = self._isam.calculateEstimatePose2(prev.key)
+        batch.values.insert(kf.key, T_world_prev.compose(before.measured))
+        batch.add(before, self.config)
+        if i + 1 < len(self._kfs):
+            nxt = self._kfs[i + 1]
+            old = self._between.pop(prev.key)
+            batch.remove.append(old.index)
+            batch.add(self._between_record(kf, nxt), self.config)
+            self.counters["keyframes_inserted"] += 1
+        self._kfs.insert(i + 1, kf)
+        self._kf_stamps.insert(i + 1, stamp)
+        return kf.key
+
+    def _keyframe_for(self, stamp: int, batch: _Batch) -> int | None:
+        """Key of the keyframe at ``stamp``: an existing one the robot has not moved away from,
+        or a new one interpolated from the odometry. None when the odometry does not cover it."""
+        odom = self._odom_at(stamp)
+        if odom is None:
+            return None
+        T_odom, cov_odom = odom
+        cfg = self.config
+        i = bisect.bisect_right(self._kf_stamps, stamp) - 1
+        for j in (i, i + 1):
+            if 0 <= j < len(self._kfs):
+                dist_m, angle_rad = _motion(self._kfs[j].T_odom_robot.between(T_odom))
+                if dist_m <= cfg.static_motion_m and angle_rad <= cfg.static_motion_rad:
+                    return self._kfs[j].key
+        return self._insert_keyframe(stamp, T_odom, cov_odom, batch)
+
+    # ----------------------------------------------------------------------------------------
+    # priors (camera estimates, initial pose)
+    # ----------------------------------------------------------------------------------------
+
+    def _add_prior(self, est: object, *, robust: bool, kind: str) -> PoseEstimate | None:
+        reason, T_world, cov_world = self._prior_input(est)
+        if reason:
+            return self._reject(reason)
+        assert T_world is not None and cov_world is not None and isinstance(est, PoseEstimate)
+        stamp = int(est.stamp_ns)
+        prior = _PendingPrior(stamp, T_world, cov_world, robust, kind)
+        if not self._odom_stamps or stamp > self._odom_stamps[-1]:
+            if (
+                self._odom_stamps
+                and stamp - self._odom_stamps[-1] > self.config.max_future_s * _NS_PER_S
+            ):
+                return self._reject("camera_future")
+            bisect.insort(self._pending, prior, key=lambda p: p.stamp_ns)
+            self.counters["camera_deferred"] += 1
+            if len(self._pending) > self.config.max_pending:
+                self._pending.pop(0)
+                self._reject("camera_pending_overflow")
+            return None
+        if not self._fuse_prior(prior):
+            return None
+        return self._fused_at_latest()
+
+    def _process_pending(self, stamp_ns: int) -> None:
+        while self._pending and self._pending[0].stamp_ns <= stamp_ns:
+            self._fuse_prior(self._pending.pop(0))
+
+    def _fuse_prior(self, prior: _PendingPrior) -> bool:
+        stamp = prior.stamp_ns
+        if not self.anchored or prior.kind == "initial":
+            return self._anchor(prior)
+        if stamp < self._kf_stamps[0]:
+            self._reject("camera_too_old")
+            return False
+        batch = _Batch()
+        key = self._keyframe_for(stamp, batch)
+        if key is None:
+            self._reject("camera_too_old")
+            return False
+        batch.add(self._prior_record(prior, key), self.config)
+        if not self._update(batch, iterations=1 + self.config.extra_iterations):
+            return False
+        self.counters[f"{prior.kind}_fused"] += 1
+        self._maybe_marginalize()
+        return True
+
+    def _prior_record(self, prior: _PendingPrior, key: int) -> _Factor:
+        cov_body = _cov_world_to_body(prior.cov_world, prior.T_world_robot.theta())
+        return _Factor(prior.kind, -1, key, prior.T_world_robot, cov_body, prior.robust)
+
+    def _anchor(self, prior: _PendingPrior) -> bool:
+        """Start the graph at ``prior.stamp_ns`` (first estimate, or an explicit initial pose),
+        then replay the buffered odometry after it through the keyframe policy."""
+        odom = self._odom_at(prior.stamp_ns)
+        if odom is None:
+            self._reject("camera_too_old" if prior.kind == "camera" else "initial_too_old")
+            return False
+        self._reset_graph()
+        kf = _Keyframe(self._new_key(), prior.stamp_ns, odom[0], odom[1])
+        self._kfs.append(kf)
+        self._kf_stamps.append(kf.stamp_ns)
+        batch = _Batch()
+        batch.values.insert(kf.key, prior.T_world_robot)
+        batch.add(self._prior_record(prior, kf.key), self.config)
+        if not self._update(batch, iterations=1 + self.config.extra_iterations):
+            return False
+        self.counters[f"{prior.kind}_fused"] += 1
+        self.counters["anchored"] += 1
+        self._prune_odometry_before(kf.stamp_ns)
+        first = bisect.bisect_right(self._odom_stamps, kf.stamp_ns)
+        for j in range(first, len(self._odom_stamps)):
+            self._apply_keyframe_policy(j)
+        return True
+
+    def _restart_after_jump(
+        self, stamp: int, T_odom: gtsam.Pose2, cov: np.ndarray | None
+    ) -> PoseEstimate | None:
+        """Odometry jumped (reset/reboot of the robot's odometry): keep the map anchor by
+        re-rooting the graph at the new sample with the last fused pose, inflated."""
+        self.counters["odometry_jump"] += 1
+        self.last_reject_reason = "odometry_jump"
+        last = self._fused_at_latest() if self.anchored else None
+        self.reset()
+        self._odom_stamps.append(stamp)
+        self._odom_poses.append(T_odom)
+        self._odom_covs.append(cov)
+        if last is None:
+            return None
+        cfg = self.config
+        inflate = np.diag(
+            [cfg.odometry_jump_sigma_m**2, cfg.odometry_jump_sigma_m**2,
+             cfg.odometry_jump_sigma_rad**2]
+        )
+        prior = _PendingPrior(
+            stamp, gtsam.Pose2(last.x, last.y, last.theta), last.covariance + inflate, False,
+            "marginal",
+        )
+        if not self._anchor(prior):
+            return None
+        return self._fused_at_latest()
+
+    # ----------------------------------------------------------------------------------------
+    # ISAM2
+    # ----------------------------------------------------------------------------------------
+
+    def _reset_graph(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = 1
+        # reuse slots of factors removed when splitting between factors (bounded graph)
+        params.findUnusedFactorSlots = True
+        self._isam = gtsam.ISAM2(params)
+        self._kfs: list[_Keyframe] = []
+        self._kf_stamps: list[int] = []
+        self._between: dict[int, _Factor] = {}
+        self._priors: dict[int, list[_Factor]] = {}
+        self._latest_cache: tuple[int, gtsam.Pose2, np.ndarray] | None = None
+
+    def _update(self, batch: _Batch, iterations: int = 1) -> bool:
+        """One ISAM2 update with ``batch`` (+ ``iterations - 1`` relinearization steps)."""
+        try:
+            result = self._isam.update(batch.graph, batch.values, batch.remove)
+            for _ in range(iterations - 1):
+                self._isam.update()
+        except RuntimeError as exc:
+            # GTSAM raises on indeterminant systems; start over rather than stop the service
+            logger.warning("robot %s: ISAM2 update failed (%s); graph reset", self.robot_id, exc)
+            self._reset_graph()
+            self._reject("optimizer_error")
+            return False
+        for record, index in zip(batch.records, result.getNewFactorsIndices()):
+            record.index = int(index)
+            self._register(record)
+        self._latest_cache = None
+        return True
+
+    def _register(self, record: _Factor) -> None:
+        if record.kind == "between":
+            self._between[record.key_from] = record
+        else:
+            self._priors.setdefault(record.key_to, []).append(record)
+
+    def _estimate_and_cov(self, key: int) -> tuple[gtsam.Pose2, np.ndarray]:
+        """Optimized pose of ``key`` and its (3, 3) marginal covariance in its body frame."""
+        cache = self._latest_cache
+        if cache is not None and cache[0] == key:
+            return cache[1], cache[2]
+        pose = self._isam.calculateEstimatePose2(key)
+        cov = np.asarray(self._isam.marginalCovariance(key), dtype=np.float64)
+        if key == self._kfs[-1].key:
+            self._latest_cache = (key, pose, cov)
+        return pose, cov
+
+    def _propagate(
+        self, cov_kf_body: np.ndarray, kf: _Keyframe, odom: tuple, stamp_ns: int
+    ) -> np.ndarray:
+        """Covariance (body frame) of keyframe ∘ odometry increment: Ad(D⁻¹) Σ Ad(D⁻¹)ᵀ + Q."""
+        T_odom, cov_odom = odom
+        delta = kf.T_odom_robot.between(T_odom)
+        adj = delta.inverse().AdjointMap()
+        q = self._odometry_noise(
+            kf.T_odom_robot, kf.cov_odom, T_odom, cov_odom, (stamp_ns - kf.stamp_ns) / _NS_PER_S
+        )
+        cov = adj @ cov_kf_body @ adj.T + q
+        return 0.5 * (cov + cov.T)
+
+    def _fused_at_latest(self) -> PoseEstimate | None:
+        stamp = self._odom_stamps[-1]
+        kf = self._kfs[-1]
+        T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
+        odom = (self._odom_poses[-1], self._odom_covs[-1])
+        T_world = T_world_kf.compose(kf.T_odom_robot.between(odom[0]))
+        cov_body = self._propagate(cov_kf, kf, odom, stamp)
+        return self._make_estimate(stamp, T_world, cov_body)
+
+    def _make_estimate(
+        self, stamp_ns: int, T_world: gtsam.Pose2, cov_body: np.ndarray
+    ) -> PoseEstimate | None:
+        try:
+            est = PoseEstimate(
+                robot_id=self.robot_id,
+                stamp_ns=int(stamp_ns),
+                seq=self._seq,
+                x=float(T_world.x()),
+                y=float(T_world.y()),
+                theta=float(T_world.theta()),
+                covariance=_cov_body_to_world(cov_body, T_world.theta()),
+                source="fused",
+            )
+        except ValueError as exc:  # protocol.ValidationError: numerically broken estimate
+            logger.warning("robot %s: fused pose not publishable (%s)", self.robot_id, exc)
+            return self._reject("fused_invalid")
+        self._seq += 1
+        return est
+
+    # ----------------------------------------------------------------------------------------
+    # bounded memory
+    # ----------------------------------------------------------------------------------------
+
+    def _prune_odometry_before(self, stamp_ns: int) -> None:
+        """Drop odometry samples older than the one bracketing ``stamp_ns`` from below."""
+        j = bisect.bisect_right(self._odom_stamps, stamp_ns) - 1
+        if j > 0:
+            del self._odom_stamps[:j]
+            del self._odom_poses[:j]
+            del self._odom_covs[:j]
+
+    def _prune_pre_anchor_buffer(self) -> None:
+        horizon = self._odom_stamps[-1] - int(self.config.pre_anchor_buffer_s * _NS_PER_S)
+        if self._odom_stamps[0] < horizon:
+            self._prune_odometry_before(horizon)
+
+    def _maybe_marginalize(self) -> None:
+        cfg = self.config
+        n = len(self._kfs)
+        horizon = self._kf_stamps[-1] - int(cfg.window_s * _NS_PER_S)
+        too_old = bisect.bisect_left(self._kf_stamps, horizon)
+        drop = min(max(too_old, n - cfg.max_keyframes), n - 1)
+        if drop >= cfg.marginalize_batch:
+            self._marginalize(drop)
+
+    def _marginalize(self, drop: int) -> None:
+        """Fold keyframes ``[:drop]`` into a Gaussian prior on keyframe ``drop`` (the new root)
+        and rebuild ISAM2 over the kept keyframes, linearized at the current estimate."""
+        values = self._isam.calculateEstimate()
+        dropped, kept = self._kfs[:drop], self._kfs[drop:]
+        root = kept[0]
+        old_graph = gtsam.NonlinearFactorGraph()
+        old_values = gtsam.Values()
+        for kf in dropped:
+            for record in self._priors.pop(kf.key, []):
+                old_graph.add(record.factor(self.config))
+            old_graph.add(self._between.pop(kf.key).factor(self.config))
+            old_values.insert(kf.key, values.atPose2(kf.key))
+        T_world_root = values.atPose2(root.key)
+        old_values.insert(root.key, T_world_root)
+        try:
+            cov_root = np.asarray(
+                gtsam.Marginals(old_graph, old_values).marginalCovariance(root.key)
+            )
+        except RuntimeError as exc:
+            logger.warning("robot %s: marginalization failed (%s)", self.robot_id, exc)
+            cov_root = np.asarray(self._isam.marginalCovariance(root.key))
+        marginal = _Factor("marginal", -1, root.key, T_world_root, 0.5 * (cov_root + cov_root.T),
+                           robust=False)
+        batch = _Batch()
+        batch.add(marginal, self.config)
+        for kf in kept:
+            batch.values.insert(kf.key, values.atPose2(kf.key))
+            for record in self._priors.pop(kf.key, []):
+                batch.add(record, self.config)
+            if kf.key in self._between:
+                batch.add(self._between.pop(kf.key), self.config)
+        params = self._isam.params()
+        self._isam = gtsam.ISAM2(params)
+        self._kfs = list(kept)
+        self._kf_stamps = [kf.stamp_ns for kf in kept]
+        self._prune_odometry_before(root.stamp_ns)
+        if self._update(batch):
+            self.counters["marginalizations"] += 1

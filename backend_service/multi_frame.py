@@ -1,0 +1,85 @@
+"""Multi-frame averaging of camera pose estimates while the robot is static (the paper's
+"Cameras (5 frames)" row in Table I).
+
+:class:`MultiFrameAverager` keeps the last ``k`` successful results. A result that jumps away
+from the current window (more than ``max_jump_m`` / ``max_jump_rad`` from its mean) or comes
+after a gap longer than ``max_gap_s`` means the robot moved: the window restarts with it. Once
+``k`` results agree it returns their average (mean position, circular-mean yaw, covariance of
+the mean) flagged ``multi_frame``; after that every new agreeing result returns the average of
+the last ``k``. Callers that know the robot moved (odometry) call :meth:`reset`.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+
+import numpy as np
+
+from backend_service.estimate import PoseResult
+from backend_service.frame_set import PlanarPose
+from backend_service.pose_init import circular_mean
+from backend_service.pose_solver import wrap_angle
+
+
+class MultiFrameAverager:
+    """Average the last ``k`` camera estimates of one robot while it is static."""
+
+    def __init__(self, k: int, max_jump_m: float = 0.15, max_jump_rad: float = math.radians(5.0),
+                 max_gap_s: float = 5.0) -> None:
+        if k < 1:
+            raise ValueError("k must be >= 1")
+        self.k = int(k)
+        self.max_jump_m = float(max_jump_m)
+        self.max_jump_rad = float(max_jump_rad)
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self._window: collections.deque[PoseResult] = collections.deque(maxlen=self.k)
+
+    def reset(self) -> None:
+        """Forget the window (the robot moved)."""
+        self._window.clear()
+
+    def __len__(self) -> int:
+        return len(self._window)
+
+    def _mean_pose(self) -> PlanarPose:
+        poses = [r.pose for r in self._window if r.pose is not None]
+        return PlanarPose(float(np.mean([p.x for p in poses])), float(np.mean([p.y for p in poses])),
+                          circular_mean(np.array([p.theta for p in poses])))
+
+    def add(self, result: PoseResult) -> PoseResult | None:
+        """Add one frame-set's result; the average of the last ``k`` when that many agree,
+        else ``None``. Results without an estimate are ignored (they neither count nor reset)."""
+        if not result.ok or result.pose is None or result.estimate is None:
+            return None
+        if self._window:
+            last = self._window[-1].estimate
+            mean = self._mean_pose()
+            jump = math.hypot(result.pose.x - mean.x, result.pose.y - mean.y)
+            turn = abs(wrap_angle(result.pose.theta - mean.theta))
+            gap = result.estimate.stamp_ns - last.stamp_ns  # type: ignore[union-attr]
+            if (jump > self.max_jump_m or turn > self.max_jump_rad or gap > self.max_gap_ns
+                    or gap < 0):
+                self._window.clear()
+        self._window.append(result)
+        if len(self._window) < self.k:
+            return None
+        return self._average()
+
+    def _average(self) -> PoseResult:
+        items = list(self._window)
+        mean = self._mean_pose()
+        newest = items[-1].estimate
+        assert newest is not None
+        covs = np.stack([r.estimate.covariance for r in items])  # type: ignore[union-attr]
+        # Covariance of the mean of k independent estimates.
+        cov = covs.mean(axis=0) / len(items)
+        rmse = float(np.sqrt(np.mean([r.estimate.reprojection_rmse_px**2  # type: ignore[union-attr]
+                                      for r in items])))
+        cams = tuple(sorted({c for r in items for c in r.estimate.camera_ids}))  # type: ignore[union-attr]
+        flags = tuple(dict.fromkeys([f for r in items for f in r.estimate.flags]  # type: ignore[union-attr]
+                                    + ["multi_frame"]))
+        est = dataclasses.replace(newest, x=mean.x, y=mean.y, theta=mean.theta, covariance=cov,
+                                  camera_ids=cams, reprojection_rmse_px=rmse, flags=flags)
+        return dataclasses.replace(items[-1], estimate=est, pose=mean, T_world_robot=None)

@@ -1,0 +1,334 @@
+"""The bridge core fed like the service loop feeds it: a drifting planar robot (behind the sim
+adapter interface) and camera / fused pose estimates of its true pose."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import pytest
+
+from protocol.messages import Odometry, PoseEstimate, ServiceStatus
+from protocol.site import Thresholds
+from robot_bridge.adapters.base import LocalizationPose, OdometrySample
+from robot_bridge.adapters.sim import SimRobotAdapter, SimulatedRobotPort
+from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
+from robot_bridge.policy import wrap_angle
+
+S = 1_000_000_000
+T0 = 1_700_000_000 * S
+DT_NS = S // 50  # 50 Hz odometry
+TH = Thresholds()
+
+
+@dataclasses.dataclass
+class _Reading:
+    stamp_ns: int
+    x: float
+    y: float
+    theta: float
+    vx: float
+    vy: float
+    wz: float
+
+
+class DriftingRobot:
+    """A planar robot whose odometry over-reads distance and turns by a yaw bias, and whose
+    localization is ``T_map_odom`` composed with that odometry (a stand-in for a localizer
+    that drifts between corrections). Accepts corrections only while not moving."""
+
+    def __init__(self, pose=(0.0, 0.0, 0.0), *, scale=1.04, yaw_bias_rad_per_m=0.03,
+                 localized=True) -> None:
+        self.true = np.array(pose, dtype=float)
+        self.odom = np.zeros(3)
+        self.scale = scale
+        self.yaw_bias = yaw_bias_rad_per_m
+        self.t_ns = T0
+        self.v = (0.0, 0.0)
+        self.T_map_odom = np.array(pose, dtype=float) if localized else None
+        self._pending: list[_Reading] = []
+        self.refused = 0
+
+    def step(self, vx: float, wz: float) -> None:
+        dt = DT_NS / S
+        self.t_ns += DT_NS
+        self.v = (vx, wz)
+        x, y, th = self.true
+        self.true = np.array([x + vx * dt * math.cos(th), y + vx * dt * math.sin(th),
+                              wrap_angle(th + wz * dt)])
+        ox, oy, oth = self.odom
+        d = vx * dt * self.scale
+        oth2 = oth + wz * dt + self.yaw_bias * abs(vx) * dt
+        self.odom = np.array([ox + d * math.cos(oth), oy + d * math.sin(oth), wrap_angle(oth2)])
+        self._pending.append(_Reading(self.t_ns, *self.odom, vx * self.scale, 0.0, wz))
+
+    # --- SimulatedRobotPort -----------------------------------------------------------------
+    def read_odometry(self) -> list[_Reading]:
+        out, self._pending = self._pending, []
+        return out
+
+    def localization(self) -> LocalizationPose | None:
+        if self.T_map_odom is None:
+            return None
+        x, y, th = _compose(self.T_map_odom, self.odom)
+        return LocalizationPose(self.t_ns, x, y, th)
+
+    def apply_correction(self, stamp_ns: int, x: float, y: float, theta: float) -> bool:
+        if self.v != (0.0, 0.0):
+            self.refused += 1
+            return False
+        # choose T_map_odom so that T_map_odom ∘ odom == the corrected pose
+        ox, oy, oth = self.odom
+        mth = wrap_angle(theta - oth)
+        c, s = math.cos(mth), math.sin(mth)
+        self.T_map_odom = np.array([x - (c * ox - s * oy), y - (s * ox + c * oy), mth])
+        return True
+
+    def localization_error(self) -> tuple[float, float]:
+        loc = self.localization()
+        assert loc is not None
+        return (math.hypot(loc.x - self.true[0], loc.y - self.true[1]),
+                abs(wrap_angle(loc.theta - self.true[2])))
+
+
+def _compose(a, b):
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+
+
+def camera_estimate(robot: DriftingRobot, rng, sigma_m=0.01, sigma_deg=0.5, source="cameras",
+                    seq=0, robot_id="hsr") -> PoseEstimate:
+    x, y, th = robot.true
+    cov = np.diag([sigma_m**2, sigma_m**2, math.radians(sigma_deg) ** 2])
+    return PoseEstimate(
+        robot_id, robot.t_ns, seq,
+        float(x + rng.normal(0, sigma_m)), float(y + rng.normal(0, sigma_m)),
+        float(wrap_angle(th + math.radians(rng.normal(0, sigma_deg)))),
+        cov, source, ("cam_a", "cam_b"),
+    )
+
+
+class Harness:
+    """Runs robot + bridge + (optional) backend estimates at 50 Hz odometry, 10 Hz estimates."""
+
+    def __init__(self, robot: DriftingRobot, *, seed=0, backend=True) -> None:
+        self.robot = robot
+        self.adapter = SimRobotAdapter(robot)
+        assert isinstance(robot, SimulatedRobotPort)
+        self.bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
+        self.rng = np.random.default_rng(seed)
+        self.backend = backend
+        self.odometry: list[Odometry] = []
+        self.corrections = []
+        self.motion_at_correction = []
+        self._seq = 0
+        self._n = 0
+
+    def run(self, seconds: float, vx: float = 0.0, wz: float = 0.0) -> None:
+        for _ in range(round(seconds * 50)):
+            self.robot.step(vx, wz)
+            self._n += 1
+            if self.backend and self._n % 5 == 0:
+                out = self.bridge.on_pose_estimate(
+                    camera_estimate(self.robot, self.rng, seq=self._seq), self.robot.t_ns)
+                self._seq += 1
+                self._collect(out, pushed=False)
+            out = self.bridge.pump(self.adapter, self.robot.t_ns)
+            self._collect(out, pushed=True)
+
+    def _collect(self, out: Outbox, pushed: bool) -> None:
+        self.odometry.extend(out.odometry)
+        for c in out.corrections:
+            self.corrections.append(c)
+            self.motion_at_correction.append(self.robot.v)
+            if not pushed:  # decided on an estimate: push like the service loop does
+                self.bridge.on_correction_result(c, self.adapter.apply_correction(c))
+
+
+def test_no_correction_while_moving() -> None:
+    h = Harness(DriftingRobot(scale=1.1, yaw_bias_rad_per_m=0.1))
+    h.run(20.0, vx=0.4, wz=0.05)  # drifts far beyond every threshold, never stops
+    assert h.robot.localization_error()[0] > 0.3
+    assert h.corrections == []
+    assert len(h.odometry) == 1000
+    assert h.bridge.counters.get("corrections_sent", 0) == 0
+
+
+def test_one_correction_per_static_stop_when_needed() -> None:
+    h = Harness(DriftingRobot())
+    stops = 3
+    for _ in range(stops):
+        h.run(6.0, vx=0.5)  # 3 m: ~12 cm of drift plus heading error
+        err_before = h.robot.localization_error()
+        assert err_before[0] > TH.correction_min_offset_m
+        n_before = len(h.corrections)
+        h.run(4.0)  # stop: dwell 1 s, then estimates keep coming for 3 s
+        assert len(h.corrections) == n_before + 1, "exactly one correction per stop"
+        err_after = h.robot.localization_error()
+        assert err_after[0] < 0.03 and err_after[1] < math.radians(1.5)
+    assert all(v == (0.0, 0.0) for v in h.motion_at_correction)
+    assert all(c.kind == "correction" for c in h.corrections)
+    assert h.robot.refused == 0
+    c = h.bridge.counters
+    assert c["corrections_sent"] == stops and c["corrections_accepted"] == stops
+
+
+def test_no_correction_when_the_offset_is_small() -> None:
+    h = Harness(DriftingRobot(scale=1.0, yaw_bias_rad_per_m=0.0))
+    for _ in range(3):
+        h.run(3.0, vx=0.5)
+        h.run(3.0)
+    assert h.corrections == []
+    assert h.bridge.counters.get("skip_offset_below_threshold", 0) > 0
+
+
+def test_kidnapped_start_gets_the_initial_pose_from_cameras() -> None:
+    true_start = (4.2, -1.3, 2.5)
+    h = Harness(DriftingRobot(true_start, localized=False), seed=3)
+    assert h.adapter.read_localization() is None
+    h.run(3.0)
+    assert [c.kind for c in h.corrections] == ["initialization"]
+    c = h.corrections[0]
+    assert c.frame_id == "map"
+    dist, dyaw = h.robot.localization_error()
+    assert dist < 0.05 and dyaw < math.radians(2.0)
+    # afterwards the robot is localized: driving and stopping gives ordinary corrections only
+    h.run(6.0, vx=0.5)
+    h.run(3.0)
+    assert [c.kind for c in h.corrections][1:] in ([], ["correction"])
+
+
+def test_kidnapped_robot_waits_for_a_stop_before_initialization() -> None:
+    h = Harness(DriftingRobot((1.0, 1.0, 0.0), localized=False))
+    h.run(5.0, vx=0.3)
+    assert h.corrections == []
+    h.run(2.0)
+    assert [c.kind for c in h.corrections] == ["initialization"]
+
+
+def test_large_jump_is_rejected_for_a_localized_robot() -> None:
+    robot = DriftingRobot((0.0, 0.0, 0.0))
+    robot.T_map_odom = np.array([2.0, 0.0, 0.0])  # localization 2 m off (> max jump 1 m)
+    h = Harness(robot)
+    h.run(4.0)
+    assert h.corrections == []
+    assert h.bridge.counters["skip_jump_too_large"] >= 1
+
+
+def test_link_loss_leaves_the_robot_running() -> None:
+    h = Harness(DriftingRobot(scale=1.02, yaw_bias_rad_per_m=0.002))
+    h.run(2.0, vx=0.5)
+    st = h.bridge.status()
+    assert st.state == "ok" and st.backend_alive
+    h.backend = False  # backend / link gone
+    n_odom = len(h.odometry)
+    t_start = time.perf_counter()
+    h.run(20.0, vx=0.5)
+    h.run(5.0)
+    elapsed = time.perf_counter() - t_start
+    assert len(h.odometry) == n_odom + 1250, "odometry keeps flowing"
+    assert h.robot.true[0] > 10.0, "the robot kept driving on its own"
+    assert elapsed < 2.0, "nothing blocks (1250 steps)"
+    st = h.bridge.status()
+    assert st.state == "degraded" and not st.backend_alive
+    assert "backend lost" in st.detail and "own localization" in st.detail
+    assert h.corrections == []
+    status_msg = h.bridge.service_status(h.robot.t_ns, seq=0, uptime_s=27.0)
+    assert isinstance(status_msg, ServiceStatus) and status_msg.state == "degraded"
+    # the backend comes back: status recovers and the overdue correction goes out
+    h.backend = True
+    h.run(3.0)
+    assert h.bridge.status().state == "ok"
+    assert len(h.corrections) == 1, h.bridge.counters
+    # liveliness DELETE marks the backend lost at once
+    h.bridge.on_backend_gone(h.robot.t_ns)
+    assert h.bridge.status().state == "degraded"
+    h.bridge.on_backend_heartbeat(h.robot.t_ns)
+    assert h.bridge.status().state == "ok"
+
+
+def test_fused_estimate_is_preferred_over_camera_only() -> None:
+    robot = DriftingRobot()
+    robot.T_map_odom = np.array([0.3, 0.0, 0.0])
+    bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
+    adapter = SimRobotAdapter(robot)
+    rng = np.random.default_rng(1)
+    out = Outbox()
+    for i in range(100):
+        robot.step(0.0, 0.0)
+        if i == 10:  # both arrive while the stop's dwell time is still running
+            cam = camera_estimate(robot, rng)
+            fused = dataclasses.replace(cam, x=cam.x + 0.01, source="fused")
+            out = out + bridge.on_pose_estimate(fused) + bridge.on_pose_estimate(cam)
+        out = out + bridge.pump(adapter, robot.t_ns)
+    assert len(out.corrections) == 1
+    assert out.corrections[0].x == pytest.approx(fused.x)
+    assert out.corrections[0].stamp_ns == fused.stamp_ns
+
+
+def test_garbage_is_counted_never_raised() -> None:
+    bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
+    good = OdometrySample(T0, 0.0, 0.0, 0.0)
+    assert len(bridge.on_robot_odometry(good, T0).odometry) == 1
+    cov_bad = np.array([[1.0, 2.0, 0], [0, 1.0, 0], [0, 0, 1.0]])  # not symmetric
+    bad = [
+        None, "odom", {"x": 1.0}, 42,
+        OdometrySample(T0 + 1, math.nan, 0.0, 0.0),
+        OdometrySample(T0 + 2, 0.0, math.inf, 0.0),
+        OdometrySample(T0 + 3, 0.0, 0.0, 0.0, vx=math.nan),
+        OdometrySample(T0 + 4, 0.0, 0.0, math.nan),
+        OdometrySample(T0 + 5, "1.0", 0.0, 0.0),
+        OdometrySample(T0 + 6, 0.0, 0.0, 0.0, covariance=cov_bad),
+        OdometrySample(T0 + 7, 0.0, 0.0, 0.0, covariance=np.eye(2)),
+        OdometrySample(T0 + 8, 0.0, 0.0, 0.0, frame_id="bad/frame"),
+        OdometrySample(-5, 0.0, 0.0, 0.0),
+        OdometrySample(1.5, 0.0, 0.0, 0.0),
+        OdometrySample(T0 + 3600 * S, 0.0, 0.0, 0.0),  # an hour in the future
+        OdometrySample(T0 - S, 0.0, 0.0, 0.0),  # older than the last one
+    ]
+    for item in bad:
+        out = bridge.on_robot_odometry(item, T0 + 10 * S // 1000)
+        assert not out
+    for item in (None, "pose", 3.0, OdometrySample(T0, 0, 0, 0)):
+        assert not bridge.on_pose_estimate(item)
+    cov = np.eye(3) * 1e-4
+    other = PoseEstimate("other_robot", T0, 0, 0.0, 0.0, 0.0, cov, "cameras")
+    odd_frame = PoseEstimate("hsr", T0, 0, 0.0, 0.0, 0.0, cov, "cameras", frame_id="odom")
+    future = PoseEstimate("hsr", T0 + 3600 * S, 0, 0.0, 0.0, 0.0, cov, "cameras")
+    for est in (other, odd_frame, future):
+        assert not bridge.on_pose_estimate(est, T0)
+    for pose in ("map", LocalizationPose(T0, math.nan, 0.0, 0.0),
+                 LocalizationPose(-1, 0.0, 0.0, 0.0), LocalizationPose(T0, 0, 0, 0, frame_id="odom")):
+        assert not bridge.on_robot_localization(pose)
+    assert not bridge.tick("now")  # type: ignore[arg-type]
+    c = bridge.counters
+    assert c["invalid_odometry"] == 14
+    assert c["future_stamp_odometry"] == 1 and c["out_of_order_odometry"] == 1
+    assert c["invalid_estimate"] == 4
+    assert c["other_robot_estimate"] == 1 and c["wrong_frame_estimate"] == 1
+    assert c["future_stamp_estimate"] == 1
+    assert c["invalid_localization"] == 3 and c["wrong_frame_localization"] == 1
+    assert c["invalid_tick"] == 1
+    assert "internal_error" not in c
+    # and the bridge still works
+    out = bridge.on_robot_odometry(OdometrySample(T0 + S, 0.1, 0.0, 0.0))
+    assert len(out.odometry) == 1, bridge.counters
+
+
+def test_adapter_exceptions_are_counted() -> None:
+    class Broken:
+        def read_odometry(self):
+            raise RuntimeError("robot driver crashed")
+
+        def localization(self):
+            raise RuntimeError("robot driver crashed")
+
+        def apply_correction(self, stamp_ns, x, y, theta):
+            raise RuntimeError("robot driver crashed")
+
+    bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
+    out = bridge.pump(SimRobotAdapter(Broken()), T0)
+    assert not out
+    assert bridge.counters["adapter_error"] == 2
