@@ -1,0 +1,457 @@
+"""The shape every smartedge service shares: a transport-free node and the Zenoh runner around it.
+
+A service is a :class:`ServiceNode`: it declares what it subscribes to, handles decoded
+messages, and is ticked periodically; it returns what to publish as :class:`Outgoing` items. It
+never touches Zenoh, so it can be driven by a scripted inbox in tests (:class:`ScriptedRunner`)
+or by :class:`ZenohRunner` in production.
+
+Threading rule (ARCHITECTURE.md): Zenoh callbacks only append ``(key, bytes, recv_ns)`` to a
+bounded channel per subscription; one worker thread decodes, calls the node, publishes, ticks,
+pings the systemd watchdog and publishes a :class:`~protocol.messages.ServiceStatus` every second.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import math
+import os
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Final
+
+from protocol import keys
+from protocol.codec import decode, encode
+from protocol.errors import DecodeError
+from protocol.messages import Message, ServiceStatus
+
+log = logging.getLogger(__name__)
+
+STATUS_PERIOD_S: Final = 1.0
+
+
+# --------------------------------------------------------------------------------------------
+# node interface
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Subscription:
+    """A key expression the node listens on.
+
+    ``message_type``: the only type accepted on it (``None`` for liveliness subscriptions).
+    ``capacity``: bound of the channel between the Zenoh thread and the worker.
+    ``drop_oldest``: when full, drop the oldest sample (right for camera frames) instead of the
+    newest (right when order matters more than freshness). Either way the drop is counted.
+    ``liveliness``: subscribe to liveliness tokens; the node gets ``alive(key, present)`` calls.
+    """
+
+    key_expr: str
+    message_type: type[Message] | None = None
+    capacity: int = 256
+    drop_oldest: bool = True
+    liveliness: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Outgoing:
+    """A message to publish on ``key``; ``reliable`` selects reliable + BLOCK congestion control
+    (poses, odometry, corrections) instead of best effort + DROP (detections, clouds)."""
+
+    key: str
+    message: Message
+    reliable: bool = True
+
+
+class ServiceNode:
+    """Base class of service logic. Subclasses override what they need."""
+
+    service: str = "service"
+
+    def __init__(self, site: str, instance_id: str) -> None:
+        self.site = site
+        self.instance_id = instance_id
+        self.stats = Stats()
+
+    def subscriptions(self) -> Sequence[Subscription]:
+        return ()
+
+    def handle(self, key: str, message: Message, recv_ns: int) -> Iterable[Outgoing]:
+        """One decoded, validated message that arrived on ``key`` (a concrete key)."""
+        return ()
+
+    def alive(self, key: str, present: bool) -> None:
+        """A liveliness token appeared (``present``) or disappeared."""
+
+    def tick(self, now_ns: int) -> Iterable[Outgoing]:
+        """Called every ``tick_period_s`` from the worker loop (wall clock ``now_ns``)."""
+        return ()
+
+    tick_period_s: float = 0.05
+
+    def state(self) -> tuple[str, str]:
+        """(state, detail) for the status message; override to report degradation."""
+        return "ok", ""
+
+    def peers_alive(self) -> Sequence[str]:
+        return ()
+
+    def close(self) -> None:
+        """Release resources (files, recordings) on shutdown."""
+
+
+# --------------------------------------------------------------------------------------------
+# statistics
+# --------------------------------------------------------------------------------------------
+
+
+class Stats:
+    """Counters, rates and latency percentiles of one service (worker thread only, except the
+    ``dropped`` counters, which the Zenoh threads bump under the lock)."""
+
+    def __init__(self, window: int = 2048) -> None:
+        self.counters: collections.Counter[str] = collections.Counter()
+        self._latencies: dict[str, collections.deque[float]] = {}
+        self._events: dict[str, collections.deque[float]] = {}
+        self._window = window
+        self.lock = threading.Lock()
+
+    def count(self, name: str, n: int = 1) -> None:
+        with self.lock:
+            self.counters[name] += n
+
+    def event(self, stream: str, t_s: float | None = None) -> None:
+        """Record one message on ``stream`` (for rates)."""
+        q = self._events.setdefault(stream, collections.deque(maxlen=self._window))
+        q.append(time.monotonic() if t_s is None else t_s)
+
+    def latency(self, stage: str, seconds: float) -> None:
+        q = self._latencies.setdefault(stage, collections.deque(maxlen=self._window))
+        q.append(seconds)
+
+    def rates_hz(self, horizon_s: float = 5.0) -> dict[str, float]:
+        now = time.monotonic()
+        out = {}
+        for name, q in self._events.items():
+            recent = [t for t in q if now - t <= horizon_s]
+            out[name] = len(recent) / horizon_s
+        return out
+
+    def percentiles_ms(self, q: float) -> dict[str, float]:
+        out = {}
+        for stage, values in self._latencies.items():
+            if values:
+                ordered = sorted(values)
+                idx = min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))
+                out[stage] = ordered[idx] * 1e3
+        return out
+
+    def snapshot_counters(self) -> dict[str, int]:
+        with self.lock:
+            return dict(self.counters)
+
+
+def make_status(
+    node: ServiceNode, seq: int, started_s: float, state: str | None = None
+) -> ServiceStatus:
+    node_state, detail = node.state()
+    return ServiceStatus(
+        service=node.service,
+        instance_id=node.instance_id,
+        stamp_ns=time.time_ns(),
+        seq=seq,
+        state=state or node_state,
+        uptime_s=max(0.0, time.monotonic() - started_s),
+        rates_hz=node.stats.rates_hz(),
+        latency_p50_ms=node.stats.percentiles_ms(0.50),
+        latency_p99_ms=node.stats.percentiles_ms(0.99),
+        counters=node.stats.snapshot_counters(),
+        peers_alive=tuple(node.peers_alive()),
+        detail=detail[:4000],
+    )
+
+
+def dispatch(
+    node: ServiceNode, sub: Subscription, key: str, payload: bytes, recv_ns: int
+) -> list[Outgoing]:
+    """Decode one payload and hand it to the node; bad input is logged, counted and dropped.
+
+    Never raises: a node that raises on a message is counted under ``handler_errors`` and the
+    service keeps running."""
+    node.stats.count("received")
+    try:
+        message = decode(payload, expected=sub.message_type)
+    except DecodeError as exc:
+        node.stats.count("invalid")
+        log.warning("invalid message on %s: %s", key, exc.reason)
+        return []
+    try:
+        return list(node.handle(key, message, recv_ns) or ())
+    except Exception:
+        node.stats.count("handler_errors")
+        log.exception("%s failed to handle a message on %s", node.service, key)
+        return []
+
+
+# --------------------------------------------------------------------------------------------
+# systemd notify (no dependency: the protocol is one datagram)
+# --------------------------------------------------------------------------------------------
+
+
+def sd_notify(state: str) -> bool:
+    """Send ``state`` (``READY=1``, ``WATCHDOG=1``, ``STOPPING=1``, ``STATUS=...``) to systemd.
+
+    A no-op returning False when not started by systemd with ``Type=notify``."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.connect(address)
+            sock.sendall(state.encode())
+        return True
+    except OSError as exc:
+        log.debug("sd_notify failed: %s", exc)
+        return False
+
+
+def watchdog_period_s() -> float | None:
+    """Half the systemd watchdog interval (``WATCHDOG_USEC``), or None when not supervised."""
+    usec = os.environ.get("WATCHDOG_USEC")
+    if not usec or not usec.isdigit():
+        return None
+    return int(usec) / 2e6
+
+
+# --------------------------------------------------------------------------------------------
+# runners
+# --------------------------------------------------------------------------------------------
+
+
+class _Channel:
+    """Bounded FIFO between Zenoh threads and the worker (drop-oldest or drop-newest)."""
+
+    def __init__(self, capacity: int, drop_oldest: bool, stats: Stats, name: str) -> None:
+        self._q: collections.deque[tuple[str, bytes, int]] = collections.deque()
+        self._capacity = max(1, capacity)
+        self._drop_oldest = drop_oldest
+        self._stats = stats
+        self._name = name
+
+    def put(self, item: tuple[str, bytes, int]) -> None:
+        if len(self._q) >= self._capacity:
+            self._stats.count("dropped")
+            self._stats.count(f"dropped.{self._name}")
+            if not self._drop_oldest:
+                return
+            try:
+                self._q.popleft()
+            except IndexError:
+                pass
+        self._q.append(item)
+
+    def pop(self) -> tuple[str, bytes, int] | None:
+        try:
+            return self._q.popleft()
+        except IndexError:
+            return None
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+
+class ZenohRunner:
+    """Runs a node on a Zenoh session until :meth:`stop` (or SIGINT/SIGTERM via
+    :meth:`install_signal_handlers`).
+
+    The worker loop: drain the channels (round-robin, bounded per pass), tick the node on its
+    period, publish outputs, publish the status every second, ping the systemd watchdog.
+    """
+
+    def __init__(self, node: ServiceNode, zenoh_config: Any, *, status: bool = True) -> None:
+        self.node = node
+        self._config = zenoh_config
+        self._status = status
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._publishers: dict[tuple[str, bool], Any] = {}
+        self.session: Any = None
+        self.started = threading.Event()
+
+    def stop(self, *_: object) -> None:
+        self._stop.set()
+        self._wake.set()
+
+    def install_signal_handlers(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self.stop)
+
+    def _publisher(self, key: str, reliable: bool) -> Any:
+        import zenoh
+
+        pub = self._publishers.get((key, reliable))
+        if pub is None:
+            pub = self.session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding("application/msgpack"),
+                congestion_control=(
+                    zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+                ),
+                reliability=zenoh.Reliability.RELIABLE
+                if reliable
+                else zenoh.Reliability.BEST_EFFORT,
+            )
+            self._publishers[(key, reliable)] = pub
+        return pub
+
+    def publish(self, items: Iterable[Outgoing]) -> None:
+        for item in items:
+            try:
+                self._publisher(item.key, item.reliable).put(encode(item.message))
+                self.node.stats.count("published")
+            except Exception:
+                self.node.stats.count("publish_errors")
+                log.exception("publishing on %s failed", item.key)
+
+    def run(self) -> int:
+        """Blocking: returns 0 after a clean stop."""
+        import zenoh
+
+        node = self.node
+        started_s = time.monotonic()
+        channels: list[tuple[Subscription, _Channel]] = []
+        liveliness_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=4096)
+        with zenoh.open(self._config) as session:
+            self.session = session
+            handles = []
+            for sub in node.subscriptions():
+                if sub.liveliness:
+
+                    def on_token(sample: Any, _q=liveliness_events) -> None:
+                        _q.append((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+                        self._wake.set()
+
+                    handles.append(
+                        session.liveliness().declare_subscriber(
+                            sub.key_expr, on_token, history=True
+                        )
+                    )
+                    continue
+                channel = _Channel(sub.capacity, sub.drop_oldest, node.stats, sub.key_expr)
+                channels.append((sub, channel))
+
+                def on_sample(sample: Any, _c=channel) -> None:
+                    _c.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+                    self._wake.set()
+
+                handles.append(session.declare_subscriber(sub.key_expr, on_sample))
+            token = session.liveliness().declare_token(
+                keys.alive_key(node.site, node.service, node.instance_id)
+            )
+            status_key = keys.status_key(node.site, node.service, node.instance_id)
+            sd_notify("READY=1")
+            self.started.set()
+            log.info("%s %s running", node.service, node.instance_id)
+            watchdog = watchdog_period_s()
+            next_tick = next_status = next_watchdog = time.monotonic()
+            status_seq = 0
+            try:
+                while not self._stop.is_set():
+                    self._wake.clear()
+                    busy = False
+                    while liveliness_events:
+                        key, present = liveliness_events.popleft()
+                        node.alive(key, present)
+                    for sub, channel in channels:
+                        for _ in range(64):  # bounded per pass: fairness between keys
+                            item = channel.pop()
+                            if item is None:
+                                break
+                            busy = True
+                            self.publish(dispatch(node, sub, *item))
+                    now = time.monotonic()
+                    if now >= next_tick:
+                        next_tick = now + node.tick_period_s
+                        try:
+                            self.publish(node.tick(time.time_ns()) or ())
+                        except Exception:
+                            node.stats.count("handler_errors")
+                            log.exception("%s tick failed", node.service)
+                    if self._status and now >= next_status:
+                        next_status = now + STATUS_PERIOD_S
+                        self.publish(
+                            [Outgoing(status_key, make_status(node, status_seq, started_s))]
+                        )
+                        status_seq += 1
+                    if watchdog is not None and now >= next_watchdog:
+                        next_watchdog = now + watchdog
+                        sd_notify("WATCHDOG=1")
+                    if not busy:
+                        timeout = max(0.0, min(next_tick, next_status) - time.monotonic())
+                        self._wake.wait(min(timeout, 0.05))
+            finally:
+                sd_notify("STOPPING=1")
+                log.info("%s %s stopping", node.service, node.instance_id)
+                if self._status:
+                    self.publish(
+                        [Outgoing(status_key, make_status(node, status_seq, started_s, "stopping"))]
+                    )
+                token.undeclare()
+                for h in handles:
+                    h.undeclare()
+                node.close()
+                self.session = None
+        return 0
+
+
+class ScriptedRunner:
+    """Drives a node without Zenoh: feed ``(key, payload_bytes)`` items, collect outputs.
+
+    The same decode/dispatch path as :class:`ZenohRunner`, so node logic (including bad-input
+    handling) is tested without a network."""
+
+    def __init__(self, node: ServiceNode) -> None:
+        self.node = node
+        self.published: list[Outgoing] = []
+        self._subs = list(node.subscriptions())
+
+    def _match(self, key: str) -> Subscription | None:
+        import fnmatch
+
+        for sub in self._subs:
+            pattern = sub.key_expr.replace("**", "\0").replace("*", "[!/]*").replace("\0", "*")
+            if not sub.liveliness and fnmatch.fnmatchcase(key, pattern):
+                return sub
+        return None
+
+    def feed(self, key: str, payload: bytes, recv_ns: int | None = None) -> list[Outgoing]:
+        sub = self._match(key)
+        if sub is None:
+            raise KeyError(f"node does not subscribe to {key}")
+        out = dispatch(self.node, sub, key, payload, time.time_ns() if recv_ns is None else recv_ns)
+        self.published.extend(out)
+        return out
+
+    def tick(self, now_ns: int) -> list[Outgoing]:
+        out = list(self.node.tick(now_ns) or ())
+        self.published.extend(out)
+        return out
+
+
+def run_node(
+    node: ServiceNode, zenoh_config: Any, *, on_started: Callable[[ZenohRunner], None] | None = None
+) -> int:
+    """Run ``node`` until SIGINT/SIGTERM (the ``main`` of every service)."""
+    runner = ZenohRunner(node, zenoh_config)
+    runner.install_signal_handlers()
+    if on_started is not None:
+        threading.Thread(
+            target=lambda: (runner.started.wait(), on_started(runner)), daemon=True
+        ).start()
+    return runner.run()
