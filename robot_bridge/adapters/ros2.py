@@ -116,8 +116,11 @@ def typestore(ros1: bool = False) -> Any:
 
 
 def stamp_ns_to_ros(stamp_ns: int) -> tuple[int, int]:
-    """ns since the epoch → ``(sec, nanosec)`` of ``builtin_interfaces/Time``."""
+    """ns since the epoch → ``(sec, nanosec)`` of ``builtin_interfaces/Time``;
+    :class:`RosConversionError` past 2038 (``sec`` is an int32 in ROS 2, uint32 in ROS 1)."""
     sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    if not 0 <= sec < 2**31:
+        raise RosConversionError(f"stamp {stamp_ns} ns does not fit a ROS time")
     return sec, nanosec
 
 
@@ -177,7 +180,8 @@ def correction_to_ros(
     sec, nanosec = stamp_ns_to_ros(correction.stamp_ns)
     stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     if ros1:
-        header = t["std_msgs/msg/Header"](seq=correction.seq, stamp=stamp, frame_id=frame_id)
+        header = t["std_msgs/msg/Header"](
+            seq=correction.seq % 2**32, stamp=stamp, frame_id=frame_id)
     else:
         header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
     qx, qy, qz, qw = yaw_to_quaternion_xyzw(correction.theta)

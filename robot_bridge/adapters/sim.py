@@ -1,28 +1,33 @@
-"""Adapter for the simulated robot of :mod:`simulation` (drifting odometry and localization,
-accepts corrections only while static).
+"""Adapter for the simulated robot of :mod:`simulation.robot` (drifting odometry and
+localization, accepts corrections only while static).
 
-The adapter is written against the small structural interface :class:`SimulatedRobotPort`, so
-it does not import :mod:`simulation` itself: any object with these three methods works.
+Written against the structural interface :class:`SimulatedRobotPort`, which
+:class:`simulation.robot.SimulatedRobot` satisfies, so this module does not import
+:mod:`simulation`:
 
-* ``read_odometry()`` → readings since the last call, oldest first; each has ``stamp_ns``,
-  ``x``, ``y``, ``theta`` (odom frame) and ``vx``, ``vy``, ``wz`` (body frame), optionally
-  ``covariance`` (3, 3) and ``frame_id``.
-* ``localization()`` → the robot's own map-frame pose (``stamp_ns``, ``x``, ``y``, ``theta``,
-  optionally ``lost``, ``covariance``) or ``None`` while the robot is not localized
-  (kidnapped).
-* ``apply_correction(stamp_ns, x, y, theta)`` → ``True`` when the robot set its localization
-  to that map-frame pose, ``False`` when it refused (it moves, or the pose is invalid).
+* ``step_to(t_s)`` → the :class:`protocol.Odometry` messages of the ticks up to ``t_s``
+  (s since the run start);
+* ``localization_pose()`` → (3,) the robot's own map-frame pose (x, y, theta) now;
+* ``apply_correction(pose, stamp_ns)`` → ``True`` when the robot set its localization to
+  ``pose`` (it refuses while moving);
+* ``stamp_ns(t_s)`` and ``t_s``: the common clock.
+
+Who advances simulated time: either the adapter (:meth:`SimRobotAdapter.advance_to`) or a
+runner that steps the robot itself and hands the odometry over with :meth:`~SimRobotAdapter.feed`.
+
+``localized=False`` plays the kidnapped robot: its localizer reports nothing until the first
+pose pushed to it is accepted.
 """
 
 from __future__ import annotations
 
 import logging
-import math
+from collections.abc import Iterable
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from protocol.messages import PoseCorrection
+from protocol.messages import Odometry, PoseCorrection
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 
 log = logging.getLogger(__name__)
@@ -32,78 +37,73 @@ log = logging.getLogger(__name__)
 class SimulatedRobotPort(Protocol):
     """What :class:`SimRobotAdapter` needs from a simulated robot (module docstring)."""
 
-    def read_odometry(self) -> Any: ...
+    @property
+    def t_s(self) -> float: ...
 
-    def localization(self) -> Any: ...
+    def stamp_ns(self, t_s: float) -> int: ...
 
-    def apply_correction(self, stamp_ns: int, x: float, y: float, theta: float) -> bool: ...
+    def step_to(self, t_s: float) -> list[Odometry]: ...
+
+    def localization_pose(self) -> np.ndarray: ...
+
+    def apply_correction(self, pose: Any, stamp_ns: int) -> bool: ...
 
 
-def _odometry_sample(reading: Any) -> OdometrySample:
-    cov = getattr(reading, "covariance", None)
+def sample_from_odometry(msg: Odometry) -> OdometrySample:
+    """A protocol :class:`Odometry` message as the bridge's :class:`OdometrySample`."""
     return OdometrySample(
-        stamp_ns=reading.stamp_ns,
-        x=reading.x,
-        y=reading.y,
-        theta=reading.theta,
-        vx=getattr(reading, "vx", 0.0),
-        vy=getattr(reading, "vy", 0.0),
-        wz=getattr(reading, "wz", 0.0),
-        covariance=np.zeros((3, 3)) if cov is None else np.asarray(cov, dtype=np.float64),
-        frame_id=getattr(reading, "frame_id", "odom"),
+        stamp_ns=msg.stamp_ns, x=msg.x, y=msg.y, theta=msg.theta, vx=msg.vx, vy=msg.vy,
+        wz=msg.wz, covariance=np.array(msg.covariance), frame_id=msg.frame_id,
     )
 
 
 class SimRobotAdapter(RobotAdapter):
-    """:class:`RobotAdapter` over a :class:`SimulatedRobotPort` object (in-process)."""
+    """:class:`RobotAdapter` over a simulated robot in the same process."""
 
     name = "sim"
 
-    def __init__(self, robot: SimulatedRobotPort) -> None:
+    def __init__(self, robot: SimulatedRobotPort, *, localized: bool = True) -> None:
         super().__init__()
-        missing = [m for m in ("read_odometry", "localization", "apply_correction")
+        missing = [m for m in ("step_to", "localization_pose", "apply_correction", "stamp_ns")
                    if not callable(getattr(robot, m, None))]
         if missing:
             raise TypeError(f"{type(robot).__name__} lacks {missing} (see SimulatedRobotPort)")
         self.robot = robot
+        self.localized = localized
+        self._pending: list[OdometrySample] = []
+
+    def advance_to(self, t_s: float) -> list[Odometry]:
+        """Step the robot to ``t_s`` (s since the run start); its odometry is queued for
+        :meth:`read_odometry` and also returned (for logging / ground truth bookkeeping)."""
+        msgs = list(self.robot.step_to(t_s))
+        self.feed(msgs)
+        return msgs
+
+    def feed(self, odometry: Iterable[Odometry]) -> None:
+        """Queue odometry messages produced by whoever steps the robot."""
+        for msg in odometry:
+            if isinstance(msg, Odometry):
+                self._pending.append(sample_from_odometry(msg))
+            else:
+                self._count("invalid_odometry")
 
     def read_odometry(self) -> list[OdometrySample]:
-        out = []
-        for reading in self.robot.read_odometry() or ():
-            try:
-                out.append(_odometry_sample(reading))
-            except (AttributeError, TypeError, ValueError) as exc:
-                self._count("invalid_odometry")
-                log.debug("dropped simulated odometry: %s", exc)
+        out, self._pending = self._pending, []
         return out
 
     def read_localization(self) -> LocalizationPose | None:
-        pose = self.robot.localization()
-        if pose is None:
+        if not self.localized:
             return None
-        try:
-            cov = getattr(pose, "covariance", None)
-            return LocalizationPose(
-                stamp_ns=int(pose.stamp_ns),
-                x=float(pose.x),
-                y=float(pose.y),
-                theta=float(pose.theta),
-                lost=bool(getattr(pose, "lost", False)),
-                covariance=None if cov is None else np.asarray(cov, dtype=np.float64),
-                frame_id=getattr(pose, "frame_id", "map"),
-            )
-        except (AttributeError, TypeError, ValueError) as exc:
-            self._count("invalid_localization")
-            log.debug("dropped simulated localization: %s", exc)
-            return None
+        pose = np.asarray(self.robot.localization_pose(), dtype=np.float64).reshape(3)
+        return LocalizationPose(
+            stamp_ns=int(self.robot.stamp_ns(self.robot.t_s)),
+            x=float(pose[0]), y=float(pose[1]), theta=float(pose[2]),
+        )
 
     def apply_correction(self, correction: PoseCorrection) -> bool:
-        if not all(math.isfinite(v) for v in (correction.x, correction.y, correction.theta)):
-            return False
-        accepted = bool(
-            self.robot.apply_correction(
-                correction.stamp_ns, correction.x, correction.y, correction.theta
-            )
-        )
+        pose = np.array([correction.x, correction.y, correction.theta])
+        accepted = bool(self.robot.apply_correction(pose, correction.stamp_ns))
+        if accepted:
+            self.localized = True
         self._count("corrections_accepted" if accepted else "corrections_refused")
         return accepted

@@ -23,32 +23,23 @@ DT_NS = S // 50  # 50 Hz odometry
 TH = Thresholds()
 
 
-@dataclasses.dataclass
-class _Reading:
-    stamp_ns: int
-    x: float
-    y: float
-    theta: float
-    vx: float
-    vy: float
-    wz: float
-
-
 class DriftingRobot:
-    """A planar robot whose odometry over-reads distance and turns by a yaw bias, and whose
-    localization is ``T_map_odom`` composed with that odometry (a stand-in for a localizer
-    that drifts between corrections). Accepts corrections only while not moving."""
+    """A planar robot with the interface of ``simulation.robot.SimulatedRobot`` whose odometry
+    over-reads distance and turns by a yaw bias, and whose localization is ``T_map_odom``
+    composed with that odometry (a localizer drifting between corrections). Accepts
+    corrections only while not moving. ``step`` drives it; ``step_to`` hands over the odometry
+    of the steps made since the last call."""
 
     def __init__(self, pose=(0.0, 0.0, 0.0), *, scale=1.04, yaw_bias_rad_per_m=0.03,
-                 localized=True) -> None:
+                 T_map_odom=None) -> None:
         self.true = np.array(pose, dtype=float)
         self.odom = np.zeros(3)
         self.scale = scale
         self.yaw_bias = yaw_bias_rad_per_m
         self.t_ns = T0
         self.v = (0.0, 0.0)
-        self.T_map_odom = np.array(pose, dtype=float) if localized else None
-        self._pending: list[_Reading] = []
+        self.T_map_odom = np.array(pose if T_map_odom is None else T_map_odom, dtype=float)
+        self._pending: list[Odometry] = []
         self.refused = 0
 
     def step(self, vx: float, wz: float) -> None:
@@ -62,23 +53,29 @@ class DriftingRobot:
         d = vx * dt * self.scale
         oth2 = oth + wz * dt + self.yaw_bias * abs(vx) * dt
         self.odom = np.array([ox + d * math.cos(oth), oy + d * math.sin(oth), wrap_angle(oth2)])
-        self._pending.append(_Reading(self.t_ns, *self.odom, vx * self.scale, 0.0, wz))
+        self._pending.append(Odometry("hsr", self.t_ns, len(self._pending), *self.odom,
+                                      vx=vx * self.scale, wz=wz))
 
     # --- SimulatedRobotPort -----------------------------------------------------------------
-    def read_odometry(self) -> list[_Reading]:
+    @property
+    def t_s(self) -> float:
+        return (self.t_ns - T0) / S
+
+    def stamp_ns(self, t_s: float) -> int:
+        return T0 + round(t_s * S)
+
+    def step_to(self, t_s: float) -> list[Odometry]:
         out, self._pending = self._pending, []
         return out
 
-    def localization(self) -> LocalizationPose | None:
-        if self.T_map_odom is None:
-            return None
-        x, y, th = _compose(self.T_map_odom, self.odom)
-        return LocalizationPose(self.t_ns, x, y, th)
+    def localization_pose(self) -> np.ndarray:
+        return np.array(_compose(self.T_map_odom, self.odom))
 
-    def apply_correction(self, stamp_ns: int, x: float, y: float, theta: float) -> bool:
+    def apply_correction(self, pose, stamp_ns: int) -> bool:
         if self.v != (0.0, 0.0):
             self.refused += 1
             return False
+        x, y, theta = pose
         # choose T_map_odom so that T_map_odom ∘ odom == the corrected pose
         ox, oy, oth = self.odom
         mth = wrap_angle(theta - oth)
@@ -87,10 +84,9 @@ class DriftingRobot:
         return True
 
     def localization_error(self) -> tuple[float, float]:
-        loc = self.localization()
-        assert loc is not None
-        return (math.hypot(loc.x - self.true[0], loc.y - self.true[1]),
-                abs(wrap_angle(loc.theta - self.true[2])))
+        x, y, th = self.localization_pose()
+        return (math.hypot(x - self.true[0], y - self.true[1]),
+                abs(wrap_angle(th - self.true[2])))
 
 
 def _compose(a, b):
@@ -113,9 +109,9 @@ def camera_estimate(robot: DriftingRobot, rng, sigma_m=0.01, sigma_deg=0.5, sour
 class Harness:
     """Runs robot + bridge + (optional) backend estimates at 50 Hz odometry, 10 Hz estimates."""
 
-    def __init__(self, robot: DriftingRobot, *, seed=0, backend=True) -> None:
+    def __init__(self, robot: DriftingRobot, *, seed=0, backend=True, localized=True) -> None:
         self.robot = robot
-        self.adapter = SimRobotAdapter(robot)
+        self.adapter = SimRobotAdapter(robot, localized=localized)
         assert isinstance(robot, SimulatedRobotPort)
         self.bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
         self.rng = np.random.default_rng(seed)
@@ -135,6 +131,7 @@ class Harness:
                     camera_estimate(self.robot, self.rng, seq=self._seq), self.robot.t_ns)
                 self._seq += 1
                 self._collect(out, pushed=False)
+            self.adapter.advance_to(self.robot.t_s)
             out = self.bridge.pump(self.adapter, self.robot.t_ns)
             self._collect(out, pushed=True)
 
@@ -186,7 +183,7 @@ def test_no_correction_when_the_offset_is_small() -> None:
 
 def test_kidnapped_start_gets_the_initial_pose_from_cameras() -> None:
     true_start = (4.2, -1.3, 2.5)
-    h = Harness(DriftingRobot(true_start, localized=False), seed=3)
+    h = Harness(DriftingRobot(true_start, T_map_odom=(0.0, 0.0, 0.0)), seed=3, localized=False)
     assert h.adapter.read_localization() is None
     h.run(3.0)
     assert [c.kind for c in h.corrections] == ["initialization"]
@@ -201,7 +198,7 @@ def test_kidnapped_start_gets_the_initial_pose_from_cameras() -> None:
 
 
 def test_kidnapped_robot_waits_for_a_stop_before_initialization() -> None:
-    h = Harness(DriftingRobot((1.0, 1.0, 0.0), localized=False))
+    h = Harness(DriftingRobot((1.0, 1.0, 0.0), T_map_odom=(0.0, 0.0, 0.0)), localized=False)
     h.run(5.0, vx=0.3)
     assert h.corrections == []
     h.run(2.0)
@@ -209,9 +206,8 @@ def test_kidnapped_robot_waits_for_a_stop_before_initialization() -> None:
 
 
 def test_large_jump_is_rejected_for_a_localized_robot() -> None:
-    robot = DriftingRobot((0.0, 0.0, 0.0))
-    robot.T_map_odom = np.array([2.0, 0.0, 0.0])  # localization 2 m off (> max jump 1 m)
-    h = Harness(robot)
+    # localization 2 m off (> max jump 1 m)
+    h = Harness(DriftingRobot((0.0, 0.0, 0.0), T_map_odom=(2.0, 0.0, 0.0)))
     h.run(4.0)
     assert h.corrections == []
     assert h.bridge.counters["skip_jump_too_large"] >= 1
@@ -262,6 +258,7 @@ def test_fused_estimate_is_preferred_over_camera_only() -> None:
             cam = camera_estimate(robot, rng)
             fused = dataclasses.replace(cam, x=cam.x + 0.01, source="fused")
             out = out + bridge.on_pose_estimate(fused) + bridge.on_pose_estimate(cam)
+        adapter.advance_to(robot.t_s)
         out = out + bridge.pump(adapter, robot.t_ns)
     assert len(out.corrections) == 1
     assert out.corrections[0].x == pytest.approx(fused.x)
@@ -300,7 +297,8 @@ def test_garbage_is_counted_never_raised() -> None:
     for est in (other, odd_frame, future):
         assert not bridge.on_pose_estimate(est, T0)
     for pose in ("map", LocalizationPose(T0, math.nan, 0.0, 0.0),
-                 LocalizationPose(-1, 0.0, 0.0, 0.0), LocalizationPose(T0, 0, 0, 0, frame_id="odom")):
+                 LocalizationPose(-1, 0.0, 0.0, 0.0),
+                 LocalizationPose(T0, 0, 0, 0, frame_id="odom")):
         assert not bridge.on_robot_localization(pose)
     assert not bridge.tick("now")  # type: ignore[arg-type]
     c = bridge.counters
@@ -318,17 +316,87 @@ def test_garbage_is_counted_never_raised() -> None:
 
 
 def test_adapter_exceptions_are_counted() -> None:
-    class Broken:
-        def read_odometry(self):
+    class Broken(DriftingRobot):
+        def localization_pose(self):
             raise RuntimeError("robot driver crashed")
 
-        def localization(self):
+        def apply_correction(self, pose, stamp_ns):
             raise RuntimeError("robot driver crashed")
 
-        def apply_correction(self, stamp_ns, x, y, theta):
-            raise RuntimeError("robot driver crashed")
-
+    robot = Broken(T_map_odom=(0.5, 0.0, 0.0))
+    adapter = SimRobotAdapter(robot)
     bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
-    out = bridge.pump(SimRobotAdapter(Broken()), T0)
-    assert not out
-    assert bridge.counters["adapter_error"] == 2
+    rng = np.random.default_rng(0)
+    for i in range(100):
+        robot.step(0.0, 0.0)
+        adapter.advance_to(robot.t_s)
+        if i % 10 == 0:
+            bridge.on_pose_estimate(camera_estimate(robot, rng, seq=i), robot.t_ns)
+        out = bridge.pump(adapter, robot.t_ns)
+        assert len(out.odometry) == 1
+    c = bridge.counters
+    assert c["adapter_error"] == 101  # 100 localization reads + 1 correction push
+    assert c["initializations_sent"] == 1 and c["corrections_refused"] == 1
+    with pytest.raises(TypeError):
+        SimRobotAdapter(object())  # type: ignore[arg-type]
+
+
+def _run_simulated(feedback: bool, localized: bool = True):
+    """simulation.SimulatedRobot on Traj. 3 (stops at waypoints), camera estimates of the true
+    pose (1 cm / 0.5 deg noise) at 10 Hz while it stands still; bridge + sim adapter at 50 Hz."""
+    scenario_mod = pytest.importorskip("simulation.scenario")
+    runner_mod = pytest.importorskip("simulation.runner")
+    run = runner_mod.SimulationRun(scenario_mod.load_scenario(), "traj3", seed=4)
+    robot = run.robot
+    adapter = SimRobotAdapter(robot, localized=localized)
+    bridge = RobotBridge(BridgeConfig(robot_id=robot.robot_id))
+    rng = np.random.default_rng(5)
+    errors, corrections, stop_end_errors = [], [], []
+    n_steps = int(run.duration_s * 50)
+    stop_ends = [min(round(st.t1_s * 50) - 1, n_steps - 1) for st in run.stops]
+    for k in range(1, n_steps):
+        t_s = k / 50
+        adapter.advance_to(t_s)
+        now = robot.stamp_ns(t_s)
+        if feedback and k % 5 == 0 and robot.is_static(t_s):
+            gt = robot.ground_truth()
+            est = PoseEstimate(
+                robot.robot_id, now, k, float(gt[0] + rng.normal(0, 0.01)),
+                float(gt[1] + rng.normal(0, 0.01)),
+                float(wrap_angle(gt[2] + math.radians(rng.normal(0, 0.5)))),
+                np.diag([1e-4, 1e-4, math.radians(0.5) ** 2]), "cameras", ("cam_a", "cam_b"))
+            out = bridge.on_pose_estimate(est, now)
+            for c in out.corrections:
+                bridge.on_correction_result(c, adapter.apply_correction(c))
+            corrections.extend(out.corrections)
+        corrections.extend(bridge.pump(adapter, now).corrections)
+        if adapter.localized:
+            loc, gt = robot.localization_pose(), robot.ground_truth()
+            errors.append(math.hypot(loc[0] - gt[0], loc[1] - gt[1]))
+            if k in stop_ends:
+                stop_end_errors.append(errors[-1])
+    return run, robot, bridge, corrections, np.array(errors), np.array(stop_end_errors)
+
+
+def test_simulated_robot_with_and_without_feedback() -> None:
+    run, robot, bridge, corrections, err_fb, stop_fb = _run_simulated(feedback=True)
+    _, _, _, none, err_open, stop_open = _run_simulated(feedback=False)
+    assert none == []
+    assert 1 <= len(corrections) <= len(run.stops)
+    assert robot.corrections_refused == 0, "corrections are only sent while static"
+    assert bridge.counters.get("corrections_accepted", 0) == len(corrections)
+    # leaving each waypoint, the robot's localization is within the correction threshold
+    # (plus camera noise); without feedback it is whatever it drifted to
+    assert len(stop_fb) == len(run.stops)
+    assert np.all(stop_fb < TH.correction_min_offset_m + 0.03), stop_fb
+    assert stop_fb.mean() < 0.5 * stop_open.mean(), (stop_fb, stop_open)
+    assert np.sqrt(np.mean(err_fb**2)) < np.sqrt(np.mean(err_open**2))
+
+
+def test_simulated_kidnapped_robot_is_initialized_at_the_first_stop() -> None:
+    run, robot, bridge, corrections, errors, _ = _run_simulated(feedback=True, localized=False)
+    assert corrections[0].kind == "initialization"
+    assert bridge.counters["initializations_sent"] == 1
+    assert errors[0] < 0.05  # first localized step: the initial pose from the cameras
+    assert corrections[0].stamp_ns < robot.stamp_ns(run.stops[0].t1_s)
+    assert all(c.kind == "correction" for c in corrections[1:])
