@@ -2,15 +2,35 @@
 fusion (GTSAM), semantic map (Open3D), Rerun logging and the service loop.
 
 The algorithmic modules (frame sets, solver, initialization, metrics, fusion) are pure: they take
-messages and site data and never touch Zenoh. Only ``backend_service.service`` does.
+messages and site data and never touch Zenoh. Only ``backend_service.service`` does. Heavy
+dependencies are imported lazily by the modules that need them, so ``import backend_service``
+stays cheap.
 """
 
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = ["CameraObservation", "FrameSet", "PlanarPose"]
+_LAZY = {
+    "PoseResult": "backend_service.estimate",
+    "SolverConfig": "backend_service.estimate",
+    "estimate_pose": "backend_service.estimate",
+    "FrameSetSynchronizer": "backend_service.sync",
+    "MultiFrameAverager": "backend_service.multi_frame",
+    "cramer_rao_bound": "backend_service.cramer_rao",
+}
+
+__all__ = ["CameraObservation", "FrameSet", "PlanarPose", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'backend_service' has no attribute {name!r}")

@@ -39,6 +39,7 @@ from backend_service.pose_solver import (
     wrap_angle,
 )
 from backend_service.single_camera import apply_single_camera_heuristic
+from protocol.camera import CameraModel
 from protocol.messages import PoseEstimate
 from protocol.site import Site
 
@@ -90,7 +91,7 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
     """
     try:
         return _estimate(frame_set, site, prior, config or SolverConfig())
-    except Exception as exc:  # noqa: BLE001 - a service-facing function must not raise
+    except Exception as exc:  # a service-facing function must not raise
         log.exception("pose estimation failed unexpectedly")
         return _fail(f"internal error: {type(exc).__name__}: {exc}")
 
@@ -174,7 +175,7 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
             return _fail(f"no prior and no initialization: {pnp_reason}")
         attempts.append(first)
 
-    best: tuple[PoseResult, float] | None = None
+    best: tuple[np.ndarray, float, int, str] | None = None  # q, rmse, iterations, init flag
     last_reason = ""
     tried_pnp = prior is None
     i = 0
@@ -184,11 +185,8 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
         outcome = _solve_once(problem, p, q0, config, th.max_reprojection_rmse_px)
         if isinstance(outcome, str):
             last_reason = outcome
-        else:
-            q, rmse, iterations = outcome
-            if best is None or rmse < best[1]:
-                best = (PoseResult(None, None, "", None, iterations), rmse)
-                best_q, best_flag = q, init_flag
+        elif best is None or outcome[1] < best[1]:
+            best = (*outcome, init_flag)
         good = best is not None and best[1] <= th.max_reprojection_rmse_px
         if not good and not tried_pnp and config.try_pnp_fallback:
             tried_pnp = True
@@ -197,7 +195,7 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
                 attempts.append(nxt)
     if best is None:
         return _fail(last_reason or "solver failed")
-    q, rmse, iterations = best_q, best[1], best[0].iterations
+    q, rmse, iterations, best_flag = best
     if rmse > th.max_reprojection_rmse_px:
         return _fail(f"reprojection RMSE {rmse:.1f} px > {th.max_reprojection_rmse_px} px")
     flags.append(best_flag)
@@ -297,7 +295,22 @@ def _weighted_rmse(r: np.ndarray, w: np.ndarray, config: SolverConfig) -> float:
 
 def _solve_once(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: SolverConfig,
                 max_rmse_px: float) -> tuple[np.ndarray, float, int] | str:
-    out = problem.solve(q0, p, config.method, config.max_iterations)
+    outcome = _solve_with(problem, p, q0, config, config.method)
+    if config.method != "lm" and (isinstance(outcome, str) or outcome[1] > max_rmse_px
+                                  or not outcome[3]):
+        # sqpmethod/IPOPT occasionally stall on the non-smooth robust losses (seen with Huber
+        # and gross outliers); the IRLS Levenberg-Marquardt path is the safety net.
+        retry = _solve_with(problem, p, q0, config, "lm")
+        if not isinstance(retry, str) and (isinstance(outcome, str) or retry[1] < outcome[1]):
+            outcome = retry
+    if isinstance(outcome, str):
+        return outcome
+    return outcome[0], outcome[1], outcome[2]
+
+
+def _solve_with(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: SolverConfig,
+                method: str) -> tuple[np.ndarray, float, int, bool] | str:
+    out = problem.solve(q0, p, method, config.max_iterations)
     q = out.q
     if not np.all(np.isfinite(q)):
         return "solver returned a non-finite pose"
@@ -309,10 +322,7 @@ def _solve_once(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: Sol
         return "robot behind a camera: no solution in front of every camera that sees it"
     if not np.all(np.isfinite(r)):
         return "non-finite reprojection residuals"
-    if not out.success:
-        log.debug("solver %s did not report success (%d iterations)", config.method,
-                  out.iterations)
-    return q, _weighted_rmse(r, w, config), out.iterations
+    return q, _weighted_rmse(r, w, config), out.iterations, out.success
 
 
 def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray,
@@ -335,7 +345,7 @@ def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray,
         return None
 
 
-def _lateral_only_covariance(camera, pose: PlanarPose, cov: np.ndarray,
+def _lateral_only_covariance(camera: CameraModel, pose: PlanarPose, cov: np.ndarray,
                              depth_std_m: float, theta_std_rad: float) -> np.ndarray:
     """Covariance of a heuristic pose: the along-ray and orientation components come from the
     prior, not from this frame-set, so they get at least the heuristic's thresholds as std."""

@@ -45,7 +45,8 @@ class MultiFrameAverager:
 
     def _mean_pose(self) -> PlanarPose:
         poses = [r.pose for r in self._window if r.pose is not None]
-        return PlanarPose(float(np.mean([p.x for p in poses])), float(np.mean([p.y for p in poses])),
+        return PlanarPose(float(np.mean([p.x for p in poses])),
+                          float(np.mean([p.y for p in poses])),
                           circular_mean(np.array([p.theta for p in poses])))
 
     def add(self, result: PoseResult) -> PoseResult | None:

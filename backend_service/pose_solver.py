@@ -8,8 +8,9 @@ is formulated symbolically ONCE per (camera set, robot keypoint model, DoF, loss
 the observed pixels ``k_ij``, the weights ``w_ij`` (keypoint confidences, 0 = missing) and the
 robust-loss scale are CasADi *parameters*, so a new frame-set only evaluates already-built
 functions. Cameras (intrinsics, OpenCV distortion, extrinsics) and the model keypoints ``p_j``
-are constants of the formulation (CasADi folds their zeros away); the full OpenCV rational/tangential distortion model is part of
-the symbolic projection, so distorted pixels are compared directly (no undistortion step).
+are constants of the formulation (CasADi folds their zeros away); the full OpenCV
+rational/tangential distortion model is part of the symbolic projection, so distorted pixels
+are compared directly (no undistortion step).
 
 ``q`` is ``(x, y, theta)`` of the robot base in the world frame (planar, the paper's 3 DoF) or
 ``(x, y, z, roll, pitch, yaw)`` (the 6-DoF variant, ``R = Rz(yaw) Ry(pitch) Rx(roll)``).
@@ -285,8 +286,10 @@ class PoseProblem:
                 "print_iteration": False,
                 "print_status": False,
                 "max_iter": max_iterations,
-                "tol_du": 1e-10,
-                "tol_pr": 1e-10,
+                # Gradient in px^2 per metre/radian: 1e-6 means sub-micrometre steps; tighter
+                # only adds "search direction too small" iterations.
+                "tol_du": 1e-6,
+                "tol_pr": 1e-6,
                 "min_step_size": 1e-14,
                 "error_on_fail": False,
                 # Cauchy (and the clamped depth) make the exact Hessian indefinite far from the
@@ -360,7 +363,7 @@ class PoseProblem:
             if not accepted:
                 success = True  # no decreasing step exists: at a (local) minimum
                 break
-            if float(np.max(np.abs(dq))) < 1e-12 or rel < 1e-15:
+            if float(np.max(np.abs(dq))) < 1e-9 or rel < 1e-12:
                 success = True
                 break
         return SolveOutput(q, success, it, cost)

@@ -1,0 +1,171 @@
+"""``smartedge bench pose``: per-frame-set solve latency of the planar pose problem.
+
+N cameras (1, 2, 4, 16) on a ring around a 12-keypoint robot (the example site's HSR model and
+camera intrinsics with distortion), 2 px pixel noise, start 0.2 m / 10 deg from the truth. The
+CasADi methods (IPOPT, sqpmethod+qrqp, numpy-driven LM) run on the cached formulation; pyceres
+(Levenberg-Marquardt, DENSE_QR, one residual block) and scipy ``least_squares(method="lm")``
+run on the numpy implementation of the identical residuals (central-difference Jacobian,
+evaluated in one batched call). Only the solve is timed. Ratios are p50 / pyceres p50.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+
+from backend_service.frame_set import PlanarPose
+from backend_service.pose_solver import (
+    DEFAULT_METHOD,
+    StackedCameras,
+    get_problem,
+    numeric_jacobian,
+    weighted_residuals,
+)
+from protocol.camera import CameraModel, invert_transform
+from protocol.site import load_site, look_at_T_world_cam
+
+SITE_FILE: Final = Path(__file__).resolve().parents[1] / "deploy" / "site.example.yaml"
+CAMERA_COUNTS: Final = (1, 2, 4, 16)
+METHODS: Final = ("ipopt", "sqpmethod", "lm", "pyceres", "scipy")
+
+
+def ring_cameras(template: CameraModel, count: int, radius_m: float = 4.0,
+                 height_m: float = 2.5) -> list[CameraModel]:
+    """``count`` copies of ``template`` on a ring around the origin, looking at it."""
+    cams = []
+    for i in range(count):
+        a = 2 * math.pi * i / count + 0.3
+        pos = np.array([radius_m * math.cos(a), radius_m * math.sin(a), height_m])
+        T_world_cam = look_at_T_world_cam(pos, np.array([0.0, 0.0, 0.3]))
+        cams.append(CameraModel(f"ring{i:02d}", template.width, template.height,
+                                template.K.copy(), template.dist.copy(),
+                                invert_transform(T_world_cam)))
+    return cams
+
+
+def _pyceres_solver(st: StackedCameras, kp: np.ndarray, n_res: int) -> Callable[..., np.ndarray]:
+    import pyceres
+
+    class ReprojectionCost(pyceres.CostFunction):
+        def __init__(self) -> None:
+            super().__init__()
+            self.set_num_residuals(n_res)
+            self.set_parameter_block_sizes([3])
+            self.uv = np.zeros(0)
+            self.w = np.zeros(0)
+
+        def Evaluate(self, parameters, residuals, jacobians):
+            r, J = numeric_jacobian(st, kp, parameters[0], self.uv, self.w)
+            residuals[:] = r
+            if jacobians is not None and jacobians[0] is not None:
+                jacobians[0][:] = J.ravel()
+            return True
+
+    cost = ReprojectionCost()
+    options = pyceres.SolverOptions()
+    options.linear_solver_type = pyceres.LinearSolverType.DENSE_QR
+    options.minimizer_progress_to_stdout = False
+    options.num_threads = 1
+
+    def solve(q0: np.ndarray, uv: np.ndarray, w: np.ndarray) -> np.ndarray:
+        cost.uv, cost.w = uv, w
+        q = q0.copy()
+        problem = pyceres.Problem()
+        problem.add_residual_block(cost, None, [q])
+        summary = pyceres.SolverSummary()
+        pyceres.solve(options, problem, summary)
+        return q
+
+    return solve
+
+
+def _scipy_solver(st: StackedCameras, kp: np.ndarray) -> Callable[..., np.ndarray]:
+    from scipy.optimize import least_squares
+
+    def solve(q0: np.ndarray, uv: np.ndarray, w: np.ndarray) -> np.ndarray:
+        def fun(q: np.ndarray) -> np.ndarray:
+            return weighted_residuals(st, kp, q[None], uv, w)[0]
+
+        def jac(q: np.ndarray) -> np.ndarray:
+            return numeric_jacobian(st, kp, q, uv, w)[1]
+
+        return least_squares(fun, q0, jac=jac, method="lm").x
+
+    return solve
+
+
+def run(repeats: int, seed: int = 0) -> list[dict[str, float | int | str]]:
+    """Time every method for every camera count; returns one row per (count, method)."""
+    site = load_site(SITE_FILE)
+    template = next(iter(site.cameras.values()))
+    kp = site.robot_model().keypoints_base_m
+    rng = np.random.default_rng(seed)
+    rows: list[dict[str, float | int | str]] = []
+    for n in CAMERA_COUNTS:
+        cams = ring_cameras(template, n)
+        st = StackedCameras.from_cameras(cams)
+        problem = get_problem(cams, kp)
+        cases = []
+        for _ in range(repeats):
+            truth = PlanarPose(rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5),
+                               rng.uniform(-math.pi, math.pi))
+            uv, _ = [np.stack(a) for a in zip(*[c.project(kp @ truth.T()[:3, :3].T
+                                                          + truth.T()[:3, 3]) for c in cams],
+                                              strict=True)]
+            uv = uv + rng.normal(0.0, 2.0, uv.shape)
+            w = np.ones(uv.shape[:2])
+            q0 = truth.as_array() + np.array([0.2 * rng.choice([-1, 1]), 0.1, math.radians(10)])
+            cases.append((q0, uv, w, problem.pack(uv, w)))
+        solvers: dict[str, Callable[..., np.ndarray]] = {
+            "pyceres": _pyceres_solver(st, kp, 2 * n * kp.shape[0]),
+            "scipy": _scipy_solver(st, kp),
+        }
+        results: dict[str, list[np.ndarray]] = {}
+        for method in METHODS:
+            times, qs = [], []
+            for q0, uv, w, p in cases:
+                t0 = time.perf_counter()
+                if method in solvers:
+                    q = solvers[method](q0, uv, w)
+                else:
+                    q = problem.solve(q0, p, method).q
+                times.append(time.perf_counter() - t0)
+                qs.append(q)
+            results[method] = qs
+            t = np.array(times[1:] if len(times) > 1 else times) * 1e3  # first call warms up
+            rows.append({"cameras": n, "method": method, "p50_ms": float(np.percentile(t, 50)),
+                         "p99_ms": float(np.percentile(t, 99))})
+        ref = np.array(results["pyceres"])
+        for row in rows[-len(METHODS):]:
+            diff = np.array(results[str(row["method"])]) - ref
+            diff[:, 2] = np.remainder(diff[:, 2] + math.pi, 2 * math.pi) - math.pi
+            row["max_diff_vs_ceres"] = float(np.abs(diff).max())
+    return rows
+
+
+def main(argv: Sequence[str]) -> int:
+    parser = argparse.ArgumentParser(prog="smartedge bench pose", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="30 frame-sets per case")
+    parser.add_argument("--repeats", type=int, default=300, help="frame-sets per case")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(list(argv))
+    repeats = 30 if args.quick else args.repeats
+    rows = run(repeats, args.seed)
+    print(f"pose solve latency, {repeats} frame-sets per case, 12 keypoints, 2 px noise; "
+          f"default method: {DEFAULT_METHOD}")
+    print(f"{'cams':>4} {'method':>10} {'p50 ms':>8} {'p99 ms':>8} {'p50/ceres':>9} "
+          f"{'max|dq| vs ceres':>16}")
+    for n in CAMERA_COUNTS:
+        block = [r for r in rows if r["cameras"] == n]
+        ceres = next(float(r["p50_ms"]) for r in block if r["method"] == "pyceres")
+        for r in block:
+            print(f"{n:>4} {r['method']:>10} {r['p50_ms']:>8.3f} {r['p99_ms']:>8.3f} "
+                  f"{float(r['p50_ms']) / ceres:>9.2f} {r['max_diff_vs_ceres']:>16.1e}")
+    return 0
