@@ -8,6 +8,8 @@
     smartedge/<site>/robot/<robot_id>/cloud          SemanticCloud
     smartedge/<site>/robot/<robot_id>/pose           PoseEstimate (fused)
     smartedge/<site>/robot/<robot_id>/camera_pose    PoseEstimate (camera-only)
+    smartedge/<site>/robot/<robot_id>/localization   PoseEstimate (the robot's own, "robot")
+    smartedge/<site>/robot/<robot_id>/ground_truth   PoseEstimate (simulation only)
     smartedge/<site>/robot/<robot_id>/correction     PoseCorrection
     smartedge/<site>/status/<service>/<id>           ServiceStatus
     smartedge/<site>/alive/<service>/<id>            liveliness token (no payload)
@@ -40,6 +42,8 @@ TOPIC_TYPES: Final[dict[tuple[str, str], type[Message]]] = {
     ("robot", "cloud"): SemanticCloud,
     ("robot", "pose"): PoseEstimate,
     ("robot", "camera_pose"): PoseEstimate,
+    ("robot", "localization"): PoseEstimate,
+    ("robot", "ground_truth"): PoseEstimate,
     ("robot", "correction"): PoseCorrection,
 }
 SERVICES: Final = ("edge-agent", "backend", "robot-bridge")
@@ -87,6 +91,14 @@ def pose_key(site: str, robot_id: str) -> str:
 
 def camera_pose_key(site: str, robot_id: str) -> str:
     return robot_key(site, robot_id, "camera_pose")
+
+
+def localization_key(site: str, robot_id: str) -> str:
+    return robot_key(site, robot_id, "localization")
+
+
+def ground_truth_key(site: str, robot_id: str) -> str:
+    return robot_key(site, robot_id, "ground_truth")
 
 
 def correction_key(site: str, robot_id: str) -> str:

@@ -39,7 +39,7 @@ MAX_KEYPOINTS: Final = 256
 MAX_CLOUD_POINTS: Final = 2_000_000
 MAX_IMAGE_SIDE_PX: Final = 65_535
 
-POSE_SOURCES: Final = ("cameras", "fused")
+POSE_SOURCES: Final = ("cameras", "fused", "robot", "ground_truth")
 CORRECTION_KINDS: Final = ("initialization", "correction")
 SERVICE_STATES: Final = ("starting", "ok", "degraded", "error", "stopping")
 
@@ -274,8 +274,9 @@ class Odometry(Message):
 class PoseEstimate(Message):
     """An allocentric planar pose of a robot in the world (map) frame.
 
-    ``source``: ``"cameras"`` (multi-view keypoint solve of one frame-set or an average of a few)
-    or ``"fused"`` (pose graph of camera estimates and odometry).
+    ``source``: ``"cameras"`` (multi-view keypoint solve of one frame-set or an average of a few),
+    ``"fused"`` (pose graph of camera estimates and odometry), ``"robot"`` (the robot's own
+    localization, as reported by the robot bridge) or ``"ground_truth"`` (simulation only).
     ``camera_ids``: the cameras whose detections went into the estimate.
     ``reprojection_rmse_px``: weighted RMS reprojection error of the solve; NaN for fused poses.
     ``flags``: short identifiers qualifying the estimate, e.g. ``single_camera``,

@@ -110,7 +110,7 @@ def pose_estimates(draw) -> PoseEstimate:
         y=draw(finite),
         theta=draw(angles),
         covariance=draw(covariances()),
-        source=draw(st.sampled_from(["cameras", "fused"])),
+        source=draw(st.sampled_from(["cameras", "fused", "robot", "ground_truth"])),
         camera_ids=tuple(draw(st.lists(ids, max_size=8))),
         reprojection_rmse_px=draw(st.one_of(st.just(math.nan), st.floats(0, 1e3))),
         flags=tuple(draw(st.lists(ids, max_size=5))),
