@@ -23,6 +23,8 @@ _LAZY = {
     "FrameSetSynchronizer": "backend_service.sync",
     "MultiFrameAverager": "backend_service.multi_frame",
     "cramer_rao_bound": "backend_service.cramer_rao",
+    "FusionConfig": "backend_service.fusion",
+    "PoseGraphFusion": "backend_service.fusion",
 }
 
 __all__ = ["CameraObservation", "FrameSet", "PlanarPose", *_LAZY]

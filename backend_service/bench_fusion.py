@@ -168,7 +168,7 @@ def make_synthetic_run(
         i += n
 
     while i < n_total:
-        emit(max(1, int(round(dwell_s * odom_hz))), 0.0, 0.0, wp)
+        emit(max(1, round(dwell_s * odom_hz)), 0.0, 0.0, wp)
         nxt = (wp + 1) % len(waypoints)
         gx, gy, gth = waypoints[nxt]
         dx, dy = gx - pose[0], gy - pose[1]
@@ -233,7 +233,7 @@ def make_synthetic_run(
                      True)
         k = end
     if moving_camera_hz > 0:
-        step = max(1, int(round(odom_hz / moving_camera_hz)))
+        step = max(1, round(odom_hz / moving_camera_hz))
         for j in range(0, n_total - 1, step):
             if moving[j] and moving[j + 1]:
                 shot(j, int(stamps[j]) + int(0.5 * dt * _NS_PER_S), False, False)
@@ -296,8 +296,34 @@ def _rss_mib() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _pct(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) * 1e3 if values else math.nan
+class _Latencies:
+    """Preallocated latency records (seconds), so the bench's own bookkeeping does not grow
+    during the run and distort the RSS figures. ``kind``: 0 odometry without keyframe,
+    1 odometry keyframe, 2 camera estimate, 3 any call that marginalized (rebuilt ISAM2)."""
+
+    KINDS: Final = ("odometry", "keyframe", "camera", "marginalization")
+
+    def __init__(self, capacity: int) -> None:
+        # np.full writes every page now (np.zeros pages would become resident during the run)
+        self.seconds = np.full(capacity, np.nan)
+        self.kind = np.full(capacity, -1, dtype=np.int8)
+        self.stamp_ns = np.full(capacity, -1, dtype=np.int64)
+        self.n = 0
+
+    def add(self, seconds: float, kind: int, stamp_ns: int) -> None:
+        self.seconds[self.n], self.kind[self.n], self.stamp_ns[self.n] = seconds, kind, stamp_ns
+        self.n += 1
+
+    def select(self, kind: int, since_ns: int = 0) -> np.ndarray:
+        sel = (self.kind[: self.n] == kind) & (self.stamp_ns[: self.n] >= since_ns)
+        return self.seconds[: self.n][sel]
+
+
+def _fmt(values: np.ndarray) -> str:
+    if values.size == 0:
+        return "p50    n/a  p99    n/a"
+    p50, p99 = np.percentile(values, [50, 99]) * 1e3
+    return f"p50 {p50:6.2f}  p99 {p99:6.2f}"
 
 
 def main(argv: Sequence[str]) -> int:
@@ -326,38 +352,32 @@ def main(argv: Sequence[str]) -> int:
           f"{args.odom_hz:g} Hz, {len(run.shots)} camera estimates "
           f"(latency 50-300 ms), generated in {time.perf_counter() - t0:.1f} s")
 
-    fusion = PoseGraphFusion(run.robot_id, FusionConfig())
+    config = FusionConfig()
+    fusion = PoseGraphFusion(run.robot_id, config)
     five_min_ns = int(run.stamps_ns[0]) + 300 * _NS_PER_S
     tail_start_ns = int(run.stamps_ns[-1]) - 300 * _NS_PER_S
-    cam_all: list[float] = []
-    kf_all: list[float] = []
-    odo_all: list[float] = []
-    cam_tail: list[float] = []
-    kf_tail: list[float] = []
+    lat = _Latencies(len(odometry) + len(deliveries))
     fused = np.full((len(odometry), 3), np.nan)
     rss_5min = graph_5min = None
+    counters = fusion.counters
     t_start = time.perf_counter()
     d = 0
     for i, msg in enumerate(odometry):
         stamp = msg.stamp_ns
-        kfs_before = fusion.counters["keyframes_created"]
+        kfs, margs = counters["keyframes_created"], counters["marginalizations"]
         t = time.perf_counter()
         out = fusion.add_odometry(msg)
         elapsed = time.perf_counter() - t
-        if fusion.counters["keyframes_created"] != kfs_before:
-            kf_all.append(elapsed)
-            if stamp >= tail_start_ns:
-                kf_tail.append(elapsed)
-        else:
-            odo_all.append(elapsed)
+        kind = 3 if counters["marginalizations"] != margs else int(
+            counters["keyframes_created"] != kfs)
+        lat.add(elapsed, kind, stamp)
         while d < len(deliveries) and deliveries[d][0] <= stamp:
             est = estimates[deliveries[d][1]]
+            margs = counters["marginalizations"]
             t = time.perf_counter()
             res = fusion.add_camera_estimate(est)
             elapsed = time.perf_counter() - t
-            cam_all.append(elapsed)
-            if stamp >= tail_start_ns:
-                cam_tail.append(elapsed)
+            lat.add(elapsed, 3 if counters["marginalizations"] != margs else 2, stamp)
             out = res if res is not None else out
             d += 1
         if out is not None and out.stamp_ns == stamp:
@@ -370,16 +390,17 @@ def main(argv: Sequence[str]) -> int:
     valid = ~np.isnan(fused[:, 0])
     fused_err = np.hypot(*(fused[valid, :2] - run.truth[valid, :2]).T)
     odom_err = np.hypot(*(run.odometry_in_world()[valid, :2] - run.truth[valid, :2]).T)
-    print(f"replayed in {wall_s:.1f} s wall ({duration_s / wall_s:.0f}x real time)")
-    print("latency per call that runs an ISAM2 update (ms), last 5 min | whole run:")
-    print(f"  camera estimate  p50 {_pct(cam_tail, 50):6.2f}  p99 {_pct(cam_tail, 99):6.2f} | "
-          f"p50 {_pct(cam_all, 50):6.2f}  p99 {_pct(cam_all, 99):6.2f}  max "
-          f"{_pct(cam_all, 100):6.2f}  (n={len(cam_all)})")
-    print(f"  odom keyframe    p50 {_pct(kf_tail, 50):6.2f}  p99 {_pct(kf_tail, 99):6.2f} | "
-          f"p50 {_pct(kf_all, 50):6.2f}  p99 {_pct(kf_all, 99):6.2f}  max "
-          f"{_pct(kf_all, 100):6.2f}  (n={len(kf_all)})")
-    print(f"  odometry (no keyframe, compose + covariance): p50 {_pct(odo_all, 50):.3f}  "
-          f"p99 {_pct(odo_all, 99):.3f}")
+    print(f"replayed in {wall_s:.1f} s wall ({duration_s / wall_s:.0f}x real time); "
+          f"FusionConfig defaults (window {config.window_s:g} s / {config.max_keyframes} "
+          f"keyframes, marginalized in batches of {config.marginalize_batch})")
+    print("latency per call (ms)               last 5 min        |  whole run")
+    labels = ("odometry, no keyframe (compose+cov)", "odometry keyframe (ISAM2 update)",
+              "camera estimate (ISAM2 update)", "call that marginalized (rebuild)")
+    for kind, label in enumerate(labels):
+        whole = lat.select(kind)
+        tail = lat.select(kind, tail_start_ns)
+        peak = f"{whole.max() * 1e3:6.2f}" if whole.size else "   n/a"
+        print(f"  {label:35s} {_fmt(tail)} | {_fmt(whole)}  max {peak}  n={whole.size}")
     if rss_5min is not None:
         print(f"memory: RSS {rss_5min:.1f} MiB after 5 min, {rss_end:.1f} MiB at the end "
               f"({rss_end - rss_5min:+.1f} MiB); ISAM2 (variables, factors) "
@@ -388,10 +409,10 @@ def main(argv: Sequence[str]) -> int:
         print(f"memory: RSS {rss_end:.1f} MiB at the end (run shorter than 5 min); "
               f"ISAM2 (variables, factors) {graph_end}")
     print(f"buffers at the end: {fusion.buffer_sizes()}; marginalizations "
-          f"{fusion.counters['marginalizations']}")
+          f"{counters['marginalizations']}")
     print(f"translation RMS: fused {np.sqrt(np.mean(fused_err**2)) * 100:.1f} cm, odometry "
           f"alone {np.sqrt(np.mean(odom_err**2)) * 100:.1f} cm")
-    rejected = {k: v for k, v in fusion.counters.items() if k.startswith("camera_") and
+    rejected = {k: v for k, v in counters.items() if k.startswith("camera_") and
                 k not in ("camera_received", "camera_fused", "camera_deferred")}
     if rejected:
         print(f"camera estimates not fused: {rejected}")

@@ -458,15 +458,15 @@ class PoseGraphFusion:
             return "camera_bad_covariance", None, None
         cov = 0.5 * (cov + cov.T)
         cfg = self.config
-        if float(np.min(np.linalg.eigvalsh(cov))) < -1e-12 * max(1.0, float(np.max(np.abs(cov)))):
+        # an all-zero or singular covariance means "unknown", not "exact": reject it
+        if float(np.min(np.linalg.eigvalsh(cov))) <= 1e-15 * max(1.0, float(np.max(np.abs(cov)))):
             return "camera_bad_covariance", None, None
         if max(cov[0, 0], cov[1, 1]) > cfg.max_camera_sigma_m**2 or (
             cov[2, 2] > cfg.max_camera_sigma_rad**2
         ):
             return "camera_uninformative", None, None
-        cov = cov + np.diag(
-            [cfg.camera_sigma_floor_m**2, cfg.camera_sigma_floor_m**2, cfg.camera_sigma_floor_rad**2]
-        )
+        floor_m2, floor_rad2 = cfg.camera_sigma_floor_m**2, cfg.camera_sigma_floor_rad**2
+        cov = cov + np.diag([floor_m2, floor_m2, floor_rad2])
         return "", gtsam.Pose2(float(est.x), float(est.y), float(est.theta)), cov
 
     def _is_jump(self, a: gtsam.Pose2, b: gtsam.Pose2, dt_s: float) -> bool:
@@ -733,7 +733,7 @@ class PoseGraphFusion:
             self._reset_graph()
             self._reject("optimizer_error")
             return False
-        for record, index in zip(batch.records, result.getNewFactorsIndices()):
+        for record, index in zip(batch.records, result.getNewFactorsIndices(), strict=True):
             record.index = int(index)
             self._register(record)
         self._latest_cache = None
@@ -826,7 +826,11 @@ class PoseGraphFusion:
 
     def _marginalize(self, drop: int) -> None:
         """Fold keyframes ``[:drop]`` into a Gaussian prior on keyframe ``drop`` (the new root)
-        and rebuild ISAM2 over the kept keyframes, linearized at the current estimate."""
+        and rebuild ISAM2 over the kept keyframes, linearized at the current estimate.
+
+        The prior is what the dropped factors alone say about the root: mean = the root in the
+        optimum of the dropped sub-graph, covariance = the root's marginal there. (Using the
+        full-graph estimate or marginal would count the kept factors twice.)"""
         values = self._isam.calculateEstimate()
         dropped, kept = self._kfs[:drop], self._kfs[drop:]
         root = kept[0]
@@ -837,14 +841,15 @@ class PoseGraphFusion:
                 old_graph.add(record.factor(self.config))
             old_graph.add(self._between.pop(kf.key).factor(self.config))
             old_values.insert(kf.key, values.atPose2(kf.key))
-        T_world_root = values.atPose2(root.key)
-        old_values.insert(root.key, T_world_root)
+        old_values.insert(root.key, values.atPose2(root.key))
         try:
-            cov_root = np.asarray(
-                gtsam.Marginals(old_graph, old_values).marginalCovariance(root.key)
-            )
+            optimum = gtsam.GaussNewtonOptimizer(old_graph, old_values).optimize()
+            T_world_root = optimum.atPose2(root.key)
+            cov_root = np.asarray(gtsam.Marginals(old_graph, optimum).marginalCovariance(root.key))
         except RuntimeError as exc:
+            # conservative fallback (over-confident by the kept factors, but never fails)
             logger.warning("robot %s: marginalization failed (%s)", self.robot_id, exc)
+            T_world_root = values.atPose2(root.key)
             cov_root = np.asarray(self._isam.marginalCovariance(root.key))
         marginal = _Factor("marginal", -1, root.key, T_world_root, 0.5 * (cov_root + cov_root.T),
                            robust=False)

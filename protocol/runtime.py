@@ -100,6 +100,10 @@ class ServiceNode:
     def peers_alive(self) -> Sequence[str]:
         return ()
 
+    def attach(self, session: Any) -> None:
+        """Called once with the open Zenoh session, before any message: for adapters that are
+        Zenoh clients themselves (the ROS 2 adapter). Most nodes ignore it."""
+
     def close(self) -> None:
         """Release resources (files, recordings) on shutdown."""
 
@@ -329,6 +333,7 @@ class ZenohRunner:
         liveliness_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=4096)
         with zenoh.open(self._config) as session:
             self.session = session
+            node.attach(session)
             handles = []
             for sub in node.subscriptions():
                 if sub.liveliness:
