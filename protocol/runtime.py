@@ -100,6 +100,10 @@ class ServiceNode:
     def peers_alive(self) -> Sequence[str]:
         return ()
 
+    def counters(self) -> dict[str, int]:
+        """Counters for the status message (override to add those of inner components)."""
+        return self.stats.snapshot_counters()
+
     def attach(self, session: Any) -> None:
         """Called once with the open Zenoh session, before any message: for adapters that are
         Zenoh clients themselves (the ROS 2 adapter). Most nodes ignore it."""
@@ -173,7 +177,7 @@ def make_status(
         rates_hz=node.stats.rates_hz(),
         latency_p50_ms=node.stats.percentiles_ms(0.50),
         latency_p99_ms=node.stats.percentiles_ms(0.99),
-        counters=node.stats.snapshot_counters(),
+        counters=node.counters(),
         peers_alive=tuple(node.peers_alive()),
         detail=detail[:4000],
     )
@@ -390,10 +394,14 @@ class ZenohRunner:
                             log.exception("%s tick failed", node.service)
                     if self._status and now >= next_status:
                         next_status = now + STATUS_PERIOD_S
-                        self.publish(
-                            [Outgoing(status_key, make_status(node, status_seq, started_s))]
-                        )
-                        status_seq += 1
+                        try:
+                            status = make_status(node, status_seq, started_s)
+                        except Exception:
+                            node.stats.count("status_errors")
+                            log.exception("%s: building the status failed", node.service)
+                        else:
+                            self.publish([Outgoing(status_key, status)])
+                            status_seq += 1
                     if watchdog is not None and now >= next_watchdog:
                         next_watchdog = now + watchdog
                         sd_notify("WATCHDOG=1")
@@ -404,9 +412,11 @@ class ZenohRunner:
                 sd_notify("STOPPING=1")
                 log.info("%s %s stopping", node.service, node.instance_id)
                 if self._status:
-                    self.publish(
-                        [Outgoing(status_key, make_status(node, status_seq, started_s, "stopping"))]
-                    )
+                    try:
+                        final = make_status(node, status_seq, started_s, "stopping")
+                        self.publish([Outgoing(status_key, final)])
+                    except Exception:
+                        log.exception("%s: building the final status failed", node.service)
                 token.undeclare()
                 for h in handles:
                     h.undeclare()

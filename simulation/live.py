@@ -1,0 +1,166 @@
+"""The simulated site in real time, for the services (``--source sim`` / ``--adapter sim``).
+
+Every process that takes part in a live simulation builds the same :class:`LiveSimulation`
+from the same :class:`LiveSimSpec` (scenario, trajectory, seed and the wall-clock epoch of
+t = 0): the ground-truth motion is deterministic, so edge agents in separate processes see the
+same robot the robot bridge drives, without exchanging ground truth. Stamps are wall-clock
+nanoseconds (the scenario's start stamp is set to the epoch), so live services can compare them
+with their own clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import heapq
+import time
+from pathlib import Path
+
+import numpy as np
+
+from protocol.messages import RobotDetections
+from simulation.runner import SimulationRun
+from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
+
+
+@dataclasses.dataclass(frozen=True)
+class LiveSimSpec:
+    """What all processes of one live simulation agree on."""
+
+    scenario_path: str = str(PAPER_SCENARIO)
+    trajectory: str = "traj3"
+    reverse: bool = False
+    seed: int = 0
+    epoch_ns: int = 0
+    stop_s: float | None = None
+    max_speed_mps: float | None = None
+
+    def to_argv(self) -> list[str]:
+        out = [
+            "--sim-scenario",
+            self.scenario_path,
+            "--sim-trajectory",
+            self.trajectory,
+            "--sim-seed",
+            str(self.seed),
+            "--sim-epoch-ns",
+            str(self.epoch_ns),
+        ]
+        if self.stop_s is not None:
+            out += ["--sim-stop-s", repr(self.stop_s)]
+        if self.max_speed_mps is not None:
+            out += ["--sim-max-speed", repr(self.max_speed_mps)]
+        return out + (["--sim-reverse"] if self.reverse else [])
+
+
+def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("simulation (only with the simulated source/adapter)")
+    group.add_argument(
+        "--sim-scenario",
+        default=str(PAPER_SCENARIO),
+        metavar="FILE",
+        help="scenario file (default: the paper's lab)",
+    )
+    group.add_argument("--sim-trajectory", default="traj3", help="trajectory name")
+    group.add_argument("--sim-reverse", action="store_true", help="run the trajectory backwards")
+    group.add_argument("--sim-seed", type=int, default=0, help="noise seed")
+    group.add_argument(
+        "--sim-epoch-ns",
+        type=int,
+        default=0,
+        help="wall-clock ns of t=0; every process of one simulation must agree "
+        "(default: now + 2 s, fine for a single process)",
+    )
+    group.add_argument("--sim-stop-s", type=float, help="override the dwell at each waypoint")
+    group.add_argument("--sim-max-speed", type=float, help="override the robot's top speed (m/s)")
+
+
+def spec_from_args(args: argparse.Namespace) -> LiveSimSpec:
+    epoch = args.sim_epoch_ns or time.time_ns() + 2_000_000_000
+    return LiveSimSpec(
+        args.sim_scenario,
+        args.sim_trajectory,
+        bool(args.sim_reverse),
+        int(args.sim_seed),
+        int(epoch),
+        args.sim_stop_s,
+        args.sim_max_speed,
+    )
+
+
+class LiveSimulation:
+    """One scenario run whose t = 0 is ``spec.epoch_ns`` on the wall clock."""
+
+    def __init__(self, spec: LiveSimSpec, scenario: Scenario | None = None) -> None:
+        self.spec = spec
+        base = scenario or load_scenario(Path(spec.scenario_path))
+        motion = base.motion
+        if spec.stop_s is not None:
+            motion = dataclasses.replace(motion, stop_s=float(spec.stop_s))
+        if spec.max_speed_mps is not None:
+            motion = dataclasses.replace(motion, max_speed_mps=float(spec.max_speed_mps))
+        self.scenario = base.with_overrides(start_stamp_ns=spec.epoch_ns, motion=motion)
+        self.run = SimulationRun(self.scenario, spec.trajectory, spec.reverse, seed=spec.seed)
+        self.site = self.scenario.site
+        self.robot_id = self.scenario.robot_id
+
+    @property
+    def duration_s(self) -> float:
+        return self.run.duration_s
+
+    def t_s(self, now_ns: int) -> float:
+        """Simulated time at wall-clock ``now_ns`` (negative before the start)."""
+        return (now_ns - self.spec.epoch_ns) * 1e-9
+
+    def ground_truth(self, stamp_ns: int) -> np.ndarray:
+        """(3,) true planar pose at ``stamp_ns`` (before the start / after the end: held)."""
+        t = min(max(self.t_s(stamp_ns), 0.0), self.duration_s)
+        return self.run.plan.pose_at(t).reshape(-1, 3)[0]
+
+    def finished(self, now_ns: int) -> bool:
+        return self.t_s(now_ns) > self.duration_s
+
+
+class CameraFeed:
+    """The frames of one simulated camera as they would arrive from its edge board.
+
+    :meth:`poll` captures every frame due up to ``now_ns`` (at the scenario's frame rate and
+    this camera's phase), runs the detection model on the ground truth, and returns the
+    detections whose simulated capture→arrival delay has elapsed."""
+
+    def __init__(self, live: LiveSimulation, camera_id: str) -> None:
+        if camera_id not in live.site.cameras:
+            raise KeyError(
+                f"camera {camera_id!r} is not in the simulated site; known: "
+                f"{sorted(live.site.cameras)}"
+            )
+        self.live = live
+        self.camera_id = camera_id
+        index = sorted(live.site.cameras).index(camera_id)
+        self._rng = np.random.default_rng([live.spec.seed, 1000 + index])
+        self._period_ns = round(1e9 / live.scenario.cameras.rate_hz)
+        self._phase_ns = round(live.run.camera_phase_s[camera_id] * 1e9)
+        self._next_frame = 0
+        self._seq = 0
+        self._pending: list[tuple[int, int, RobotDetections]] = []
+
+    def _capture_ns(self, frame: int) -> int:
+        return self.live.spec.epoch_ns + self._phase_ns + frame * self._period_ns
+
+    def poll(self, now_ns: int) -> list[RobotDetections]:
+        if self._next_frame == 0 and now_ns > self._capture_ns(0):
+            # joining late (or restarted): start at the current frame, not at t = 0
+            self._next_frame = max(0, (now_ns - self._capture_ns(0)) // self._period_ns)
+        detector = self.live.run.detector
+        while self._capture_ns(self._next_frame) <= now_ns:
+            capture_ns = self._capture_ns(self._next_frame)
+            pose = self.live.ground_truth(capture_ns)
+            msg = detector.detect(self.camera_id, capture_ns, pose, self._seq, self._rng)
+            arrival = capture_ns + detector.arrival_delay_ns(self._rng)
+            heapq.heappush(self._pending, (arrival, self._seq, msg))
+            self._seq += 1
+            self._next_frame += 1
+        out = []
+        while self._pending and self._pending[0][0] <= now_ns:
+            out.append(heapq.heappop(self._pending)[2])
+        return out

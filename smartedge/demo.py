@@ -1,0 +1,399 @@
+"""``smartedge demo``: the whole system on the simulated paper site, over Zenoh on loopback.
+
+Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph, Rerun
+recording) and the robot bridge (simulated HSR with drifting localization that accepts
+corrections while static) talk over real Zenoh sessions on 127.0.0.1 (no router, no multicast).
+By default they run as threads of this process, each with its own Zenoh session; with
+``--processes`` each is its own OS process started with the same command a deployment uses.
+A monitor session listens to everything, prints progress, and at the end prints the accuracy
+summary against the simulator's ground truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from protocol import decode, keys
+from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
+from protocol.session import loopback_config
+
+STARTUP_S: Final = 4.0
+STARTUP_PROCESSES_S: Final = 10.0
+DEMO_STOP_S: Final = 4.0
+DEMO_MAX_SPEED_MPS: Final = 0.4
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclasses.dataclass
+class Observed:
+    """What the monitor saw (decoded on the main thread)."""
+
+    camera: list[PoseEstimate] = dataclasses.field(default_factory=list)
+    fused: list[PoseEstimate] = dataclasses.field(default_factory=list)
+    localization: list[PoseEstimate] = dataclasses.field(default_factory=list)
+    corrections: list[PoseCorrection] = dataclasses.field(default_factory=list)
+    status: dict[str, ServiceStatus] = dataclasses.field(default_factory=dict)
+    status_count: int = 0
+
+
+class Monitor:
+    """A Zenoh session that records camera/fused/robot poses, corrections and statuses."""
+
+    def __init__(self, site: str, robot_id: str, endpoint: str) -> None:
+        import zenoh
+
+        self._raw: collections.deque[tuple[str, bytes]] = collections.deque()
+        self.seen = Observed()
+        self.session = zenoh.open(loopback_config(listen=["tcp/127.0.0.1:0"], connect=[endpoint]))
+        topics = ("camera_pose", "pose", "localization", "correction")
+        self._subs = [
+            self.session.declare_subscriber(keys.robot_key(site, robot_id, t), self._on)
+            for t in topics
+        ] + [self.session.declare_subscriber(keys.status_key(site, "*", "*"), self._on)]
+
+    def _on(self, sample: Any) -> None:  # Zenoh thread: hand over only
+        self._raw.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def drain(self) -> None:
+        seen = self.seen
+        while self._raw:
+            key, payload = self._raw.popleft()
+            msg = decode(payload)
+            if isinstance(msg, ServiceStatus):
+                seen.status[f"{msg.service}/{msg.instance_id}"] = msg
+                seen.status_count += 1
+            elif isinstance(msg, PoseCorrection):
+                seen.corrections.append(msg)
+            elif key.endswith("/camera_pose"):
+                seen.camera.append(msg)
+            elif key.endswith("/pose"):
+                seen.fused.append(msg)
+            elif key.endswith("/localization"):
+                seen.localization.append(msg)
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+        self.session.close()
+
+
+def _errors(estimates: list[PoseEstimate], live: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (m) and orientation (rad) errors of estimates against ground truth."""
+    if not estimates:
+        return np.zeros(0), np.zeros(0)
+    est = np.array([[e.x, e.y, e.theta] for e in estimates])
+    truth = np.array([live.ground_truth(e.stamp_ns) for e in estimates])
+    dt = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+    dth = np.abs((est[:, 2] - truth[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+    return dt, dth
+
+
+def _fmt(values_m: np.ndarray) -> str:
+    if values_m.size == 0:
+        return "    -   "
+    return f"{100 * np.mean(values_m):5.1f} cm"
+
+
+def summarize(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[str, float]:
+    """Print the accuracy summary; returns the headline figures (for tests)."""
+    figures: dict[str, float] = {}
+    print("\naccuracy against the simulator's ground truth", file=out)
+    single = [e for e in seen.camera if "multi_frame" not in e.flags]
+    multi = [e for e in seen.camera if "multi_frame" in e.flags]
+    print(f"  {'source':<34}{'n':>6}{'mean':>10}{'median':>10}{'RMS':>10}{'deg':>8}", file=out)
+    rows = [("cameras, 1 frame", single)]
+    for n in (1, 2, 3, 4):
+        sel = [e for e in single if len(e.camera_ids) == n]
+        if sel:
+            rows.append((f"  seen by {n} camera{'s' if n > 1 else ''}", sel))
+    rows += [
+        ("cameras, averaged while static", multi),
+        ("fused (pose graph)", seen.fused),
+        ("robot's own localization", seen.localization),
+    ]
+    for name, estimates in rows:
+        dt, dth = _errors(estimates, live)
+        if dt.size == 0:
+            print(f"  {name:<34}{0:>6}{'-':>10}{'-':>10}{'-':>10}{'-':>8}", file=out)
+            continue
+        rms = float(np.sqrt(np.mean(dt**2)))
+        print(
+            f"  {name:<34}{dt.size:>6}{100 * dt.mean():>7.1f} cm{100 * np.median(dt):>7.1f} cm"
+            f"{100 * rms:>7.1f} cm{math.degrees(float(np.mean(dth))):>8.2f}",
+            file=out,
+        )
+        figures[name.strip()] = rms
+    kinds = collections.Counter(c.kind for c in seen.corrections)
+    print(
+        f"  corrections pushed to the robot: {len(seen.corrections)} "
+        f"({', '.join(f'{k}: {v}' for k, v in sorted(kinds.items())) or 'none'})",
+        file=out,
+    )
+    figures["corrections"] = float(len(seen.corrections))
+    return figures
+
+
+class _Services:
+    """Starts and stops the services, in threads or processes."""
+
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        spec: Any,
+        site_path: Path,
+        endpoint: str,
+        rrd: str,
+        camera_ids: Sequence[str],
+    ) -> None:
+        self.args = args
+        self.spec = spec
+        self.site_path = site_path
+        self.endpoint = endpoint
+        self.rrd = rrd
+        self.camera_ids = list(camera_ids)
+        self.procs: list[subprocess.Popen] = []
+        self.runners: list[Any] = []
+        self.threads: list[threading.Thread] = []
+
+    def _argv(self) -> list[tuple[str, list[str]]]:
+        sim = self.spec.to_argv()
+        site = ["--site", str(self.site_path)]
+        listen_any = ["--listen", "tcp/127.0.0.1:0", "--connect", self.endpoint]
+        backend = [
+            "backend",
+            *site,
+            "--rerun",
+            self.rrd,
+            "--listen",
+            self.endpoint,
+            "--connect",
+            self.endpoint,
+        ]
+        bridge = ["robot-bridge", *site, "--adapter", "sim", *sim, *listen_any]
+        if self.args.no_feedback:
+            bridge.append("--no-feedback")
+        if self.args.kidnapped:
+            bridge.append("--kidnapped")
+        edges = [
+            ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *listen_any]
+            for c in self.camera_ids
+        ]
+        return [
+            ("backend", backend),
+            *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
+            ("robot-bridge", bridge),
+        ]
+
+    def start(self, log_dir: Path) -> None:
+        if self.args.processes:
+            for name, argv in self._argv():
+                log_file = open(log_dir / f"{name.replace('/', '_')}.log", "w")  # noqa: SIM115
+                self.procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-m", "smartedge", *argv],
+                        stdout=log_file,
+                        stderr=subprocess.STDOUT,
+                        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                    )
+                )
+                if name == "backend":
+                    time.sleep(1.5)  # let the rendezvous listener come up first
+            return
+        from protocol.runtime import ZenohRunner
+
+        for name, argv in self._argv():
+            node, config = _build_in_process(argv)
+            runner = ZenohRunner(node, config)
+            thread = threading.Thread(target=runner.run, name=name, daemon=True)
+            thread.start()
+            self.runners.append(runner)
+            self.threads.append(thread)
+            if name == "backend":
+                runner.started.wait(10)
+
+    def alive(self) -> bool:
+        if self.procs:
+            return all(p.poll() is None for p in self.procs)
+        return all(t.is_alive() for t in self.threads)
+
+    def stop(self) -> list[int]:
+        """Stop everything (SIGTERM for processes); returns the exit codes."""
+        codes: list[int] = []
+        for proc in reversed(self.procs):
+            proc.send_signal(signal.SIGTERM)
+        for proc in reversed(self.procs):
+            try:
+                codes.append(proc.wait(timeout=20))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                codes.append(-9)
+        for runner in reversed(self.runners):
+            runner.stop()
+        for thread in reversed(self.threads):
+            thread.join(20)
+            codes.append(0 if not thread.is_alive() else -1)
+        return codes
+
+
+def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
+    """The node and Zenoh config a service would build from ``argv`` (same code path)."""
+    from protocol.session import make_config, options_from_args
+
+    command, rest = argv[0], argv[1:]
+    if command == "backend":
+        from backend_service import service as svc
+    elif command == "robot-bridge":
+        from robot_bridge import service as svc  # type: ignore[no-redef]
+    else:
+        from edge_agent import service as svc  # type: ignore[no-redef]
+    args = svc.build_parser().parse_args(rest)
+    if command == "edge-agent":
+        from edge_agent.service import EdgeAgentNode, SimulatedCameraSource
+        from protocol.site import load_site
+        from simulation.live import CameraFeed, LiveSimulation, spec_from_args
+
+        live = LiveSimulation(spec_from_args(args))
+        node = EdgeAgentNode(
+            load_site(args.site), args.camera, SimulatedCameraSource(CameraFeed(live, args.camera))
+        )
+    else:
+        node = svc.build_node(args)
+    return node, make_config(options_from_args(args))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="smartedge demo",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--duration",
+        type=float,
+        help="seconds of simulated operation (default: one trajectory run)",
+    )
+    parser.add_argument("--trajectory", default="traj3", help="traj1, traj2 or traj3")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed")
+    parser.add_argument("--out", default="runs/demo", help="output folder (recording, logs)")
+    parser.add_argument("--rerun", help="backend --rerun target (default save:OUT/smartedge.rrd)")
+    parser.add_argument(
+        "--processes", action="store_true", help="run every service as its own OS process"
+    )
+    parser.add_argument(
+        "--no-feedback",
+        action="store_true",
+        help="never push corrections to the robot (to compare)",
+    )
+    parser.add_argument(
+        "--kidnapped",
+        action="store_true",
+        help="the robot starts without localization (initialized by cameras)",
+    )
+    parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
+    return parser
+
+
+def main(argv: Sequence[str]) -> int:
+    from simulation.live import LiveSimSpec, LiveSimulation
+    from simulation.scenario import load_scenario
+
+    args = build_parser().parse_args(list(argv))
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rrd = args.rerun or f"save:{out_dir / 'smartedge.rrd'}"
+    scenario = load_scenario()
+    site_path = Path(scenario.site.source_path)
+    startup_s = STARTUP_PROCESSES_S if args.processes else STARTUP_S
+    spec = LiveSimSpec(
+        trajectory=args.trajectory,
+        seed=args.seed,
+        epoch_ns=time.time_ns() + round(startup_s * 1e9),
+        stop_s=DEMO_STOP_S,
+        max_speed_mps=DEMO_MAX_SPEED_MPS,
+    )
+    live = LiveSimulation(spec, scenario)
+    duration_s = args.duration if args.duration else live.duration_s + 1.0
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    mode = "separate processes" if args.processes else "threads of one process"
+    print(
+        f"smartedge demo: site {scenario.site.name!r}, {len(scenario.site.cameras)} cameras, "
+        f"robot {live.robot_id!r}, {args.trajectory} ({live.run.plan.path_length_m:.1f} m, "
+        f"{live.duration_s:.0f} s), services as {mode}, Zenoh on {endpoint}, correction "
+        f"feedback {'off' if args.no_feedback else 'on'}"
+    )
+    services = _Services(args, spec, site_path, endpoint, rrd, sorted(scenario.site.cameras))
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    monitor = None
+    try:
+        services.start(out_dir)
+        monitor = Monitor(scenario.site.name, live.robot_id, endpoint)
+        end_ns = spec.epoch_ns + round(duration_s * 1e9)
+        next_progress = time.monotonic() + args.progress_s
+        while time.time_ns() < end_ns and not stop.is_set():
+            time.sleep(0.1)
+            monitor.drain()
+            if not services.alive():
+                print("a service exited unexpectedly; see the logs in", out_dir, file=sys.stderr)
+                break
+            if time.monotonic() >= next_progress:
+                next_progress += args.progress_s
+                _progress(monitor.seen, live, spec.epoch_ns)
+        time.sleep(0.5)
+        monitor.drain()
+    finally:
+        codes = services.stop()
+        if monitor is not None:
+            monitor.drain()
+            monitor.close()
+        signal.signal(signal.SIGINT, previous)
+    seen = monitor.seen if monitor else Observed()
+    summarize(seen, live)
+    print(
+        f"  status messages received: {seen.status_count} from "
+        f"{', '.join(sorted(seen.status)) or 'nobody'}"
+    )
+    if rrd.startswith("save:"):
+        print(f"\nRerun recording: {rrd[5:]}  (open with: rerun {rrd[5:]})")
+    if args.processes:
+        print(f"service logs: {out_dir}/*.log; exit codes {codes}")
+    return 0 if seen.camera and all(c == 0 for c in codes) else 1
+
+
+def _progress(seen: Observed, live: Any, epoch_ns: int) -> None:
+    t = (time.time_ns() - epoch_ns) * 1e-9
+    if t < 0:
+        print(f"  t={t:6.1f} s  waiting for the start")
+        return
+    truth = live.ground_truth(time.time_ns())
+    recent = [e for e in seen.camera[-30:] if "multi_frame" not in e.flags]
+    cams = len(recent[-1].camera_ids) if recent else 0
+    dt_cam, _ = _errors(recent, live)
+    dt_fused, _ = _errors(seen.fused[-30:], live)
+    dt_loc, _ = _errors(seen.localization[-10:], live)
+    print(
+        f"  t={t:6.1f}/{live.duration_s:.0f} s  robot at ({truth[0]:5.2f}, {truth[1]:5.2f})  "
+        f"seen by {cams} cam  error: cameras {_fmt(dt_cam)}, fused {_fmt(dt_fused)}, "
+        f"robot's own {_fmt(dt_loc)}  corrections {len(seen.corrections)}",
+        flush=True,
+    )
