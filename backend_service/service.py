@@ -26,7 +26,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
+from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.fusion import FusionConfig, PoseGraphFusion
 from backend_service.multi_frame import MultiFrameAverager

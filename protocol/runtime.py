@@ -13,6 +13,7 @@ pings the systemd watchdog and publishes a :class:`~protocol.messages.ServiceSta
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import math
@@ -258,10 +259,8 @@ class _Channel:
             self._stats.count(f"dropped.{self._name}")
             if not self._drop_oldest:
                 return
-            try:
+            with contextlib.suppress(IndexError):
                 self._q.popleft()
-            except IndexError:
-                pass
         self._q.append(item)
 
     def pop(self) -> tuple[str, bytes, int] | None:
