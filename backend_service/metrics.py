@@ -267,9 +267,10 @@ def match_stamps(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (ia, ib) of nearest stamps within ``max_diff_s``.
 
-    Like ``evo``'s association: every pose of the trajectory with fewer poses (the second on a tie) looks up its
-    nearest stamp in the other one (ties go to the earlier stamp); pairs further apart than
-    ``max_diff_s`` are dropped. Returns index arrays into ``stamps_a`` and ``stamps_b``.
+    Like ``evo``'s association: every pose of the trajectory with fewer poses (the second on a
+    tie) looks up its nearest stamp in the other one (ties go to the earlier stamp); pairs
+    further apart than ``max_diff_s`` are dropped. Returns index arrays into ``stamps_a`` and
+    ``stamps_b``.
     """
     a = np.asarray(stamps_a, dtype=np.float64)
     b = np.asarray(stamps_b, dtype=np.float64)
@@ -282,7 +283,7 @@ def match_stamps(
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if np.all(np.diff(long_) >= 0):
         pos = np.searchsorted(long_, short, side="right")
-        for i, (s, j) in enumerate(zip(short, pos)):
+        for i, (s, j) in enumerate(zip(short, pos, strict=False)):
             if s < long_[0] - max_diff_s or s > long_[-1] + max_diff_s:
                 continue
             j = min(int(j), len(long_) - 1)

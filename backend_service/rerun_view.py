@@ -153,6 +153,27 @@ class RerunView:
                 ),
                 static=True,
             )
+            # the robot body (a cylinder of the footprint) rides on the fused pose
+            rec.log(
+                f"world/robots/{robot_id}/fused/body",
+                rr.Cylinders3D(
+                    lengths=[model.height_m],
+                    radii=[model.footprint_radius_m],
+                    centers=[[0.0, 0.0, model.height_m / 2]],
+                    colors=[(*COLORS["fused"], 90)],
+                ),
+                static=True,
+            )
+            rec.log(
+                f"world/robots/{robot_id}/fused/keypoints",
+                rr.Points3D(
+                    model.keypoints_base_m,
+                    keypoint_ids=np.arange(model.num_keypoints),
+                    class_ids=0,
+                    radii=0.01,
+                ),
+                static=True,
+            )
         for name, color in COLORS.items():
             rec.log(
                 f"metrics/series/{name}", rr.SeriesLines(colors=[color], names=[name]), static=True

@@ -51,6 +51,11 @@ PRIOR_MAX_AGE_NS: Final = 1_000_000_000
 GROUND_TRUTH_BUFFER: Final = 600
 
 
+def _se2(x: float, y: float, theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
 def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
@@ -65,6 +70,7 @@ class RobotTrack:
     last_camera: PoseEstimate | None = None
     last_odometry: Odometry | None = None
     static_since_ns: int | None = None
+    T_world_odom: np.ndarray | None = None  # fixed at anchoring: shows odometry drift
     seq_camera: int = 0
     seq_fused: int = 0
     ground_truth: collections.deque = dataclasses.field(
@@ -199,6 +205,12 @@ class BackendNode(ServiceNode):
         fused = track.fusion.add_odometry(odom)
         if fused is None:
             return []
+        if track.T_world_odom is None:
+            track.T_world_odom = _se2(fused.x, fused.y, fused.theta) @ np.linalg.inv(
+                _se2(odom.x, odom.y, odom.theta)
+            )
+        if self.view is not None:
+            self.view.odometry(odom, track.T_world_odom)
         return [self._publish_fused(track, fused)]
 
     def _publish_fused(self, track: RobotTrack, fused: PoseEstimate) -> Outgoing:

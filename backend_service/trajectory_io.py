@@ -66,7 +66,7 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for t, pos, q in zip(traj.stamps_s, traj.positions_m, traj.quat_xyzw):
+    for t, pos, q in zip(traj.stamps_s, traj.positions_m, traj.quat_xyzw, strict=False):
         lines.append(
             f"{t:.9f} {pos[0]:.9f} {pos[1]:.9f} {pos[2]:.9f} "
             f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"

@@ -103,7 +103,7 @@ class DetectionSimulator:
         cfg = scenario.cameras
         #: true clock error left after the site's clock_offset_ns (ns), per camera
         self.clock_residual_ns: Mapping[str, int] = {
-            c: int(round(clk.normal(0.0, cfg.clock_residual_ms) * 1e6)) for c in self.cameras
+            c: round(clk.normal(0.0, cfg.clock_residual_ms) * 1e6) for c in self.cameras
         }
 
     # -- geometry ------------------------------------------------------------------------------
@@ -124,7 +124,9 @@ class DetectionSimulator:
         R2 = T[:2, :2]
         normals_w = self._normals @ R2.T
         self_occ = np.sum(normals_w * to_cam, axis=1) < -0.05
-        good = in_view & ~occluded & ~self_occ
+        # Self-occluded keypoints still count: the detector sees the robot's body and infers
+        # them from context (paper Sec. III-A); obstacles hide the robot itself.
+        good = in_view & ~occluded
         detectable = bool(np.count_nonzero(good) >= cfg.min_visible_keypoints)
         return Visibility(uv, in_view, occluded, self_occ, dist, detectable)
 
@@ -144,7 +146,7 @@ class DetectionSimulator:
     def arrival_delay_ns(self, rng: np.random.Generator) -> int:
         """Capture → arrival delay: mean latency plus half-normal jitter (ns)."""
         cfg = self.scenario.cameras
-        return int(round((cfg.latency_ms + abs(rng.normal(0.0, cfg.jitter_ms))) * 1e6))
+        return round((cfg.latency_ms + abs(rng.normal(0.0, cfg.jitter_ms))) * 1e6)
 
     def detect(self, camera_id: str, true_capture_ns: int, pose: np.ndarray, seq: int,
                rng: np.random.Generator) -> RobotDetections:

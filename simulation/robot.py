@@ -9,6 +9,7 @@ nanoseconds on the common clock (``stamp_ns``) in messages.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -138,6 +139,11 @@ class MotionPlan:
         self._dur = np.array(durs)
         self._start = np.array(starts)
         self._amount = np.array(amounts)
+        self._t0_list = list(t0s)
+        self._kind_list = list(kinds)
+        self._start_list = list(starts)
+        self._dur_list = list(durs)
+        self._amount_list = list(amounts)
         self.duration_s = t
         self.path_length_m = float(np.sum(np.abs(self._amount[self._kind == DRIVE])))
 
@@ -171,14 +177,41 @@ class MotionPlan:
         """(N, 3) true poses (x, y, theta) at times ``t_s`` (s since the run start)."""
         return self._eval(t_s)[0]
 
+    def state_at(self, t_s: float) -> tuple[np.ndarray, float, float]:
+        """Scalar fast path: ((3,) true pose, forward speed m/s, yaw rate rad/s) at ``t_s``."""
+        j = min(max(bisect.bisect_right(self._t0_list, t_s) - 1, 0), len(self._t0_list) - 1)
+        kind = self._kind_list[j]
+        x, y, th = self._start_list[j]
+        if kind == STOP:
+            return np.array([x, y, th]), 0.0, 0.0
+        m = self.motion
+        dur, amount = self._dur_list[j], self._amount_list[j]
+        tau = min(max(t_s - self._t0_list[j], 0.0), dur)
+        v_max, acc = ((m.max_yaw_rate_radps, m.yaw_accel_radps2) if kind == TURN
+                      else (m.max_speed_mps, m.accel_mps2))
+        d = abs(amount)
+        sign = 1.0 if amount >= 0 else -1.0
+        t_acc = min(v_max / acc, dur / 2.0)
+        v_peak = acc * t_acc
+        if tau < t_acc:
+            s, v = 0.5 * acc * tau * tau, acc * tau
+        elif tau < dur - t_acc:
+            s, v = 0.5 * acc * t_acc * t_acc + v_peak * (tau - t_acc), v_peak
+        else:
+            s, v = d - 0.5 * acc * (dur - tau) ** 2, acc * (dur - tau)
+        s, v = sign * min(s, d), sign * max(v, 0.0)
+        if kind == TURN:
+            return np.array([x, y, float(wrap(th + s))]), 0.0, v
+        return np.array([x + s * math.cos(th), y + s * math.sin(th), th]), v, 0.0
+
     def velocity_at(self, t_s: np.ndarray | float) -> np.ndarray:
         """(N, 2) true (forward speed m/s, yaw rate rad/s) at times ``t_s``."""
         return self._eval(t_s)[1]
 
     def is_static(self, t_s: float) -> bool:
         """Whether the robot stands still at time ``t_s``."""
-        v = self.velocity_at(t_s)[0]
-        return bool(abs(v[0]) < 1e-9 and abs(v[1]) < 1e-9)
+        _, v, w = self.state_at(t_s)
+        return abs(v) < 1e-9 and abs(w) < 1e-9
 
     def stop_at(self, t_s: float) -> WaypointStop | None:
         """The waypoint dwell containing ``t_s``, if any."""
@@ -223,7 +256,7 @@ class SimulatedRobot:
         self._yaw_scale = 1.0 + rng.normal(0.0, oc.yaw_scale_sigma)
         self._t_s = 0.0
         self._tick = 0
-        self._gt = plan.pose_at(0.0)[0]
+        self._gt = plan.state_at(0.0)[0]
         self._odom = np.zeros(3)
         self._odom_var = np.zeros(3)
         self._seq = 0
@@ -239,7 +272,7 @@ class SimulatedRobot:
         return self._t_s
 
     def stamp_ns(self, t_s: float) -> int:
-        return self.scenario.start_stamp_ns + int(round(t_s * 1e9))
+        return self.scenario.start_stamp_ns + round(t_s * 1e9)
 
     def t_of(self, stamp_ns: int) -> float:
         return (stamp_ns - self.scenario.start_stamp_ns) * 1e-9
@@ -260,7 +293,7 @@ class SimulatedRobot:
     def step_to(self, t_s: float) -> list[Odometry]:
         """Advance to ``t_s`` (s since the run start); returns the odometry messages due."""
         out: list[Odometry] = []
-        while (self._tick + 1) * self._dt_s <= t_s + 1e-12:
+        while (self._tick + 1) * self._dt_s <= t_s + 1e-6:
             self._tick += 1
             out.append(self._advance(self._tick * self._dt_s))
         return out
@@ -268,7 +301,7 @@ class SimulatedRobot:
     def _advance(self, t_s: float) -> Odometry:
         oc, lc = self.scenario.odometry, self.scenario.localization
         rng = self._rng
-        gt_new = self.plan.pose_at(t_s)[0]
+        gt_new, v_now, w_now = self.plan.state_at(t_s)
         d = relative_pose(self._gt, gt_new)
         ds, dth = float(math.hypot(d[0], d[1])), float(d[2])
         if ds > 0.0 or dth != 0.0:
@@ -294,7 +327,6 @@ class SimulatedRobot:
             self.travelled_m += ds
         self._gt = gt_new
         self._t_s = t_s
-        vel = self.plan.velocity_at(t_s)[0]
         msg = Odometry(
             robot_id=self.robot_id,
             stamp_ns=self.stamp_ns(t_s),
@@ -302,8 +334,8 @@ class SimulatedRobot:
             x=float(self._odom[0]),
             y=float(self._odom[1]),
             theta=float(wrap(self._odom[2])),
-            vx=float(vel[0] * self._scale),
-            wz=float(vel[1] * self._yaw_scale),
+            vx=float(v_now * self._scale),
+            wz=float(w_now * self._yaw_scale),
             covariance=np.diag(self._odom_var + 1e-9),
         )
         self._seq += 1

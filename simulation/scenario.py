@@ -110,7 +110,9 @@ class LocalizationConfig:
 class CameraSimConfig:
     """Camera timing and calibration error.
 
-    ``rate_hz`` frames per second; ``latency_ms`` mean capture→arrival delay, ``jitter_ms`` its
+    ``rate_hz`` frames per second; ``phase_spread_ms``: the cameras free-run at the same rate
+    with capture phases spread uniformly over this interval (NTP-synchronized, not
+    hardware-triggered); ``latency_ms`` mean capture→arrival delay, ``jitter_ms`` its
     std (arrival only, half-normal); ``clock_residual_ms``: std of each camera's remaining clock
     error after the site's ``clock_offset_ns`` is applied; ``calib_translation_sigma_m`` /
     ``calib_rotation_sigma_deg``: std of the difference between the true camera pose and the
@@ -118,11 +120,12 @@ class CameraSimConfig:
     """
 
     rate_hz: float = 15.0
+    phase_spread_ms: float = 10.0
     latency_ms: float = 60.0
     jitter_ms: float = 8.0
     clock_residual_ms: float = 1.0
-    calib_translation_sigma_m: float = 0.01
-    calib_rotation_sigma_deg: float = 0.15
+    calib_translation_sigma_m: float = 0.015
+    calib_rotation_sigma_deg: float = 0.1
     max_range_m: float = 11.0
     min_visible_keypoints: int = 6
     miss_probability: float = 0.02
@@ -140,10 +143,10 @@ class NoiseConfig:
     ``outlier_probability`` (displaced uniformly by up to ``outlier_max_px``, high score).
     """
 
-    sigma_px: float = 1.5
+    sigma_px: float = 1.0
     sigma_shift_px: float = 0.5
-    sigma_scale: float = 0.02
-    self_occluded_factor: float = 2.0
+    sigma_scale: float = 0.025
+    self_occluded_factor: float = 1.5
     dropout_probability: float = 0.03
     outlier_probability: float = 0.01
     outlier_max_px: float = 25.0
@@ -361,7 +364,7 @@ def parse_scenario(doc: Any, path: str = "<memory>", base_dir: Path | None = Non
         localization=ctx.config("localization", top.get("localization"), LocalizationConfig),
         cameras=ctx.config("cameras", top.get("cameras"), CameraSimConfig),
         noise=ctx.config("noise", top.get("noise"), NoiseConfig),
-        seeds=seeds, start_stamp_ns=int(round(start_s * 1e9)), source_path=path,
+        seeds=seeds, start_stamp_ns=round(start_s * 1e9), source_path=path,
     )
 
 

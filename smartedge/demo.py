@@ -313,7 +313,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@dataclasses.dataclass
+class DemoResult:
+    """What a demo run produced: the monitor's observations, the headline figures (RMS
+    translation errors in metres by source, corrections count), the services' exit codes and
+    the recording."""
+
+    seen: Observed
+    figures: dict[str, float]
+    exit_codes: list[int]
+    rrd_path: Path | None
+    out_dir: Path
+    live: Any
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.seen.camera) and all(c == 0 for c in self.exit_codes)
+
+
 def main(argv: Sequence[str]) -> int:
+    return 0 if run_demo(argv).ok else 1
+
+
+def run_demo(argv: Sequence[str]) -> DemoResult:
+    """Run the demo (see :func:`build_parser` for the options) and print its summary."""
     from simulation.live import LiveSimSpec, LiveSimulation
     from simulation.scenario import load_scenario
 
@@ -368,16 +391,17 @@ def main(argv: Sequence[str]) -> int:
             monitor.close()
         signal.signal(signal.SIGINT, previous)
     seen = monitor.seen if monitor else Observed()
-    summarize(seen, live)
+    figures = summarize(seen, live)
     print(
         f"  status messages received: {seen.status_count} from "
         f"{', '.join(sorted(seen.status)) or 'nobody'}"
     )
-    if rrd.startswith("save:"):
-        print(f"\nRerun recording: {rrd[5:]}  (open with: rerun {rrd[5:]})")
+    rrd_path = Path(rrd[5:]) if rrd.startswith("save:") else None
+    if rrd_path is not None:
+        print(f"\nRerun recording: {rrd_path}  (open with: rerun {rrd_path})")
     if args.processes:
         print(f"service logs: {out_dir}/*.log; exit codes {codes}")
-    return 0 if seen.camera and all(c == 0 for c in codes) else 1
+    return DemoResult(seen, figures, codes, rrd_path, out_dir, live)
 
 
 def _progress(seen: Observed, live: Any, epoch_ns: int) -> None:

@@ -83,9 +83,8 @@ def _generated_pair(seed: int, n_ref: int = 400, n_est: int = 380):
         return np.column_stack([3 * np.sin(0.3 * t), 2 * np.cos(0.2 * t), 0.1 * np.sin(t)])
     def quat(t: np.ndarray) -> np.ndarray:
         yaw, roll = 0.4 * t, 0.05 * np.sin(t)
-        q = np.column_stack([np.sin(roll / 2) * np.cos(yaw / 2), np.sin(roll / 2) * np.sin(yaw / 2),
-                             np.cos(roll / 2) * np.sin(yaw / 2), np.cos(roll / 2) * np.cos(yaw / 2)])
-        return q
+        cr, sr, cy, sy = np.cos(roll / 2), np.sin(roll / 2), np.cos(yaw / 2), np.sin(yaw / 2)
+        return np.column_stack([sr * cy, sr * sy, cr * sy, cr * cy])
     ref = Trajectory(t_ref, path(t_ref), quat(t_ref))
     R = _random_rotation(rng, 3)
     pos = (path(t_est) + rng.normal(0, 0.03, (n_est, 3))) @ R.T + rng.normal(size=3)

@@ -25,7 +25,7 @@ def test_round_trip(tmp_path: Path) -> None:
 def test_evo_reads_what_we_write(tmp_path: Path) -> None:
     from evo.tools import file_interface
 
-    traj = Trajectory.from_planar(np.arange(5.0), np.zeros((5, 3)) + [1, 2, 0.5])
+    traj = Trajectory.from_planar(np.arange(5.0), np.tile([1.0, 2.0, 0.5], (5, 1)))
     write_tum(tmp_path / "b.tum", traj)
     evo_traj = file_interface.read_tum_trajectory_file(str(tmp_path / "b.tum"))
     np.testing.assert_allclose(evo_traj.positions_xyz, traj.positions_m)
