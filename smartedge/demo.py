@@ -153,7 +153,7 @@ def summarize(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[str, flo
     return figures
 
 
-class _Services:
+class Services:
     """Starts and stops the services, in threads or processes."""
 
     def __init__(
@@ -175,7 +175,8 @@ class _Services:
         self.runners: list[Any] = []
         self.threads: list[threading.Thread] = []
 
-    def _argv(self) -> list[tuple[str, list[str]]]:
+    def commands(self) -> list[tuple[str, list[str]]]:
+        """(name, smartedge argv) of every service, as a deployment would start them."""
         sim = self.spec.to_argv()
         site = ["--site", str(self.site_path)]
         listen_any = ["--listen", "tcp/127.0.0.1:0", "--connect", self.endpoint]
@@ -206,7 +207,7 @@ class _Services:
 
     def start(self, log_dir: Path) -> None:
         if self.args.processes:
-            for name, argv in self._argv():
+            for name, argv in self.commands():
                 log_file = open(log_dir / f"{name.replace('/', '_')}.log", "w")  # noqa: SIM115
                 self.procs.append(
                     subprocess.Popen(
@@ -216,20 +217,16 @@ class _Services:
                         env={**os.environ, "PYTHONUNBUFFERED": "1"},
                     )
                 )
-                if name == "backend":
-                    time.sleep(1.5)  # let the rendezvous listener come up first
             return
         from protocol.runtime import ZenohRunner
 
-        for name, argv in self._argv():
+        for name, argv in self.commands():
             node, config = _build_in_process(argv)
             runner = ZenohRunner(node, config)
             thread = threading.Thread(target=runner.run, name=name, daemon=True)
             thread.start()
             self.runners.append(runner)
             self.threads.append(thread)
-            if name == "backend":
-                runner.started.wait(10)
 
     def alive(self) -> bool:
         if self.procs:
@@ -364,13 +361,13 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         f"{live.duration_s:.0f} s), services as {mode}, Zenoh on {endpoint}, correction "
         f"feedback {'off' if args.no_feedback else 'on'}"
     )
-    services = _Services(args, spec, site_path, endpoint, rrd, sorted(scenario.site.cameras))
+    services = Services(args, spec, site_path, endpoint, rrd, sorted(scenario.site.cameras))
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     monitor = None
     try:
-        services.start(out_dir)
         monitor = Monitor(scenario.site.name, live.robot_id, endpoint)
+        services.start(out_dir)
         end_ns = spec.epoch_ns + round(duration_s * 1e9)
         next_progress = time.monotonic() + args.progress_s
         while time.time_ns() < end_ns and not stop.is_set():

@@ -1,0 +1,182 @@
+#!/usr/bin/env bash
+# Install smartedge on the backend host: a venv in /opt/smartedge with the `backend` and `bridge`
+# extras (plus libusb-1.0-0, which open3d needs at import), the system user `smartedge`,
+# /etc/smartedge (site file, zenoh router and client configs, settings), the site's Zenoh router
+# (zenohd, or the backend's own session), smartedge-backend.service, and one
+# smartedge-robot-bridge@<robot>.service per robot id. Safe to re-run. Walkthrough:
+# docs/deployment.md.
+set -euo pipefail
+PROG="install-backend.sh"
+# shellcheck source=deploy/install-common.sh
+. "$(dirname "${BASH_SOURCE[0]}")/install-common.sh"
+
+usage() {
+  cat <<USAGE
+Usage: sudo $PROG --site SITE.yaml [options] [ROBOT_ID...]
+
+Install smartedge[backend,bridge], the Zenoh router, the backend service and one robot-bridge
+service per ROBOT_ID (ids of the site file's robots section).
+
+Required:
+  --site FILE              site file; installed as $ETC/site.yaml
+
+Options:
+  --router zenohd|backend|external
+                           who is the site's Zenoh router (default: zenohd when found, else
+                           backend):
+                             zenohd    smartedge-zenohd.service runs zenohd with
+                                       $ETC/zenoh-router.json5 (recommended: the backend can
+                                       restart without dropping the edge boards' links)
+                             backend   the backend's own session is the router (no zenohd)
+                             external  a router elsewhere (--router-host); nothing here
+  --zenohd PATH            zenohd executable (default: zenohd on PATH)
+  --router-host HOST       router the local services connect to (default 127.0.0.1)
+  --tls DIR                Zenoh over TLS (mTLS): DIR holds ca.crt, router.crt, router.key and,
+                           for the local services, client.crt, client.key (see docs)
+  --adapter ros2|sim       SMARTEDGE_ADAPTER for a new smartedge.env (default: ros2)
+  --rerun SINK             SMARTEDGE_RERUN for a new smartedge.env (save:PATH.rrd, serve, ...)
+  --with FILE              another file the site file refers to; repeatable
+  --package SPEC           wheel file or source directory to pip install with [backend,bridge]
+                           (default: the checkout this script is in)
+  --python PY              interpreter that creates the venv (default: python3)
+  --skip-pip               do not create or update the venv in $PREFIX
+  --skip-apt               do not install missing Debian packages
+  --no-start               enable the units, do not (re)start them
+  --root DIR               install under DIR instead of / (staging, tests): no apt, useradd,
+                           chown or systemctl
+  --dry-run                print every step, change nothing
+  -h, --help               this help
+
+Example:
+  sudo deploy/install-backend.sh --site lab.yaml hsr1
+USAGE
+}
+
+SITE=""
+ROUTER=auto
+ZENOHD=""
+ROUTER_HOST=127.0.0.1
+TLS_DIR=""
+ADAPTER=ros2
+RERUN=""
+EXTRA_FILES=()
+ROBOTS=()
+while [ $# -gt 0 ]; do
+  if common_option "$@"; then shift "$SHIFT_BY"; continue; fi
+  case "$1" in
+    -h | --help) usage; exit 0 ;;
+    --site) SITE="${2:?--site needs a file}"; shift 2 ;;
+    --router) ROUTER="${2:?--router needs zenohd, backend or external}"; shift 2 ;;
+    --zenohd) ZENOHD="${2:?--zenohd needs a path}"; shift 2 ;;
+    --router-host) ROUTER_HOST="${2:?--router-host needs a host}"; shift 2 ;;
+    --tls) TLS_DIR="${2:?--tls needs a directory}"; shift 2 ;;
+    --adapter) ADAPTER="${2:?--adapter needs ros2 or sim}"; shift 2 ;;
+    --rerun) RERUN="${2:?--rerun needs a sink}"; shift 2 ;;
+    --with) EXTRA_FILES+=("${2:?--with needs a file}"); shift 2 ;;
+    -*) usage >&2; die "unknown option $1" ;;
+    *) ROBOTS+=("$1"); shift ;;
+  esac
+done
+
+[ -n "$SITE" ] || { usage >&2; die "--site is required"; }
+[ -f "$SITE" ] || die "$SITE: no such file"
+[[ "$ROUTER_HOST" =~ ^[A-Za-z0-9._:-]+$ ]] || die "--router-host $ROUTER_HOST: not a host name or address"
+for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do
+  [[ "$robot" =~ ^[A-Za-z0-9_.-]+$ ]] || die "robot id $robot: only [A-Za-z0-9_.-] allowed"
+done
+case "$ADAPTER" in ros2 | sim) ;; *) die "--adapter $ADAPTER: expected ros2 or sim" ;; esac
+[ -n "$ZENOHD" ] || ZENOHD="$(command -v zenohd || true)"
+case "$ROUTER" in
+  auto) if [ -n "$ZENOHD" ]; then ROUTER=zenohd; else ROUTER=backend; fi ;;
+  zenohd) [ -n "$ZENOHD" ] || die "--router zenohd: zenohd not found (install it, see docs/deployment.md, or give --zenohd PATH)" ;;
+  backend | external) ;;
+  *) die "--router $ROUTER: expected zenohd, backend or external" ;;
+esac
+[ "$ROUTER" = external ] || [ "$ROUTER_HOST" = 127.0.0.1 ] \
+  || die "--router-host only goes with --router external"
+if [ -n "$TLS_DIR" ]; then
+  for f in ca.crt router.crt router.key client.crt client.key; do
+    [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing"
+  done
+fi
+default_package
+normalize_root
+ensure_root_privileges
+[ "$DRY_RUN" = 1 ] && log "dry run: nothing is changed"
+log "backend host: router $ROUTER, robots ${ROBOTS[*]:-none}, package $PACKAGE[backend,bridge]"
+
+# 1. system packages (open3d needs libusb-1.0 at import time) and user
+ensure_apt python3-venv libusb-1.0-0 libgomp1
+ensure_user
+
+# 2. python environment
+ensure_venv backend,bridge
+
+check_site "$SITE" robots ${ROBOTS[@]+"${ROBOTS[@]}"}
+
+# 3. configuration
+install_dir 0750 "$ETC"
+install_file 0640 "$SITE" "$ETC/site.yaml"
+for f in ${EXTRA_FILES[@]+"${EXTRA_FILES[@]}"}; do install_file 0640 "$f" "$ETC/$(basename "$f")"; done
+if [ -n "$TLS_DIR" ]; then
+  install_dir 0750 "$ETC/tls"
+  install_file 0644 "$TLS_DIR/ca.crt" "$ETC/tls/ca.crt"
+  for f in router client; do
+    install_file 0644 "$TLS_DIR/$f.crt" "$ETC/tls/$f.crt"
+    install_file 0640 "$TLS_DIR/$f.key" "$ETC/tls/$f.key"
+  done
+  router_template=router-tls.json5
+  client_template=client-tls.json5
+else
+  router_template=router.json5
+  client_template=client.json5
+fi
+if [ "$ROUTER" != external ]; then
+  install_rendered 0640 "$DEPLOY_DIR/zenoh/$router_template" "$ETC/zenoh-router.json5"
+else
+  remove_file "$ETC/zenoh-router.json5"
+fi
+# The local services (robot bridges; the backend unless it is the router) are clients too.
+install_rendered 0640 "$DEPLOY_DIR/zenoh/$client_template" "$ETC/zenoh-client.json5" \
+  "s/BACKEND_HOST/$ROUTER_HOST/g"
+env_edits=("s/^SMARTEDGE_ADAPTER=.*/SMARTEDGE_ADAPTER=$ADAPTER/")
+[ -z "$RERUN" ] || env_edits+=("s|^SMARTEDGE_RERUN=.*|SMARTEDGE_RERUN=$RERUN|")
+install_if_missing 0640 "$DEPLOY_DIR/smartedge.env.example" "$ETC/smartedge.env" "${env_edits[@]}"
+
+# 4. systemd units
+system_dir "$UNIT_DIR"
+dropin="$UNIT_DIR/smartedge-backend.service.d"
+units=()
+if [ "$ROUTER" = zenohd ]; then
+  install_system_file "$DEPLOY_DIR/systemd/smartedge-zenohd.service" "$UNIT_DIR/smartedge-zenohd.service"
+  if [ "$ZENOHD" != /usr/bin/zenohd ]; then
+    run install -d -m 0755 "$(staged "$UNIT_DIR/smartedge-zenohd.service.d")"
+    tmp="$(mktemp)"
+    printf '[Service]\nExecStart=\nExecStart=%s -c ${ZENOHD_CONFIG}\n' "$ZENOHD" > "$tmp"
+    install_system_file "$tmp" "$UNIT_DIR/smartedge-zenohd.service.d/zenohd-path.conf"
+    rm -f "$tmp"
+  fi
+  units+=(smartedge-zenohd.service)
+else
+  system systemctl disable --now smartedge-zenohd.service 2>/dev/null || true
+fi
+install_system_file "$DEPLOY_DIR/systemd/smartedge-backend.service" "$UNIT_DIR/smartedge-backend.service"
+if [ "$ROUTER" = backend ]; then
+  # The backend's own session listens on tcp/0.0.0.0:7447 (or tls/) as the router.
+  run install -d -m 0755 "$(staged "$dropin")"
+  tmp="$(mktemp)"
+  printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-router.json5\n' "$ETC" > "$tmp"
+  install_system_file "$tmp" "$dropin/zenoh-router.conf"
+  rm -f "$tmp"
+else
+  remove_file "$dropin/zenoh-router.conf"
+fi
+units+=(smartedge-backend.service)
+install_system_file "$DEPLOY_DIR/systemd/smartedge-robot-bridge@.service" \
+  "$UNIT_DIR/smartedge-robot-bridge@.service"
+for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do units+=("smartedge-robot-bridge@$robot.service"); done
+units_start "${units[@]}"
+
+log "done. Check with:"
+log "  systemctl status 'smartedge-*'    journalctl -u smartedge-backend -f"
+[ "$ROUTER" != zenohd ] || log "  zenohd: journalctl -u smartedge-zenohd"

@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# Install smartedge on an edge board (a Jetson, or any Linux with systemd and Python >= 3.10):
+# a venv in /opt/smartedge with only the `edge` extra, the system user `smartedge`,
+# /etc/smartedge (site file, zenoh client config, settings), and one enabled
+# smartedge-edge-agent@<camera>.service per camera id. Safe to re-run (updates code, configs and
+# units; keeps edited settings files). Walkthrough: docs/deployment.md.
+set -euo pipefail
+PROG="install-edge.sh"
+# shellcheck source=deploy/install-common.sh
+. "$(dirname "${BASH_SOURCE[0]}")/install-common.sh"
+
+usage() {
+  cat <<USAGE
+Usage: sudo $PROG --site SITE.yaml --backend-host HOST [options] CAMERA_ID...
+
+Install smartedge[edge] and one edge-agent service per CAMERA_ID (ids of the site file).
+
+Required:
+  --site FILE            site file; installed as $ETC/site.yaml
+  --backend-host HOST    name or address of the backend host running the Zenoh router
+
+Options:
+  --tls DIR              Zenoh over TLS (mTLS): DIR holds ca.crt, client.crt, client.key
+                         (installed to $ETC/tls; uses deploy/zenoh/client-tls.json5)
+  --with FILE            another file the site file refers to (calibration_file), copied next
+                         to it; repeatable
+  --source camera|sim    SMARTEDGE_SOURCE for a new smartedge.env (default: camera)
+  --jetson auto|yes|no   install the Jetson GPU drop-in (default auto: if /etc/nv_tegra_release)
+  --package SPEC         wheel file or source directory to pip install with [edge]
+                         (default: the checkout this script is in)
+  --python PY            interpreter that creates the venv (default: python3)
+  --skip-pip             do not create or update the venv in $PREFIX
+  --skip-apt             do not install missing Debian packages
+  --no-start             enable the units, do not (re)start them
+  --root DIR             install under DIR instead of / (staging, tests): no apt, useradd,
+                         chown or systemctl
+  --dry-run              print every step, change nothing
+  -h, --help             this help
+
+Example:
+  sudo deploy/install-edge.sh --site lab.yaml --backend-host backend.lab cam_sw cam_se
+USAGE
+}
+
+SITE=""
+BACKEND_HOST=""
+TLS_DIR=""
+SOURCE=camera
+JETSON=auto
+EXTRA_FILES=()
+CAMERAS=()
+while [ $# -gt 0 ]; do
+  if common_option "$@"; then shift "$SHIFT_BY"; continue; fi
+  case "$1" in
+    -h | --help) usage; exit 0 ;;
+    --site) SITE="${2:?--site needs a file}"; shift 2 ;;
+    --backend-host) BACKEND_HOST="${2:?--backend-host needs a host}"; shift 2 ;;
+    --tls) TLS_DIR="${2:?--tls needs a directory}"; shift 2 ;;
+    --with) EXTRA_FILES+=("${2:?--with needs a file}"); shift 2 ;;
+    --source) SOURCE="${2:?--source needs camera or sim}"; shift 2 ;;
+    --jetson) JETSON="${2:?--jetson needs auto, yes or no}"; shift 2 ;;
+    -*) usage >&2; die "unknown option $1" ;;
+    *) CAMERAS+=("$1"); shift ;;
+  esac
+done
+
+[ -n "$SITE" ] || { usage >&2; die "--site is required"; }
+[ -f "$SITE" ] || die "$SITE: no such file"
+[ -n "$BACKEND_HOST" ] || { usage >&2; die "--backend-host is required"; }
+[[ "$BACKEND_HOST" =~ ^[A-Za-z0-9._:-]+$ ]] || die "--backend-host $BACKEND_HOST: not a host name or address"
+[ ${#CAMERAS[@]} -gt 0 ] || { usage >&2; die "give at least one CAMERA_ID"; }
+for cam in "${CAMERAS[@]}"; do
+  [[ "$cam" =~ ^[A-Za-z0-9_.-]+$ ]] || die "camera id $cam: only [A-Za-z0-9_.-] allowed"
+done
+case "$SOURCE" in camera | sim) ;; *) die "--source $SOURCE: expected camera or sim" ;; esac
+case "$JETSON" in
+  auto) if [ -f /etc/nv_tegra_release ]; then JETSON=yes; else JETSON=no; fi ;;
+  yes | no) ;;
+  *) die "--jetson $JETSON: expected auto, yes or no" ;;
+esac
+if [ -n "$TLS_DIR" ]; then
+  for f in ca.crt client.crt client.key; do [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing"; done
+fi
+default_package
+normalize_root
+ensure_root_privileges
+[ "$DRY_RUN" = 1 ] && log "dry run: nothing is changed"
+log "edge board: cameras ${CAMERAS[*]}, router tcp/tls on $BACKEND_HOST:7447, package $PACKAGE[edge]"
+
+# 1. system packages and user
+ensure_apt python3-venv
+ensure_user
+
+# 2. python environment: only the edge extra (no casadi, gtsam, open3d, rerun on a board)
+ensure_venv edge
+
+check_site "$SITE" cameras "${CAMERAS[@]}"
+
+# 3. configuration
+install_dir 0750 "$ETC"
+install_file 0640 "$SITE" "$ETC/site.yaml"
+for f in ${EXTRA_FILES[@]+"${EXTRA_FILES[@]}"}; do install_file 0640 "$f" "$ETC/$(basename "$f")"; done
+if [ -n "$TLS_DIR" ]; then
+  install_dir 0750 "$ETC/tls"
+  install_file 0644 "$TLS_DIR/ca.crt" "$ETC/tls/ca.crt"
+  install_file 0644 "$TLS_DIR/client.crt" "$ETC/tls/client.crt"
+  install_file 0640 "$TLS_DIR/client.key" "$ETC/tls/client.key"
+  install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client.json5" \
+    "s/BACKEND_HOST/$BACKEND_HOST/g"
+else
+  install_rendered 0640 "$DEPLOY_DIR/zenoh/client.json5" "$ETC/zenoh-client.json5" \
+    "s/BACKEND_HOST/$BACKEND_HOST/g"
+fi
+install_if_missing 0640 "$DEPLOY_DIR/smartedge.env.example" "$ETC/smartedge.env" \
+  "s/^SMARTEDGE_SOURCE=.*/SMARTEDGE_SOURCE=$SOURCE/"
+
+# 4. systemd units
+system_dir "$UNIT_DIR"
+install_system_file "$DEPLOY_DIR/systemd/smartedge-edge-agent@.service" \
+  "$UNIT_DIR/smartedge-edge-agent@.service"
+if [ "$JETSON" = yes ]; then
+  run install -d -m 0755 "$(staged "$UNIT_DIR/smartedge-edge-agent@.service.d")"
+  install_system_file "$DEPLOY_DIR/systemd/jetson-gpu.conf" \
+    "$UNIT_DIR/smartedge-edge-agent@.service.d/jetson-gpu.conf"
+else
+  remove_file "$UNIT_DIR/smartedge-edge-agent@.service.d/jetson-gpu.conf"
+fi
+units=()
+for cam in "${CAMERAS[@]}"; do units+=("smartedge-edge-agent@$cam.service"); done
+units_start "${units[@]}"
+
+log "done. Check with:"
+log "  systemctl status 'smartedge-edge-agent@*'    journalctl -u 'smartedge-edge-agent@*' -f"

@@ -1,0 +1,146 @@
+"""The whole system over real Zenoh on loopback, each service its own OS process."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from smartedge.demo import Monitor, Services, run_demo
+from tests.conftest import free_tcp_port, wait_until
+
+pytestmark = pytest.mark.slow
+
+
+def _rrd_entities(path: Path) -> set[str]:
+    rerun = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    proc = subprocess.run(
+        [rerun, "rrd", "stats", str(path)], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return set(re.findall(r"^(/\S+): \d+$", proc.stdout, flags=re.MULTILINE))
+
+
+def test_demo_with_separate_processes(tmp_path: Path) -> None:
+    result = run_demo(
+        ["--processes", "--duration", "30", "--out", str(tmp_path), "--progress-s", "10"]
+    )
+    seen = result.seen
+    # every service ran as a process and stopped cleanly on SIGTERM
+    assert result.exit_codes == [0] * 6, result.exit_codes
+    assert {"backend/main", "robot-bridge/hsr"} <= set(seen.status)
+    assert sum(k.startswith("edge-agent/") for k in seen.status) == 4
+    # poses came out, accurate against ground truth, and the bridge corrected the robot
+    assert len(seen.camera) > 100 and len(seen.fused) > 100
+    assert result.figures["cameras, 1 frame"] < 0.06
+    assert result.figures["fused (pose graph)"] < 0.06
+    assert seen.corrections and all(c.kind == "correction" for c in seen.corrections)
+    bridge = seen.status["robot-bridge/hsr"]
+    assert (
+        bridge.counters.get("bridge.corrections_accepted", 0) >= 1
+        or bridge.counters.get("corrections_correction", 0) >= 1
+    )
+    # the recording opens with rerun's own tooling and holds what a user wants to see
+    assert result.rrd_path is not None and result.rrd_path.exists()
+    entities = _rrd_entities(result.rrd_path)
+    for expected in (
+        "/world/cameras/cam1",
+        "/world/cameras/cam1/image",
+        "/world/cameras/cam1/image/keypoints",
+        "/world/cameras/cam1/image/detections",
+        "/world/robots/hsr/camera",
+        "/world/robots/hsr/camera_keypoints",
+        "/world/robots/hsr/fused",
+        "/world/robots/hsr/ground_truth",
+        "/world/trajectories/hsr/fused",
+        "/world/trajectories/hsr/odometry",
+        "/world/trajectories/hsr/camera",
+        "/metrics/hsr/error_cm/fused",
+        "/metrics/latency_ms/stamp_to_pose",
+        "/status/backend/main",
+    ):
+        assert expected in entities, f"{expected} missing from the recording"
+
+
+def _popen(argv: list[str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "smartedge", *argv], stdout=log.open("w"), stderr=subprocess.STDOUT
+    )
+
+
+def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
+    from simulation.live import LiveSimSpec, LiveSimulation
+    from simulation.scenario import load_scenario
+
+    scenario = load_scenario()
+    spec = LiveSimSpec(
+        trajectory="traj3", epoch_ns=time.time_ns() + 8_000_000_000, stop_s=4.0, max_speed_mps=0.4
+    )
+    live = LiveSimulation(spec, scenario)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    args = argparse.Namespace(no_feedback=False, kidnapped=False, processes=True)
+    services = Services(
+        args,
+        spec,
+        Path(scenario.site.source_path),
+        endpoint,
+        f"save:{tmp_path / 'backend.rrd'}",
+        ["cam1", "cam2", "cam3"],
+    )
+    commands = dict(services.commands())
+    monitor = Monitor(scenario.site.name, live.robot_id, endpoint)
+    procs = {
+        name: _popen(argv, tmp_path / f"{name.replace('/', '_')}.log")
+        for name, argv in commands.items()
+    }
+    try:
+
+        def camera_poses_after(t_ns: int) -> bool:
+            monitor.drain()
+            return any(e.stamp_ns > t_ns for e in monitor.seen.camera)
+
+        assert wait_until(lambda: camera_poses_after(0), 60, 0.2), "no poses before the kill"
+        procs["backend"].send_signal(signal.SIGKILL)
+        procs["backend"].wait(10)
+        killed_ns = time.time_ns()
+        status_before = {k: v.seq for k, v in monitor.seen.status.items()}
+
+        def others_still_report() -> bool:
+            monitor.drain()
+            st = monitor.seen.status
+            return all(st[k].seq > status_before.get(k, -1) + 2 for k in st if k != "backend/main")
+
+        assert wait_until(others_still_report, 15, 0.2)
+        assert wait_until(
+            lambda: (monitor.drain(), monitor.seen.status["robot-bridge/hsr"].state == "degraded")[
+                1
+            ],
+            15,
+            0.2,
+        ), "bridge did not notice"
+        assert all(p.poll() is None for n, p in procs.items() if n != "backend")
+        procs["backend"] = _popen(commands["backend"], tmp_path / "backend_restarted.log")
+        restarted_ns = time.time_ns()
+        assert wait_until(lambda: camera_poses_after(restarted_ns), 40, 0.2), (
+            "backend did not resume producing poses"
+        )
+        assert wait_until(
+            lambda: (monitor.drain(), monitor.seen.status["robot-bridge/hsr"].state == "ok")[1],
+            20,
+            0.2,
+        )
+        assert killed_ns < restarted_ns
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        codes = {n: p.wait(30) for n, p in procs.items()}
+        monitor.close()
+    assert codes == dict.fromkeys(procs, 0), codes
