@@ -53,6 +53,8 @@ MIN_DEPTH_M: Final = 0.05
 MIN_TOTAL_KEYPOINTS: Final = 2
 #: Inlier threshold (multiples of the robust scale) for the RMSE reported under a robust loss.
 _INLIER_SCALES: Final = 3.0
+#: Methods solved by a CasADi ``nlpsol`` (with the LM path as their fallback).
+_NLP_METHODS: Final = ("ipopt", "sqpmethod")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -296,10 +298,11 @@ def _weighted_rmse(r: np.ndarray, w: np.ndarray, config: SolverConfig) -> float:
 def _solve_once(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: SolverConfig,
                 max_rmse_px: float) -> tuple[np.ndarray, float, int] | str:
     outcome = _solve_with(problem, p, q0, config, config.method)
-    if config.method != "lm" and (isinstance(outcome, str) or outcome[1] > max_rmse_px
-                                  or not outcome[3]):
+    if config.method in _NLP_METHODS and (isinstance(outcome, str) or outcome[1] > max_rmse_px
+                                          or not outcome[3]):
         # sqpmethod/IPOPT occasionally stall on the non-smooth robust losses (seen with Huber
-        # and gross outliers); the IRLS Levenberg-Marquardt path is the safety net.
+        # and gross outliers); the IRLS Levenberg-Marquardt path is the safety net. The
+        # numpy-driven methods are already damped least squares: a retry would repeat them.
         retry = _solve_with(problem, p, q0, config, "lm")
         if not isinstance(retry, str) and (isinstance(outcome, str) or retry[1] < outcome[1]):
             outcome = retry
