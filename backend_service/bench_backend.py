@@ -138,11 +138,14 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
             late_publish = 0
             for k in range(n_frames):
                 stamp = start_ns + k * period_ns
+                # each camera encodes its own frame in parallel on its own board: prepare all
+                # payloads first, then send them together at the capture time
+                frame = _detections(site, _robot_pose(k / rate_hz), stamp, k, rng)
                 while (now := time.time_ns()) < stamp:
                     time.sleep(min(0.002, (stamp - now) * 1e-9))
                 if now - stamp > period_ns:
                     late_publish += 1
-                for key, payload in _detections(site, _robot_pose(k / rate_hz), stamp, k, rng):
+                for key, payload in frame:
                     pubs[key.split("/")[3]].put(payload)
                 if k >= warm_frames:
                     measured_stamps.append(stamp)

@@ -127,7 +127,7 @@ class Detection(_Record):
             dtypes=("float32", "float64"),
             shape=(kps.shape[0],),
         )
-        if np.any(scores < 0.0) or np.any(scores > 1.0):
+        if scores.size and (scores.min() < 0.0 or scores.max() > 1.0):
             raise_field("keypoint_scores", "scores must lie in [0, 1]")
         _freeze(self, "keypoints_px", kps)
         _freeze(self, "keypoint_scores", scores)

@@ -7,6 +7,7 @@ is immutable.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -80,6 +81,11 @@ def check_float(
     return value
 
 
+@functools.cache
+def _allowed_dtypes(dtypes: tuple[str, ...]) -> frozenset[np.dtype]:
+    return frozenset(np.dtype(d) for d in dtypes)
+
+
 def check_array(
     field: str,
     value: Any,
@@ -91,12 +97,16 @@ def check_array(
 ) -> np.ndarray:
     """Check an array's dtype (one of ``dtypes``, numpy names) and shape (``None`` = any size).
 
-    Lists are accepted and converted to the first allowed dtype. The returned array is a
-    read-only native-endian copy.
+    Lists are accepted and converted to the first allowed dtype. The returned array is
+    read-only, native-endian and C-contiguous: the input itself when it already is all of
+    that and read-only (e.g. decoded from a payload), otherwise a copy, so a frozen message
+    never shares writeable memory with its creator.
     """
     if isinstance(value, np.ndarray):
         arr = value
-        if arr.dtype.newbyteorder("=").name not in dtypes and arr.dtype.name not in dtypes:
+        if arr.dtype not in _allowed_dtypes(tuple(dtypes)) and (
+            arr.dtype.newbyteorder("=") not in _allowed_dtypes(tuple(dtypes))
+        ):
             raise ValidationError(
                 field, f"dtype {arr.dtype.name} not allowed; expected one of {list(dtypes)}"
             )
@@ -116,8 +126,11 @@ def check_array(
         raise ValidationError(field, f"shape {arr.shape} does not match ({want_txt})")
     if max_elems is not None and arr.size > max_elems:
         raise ValidationError(field, f"{arr.size} elements exceed the limit of {max_elems}")
-    if finite and arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+    if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
         raise ValidationError(field, "NaN or infinity is not allowed")
+    flags = arr.flags
+    if not flags.writeable and flags.c_contiguous and arr.dtype.isnative:
+        return arr
     out = np.array(arr, dtype=arr.dtype.newbyteorder("="), order="C", copy=True)
     out.setflags(write=False)
     return out
