@@ -48,6 +48,17 @@ def _freeze(obj: Any, name: str, value: Any) -> None:
     object.__setattr__(obj, name, value)
 
 
+def _check_planar_pose(msg: Any) -> None:
+    """The fields every planar pose message shares: robot id, stamp, seq, pose, covariance."""
+    _freeze(msg, "robot_id", check_id("robot_id", msg.robot_id))
+    _freeze(msg, "stamp_ns", check_int("stamp_ns", msg.stamp_ns))
+    _freeze(msg, "seq", check_int("seq", msg.seq))
+    _freeze(msg, "x", check_float("x", msg.x))
+    _freeze(msg, "y", check_float("y", msg.y))
+    _freeze(msg, "theta", check_float("theta", msg.theta, lo=-2 * math.pi, hi=2 * math.pi))
+    _freeze(msg, "covariance", check_covariance("covariance", msg.covariance))
+
+
 def _values_equal(a: Any, b: Any) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return (
@@ -260,13 +271,9 @@ class Odometry(Message):
     frame_id: str = "odom"
 
     def __post_init__(self) -> None:
-        _freeze(self, "robot_id", check_id("robot_id", self.robot_id))
-        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
-        _freeze(self, "seq", check_int("seq", self.seq))
-        for name in ("x", "y", "vx", "vy", "wz"):
+        _check_planar_pose(self)
+        for name in ("vx", "vy", "wz"):
             _freeze(self, name, check_float(name, getattr(self, name)))
-        _freeze(self, "theta", check_float("theta", self.theta, lo=-2 * math.pi, hi=2 * math.pi))
-        _freeze(self, "covariance", check_covariance("covariance", self.covariance))
         _freeze(self, "frame_id", check_id("frame_id", self.frame_id))
 
 
@@ -301,13 +308,7 @@ class PoseEstimate(Message):
     frame_id: str = "map"
 
     def __post_init__(self) -> None:
-        _freeze(self, "robot_id", check_id("robot_id", self.robot_id))
-        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
-        _freeze(self, "seq", check_int("seq", self.seq))
-        _freeze(self, "x", check_float("x", self.x))
-        _freeze(self, "y", check_float("y", self.y))
-        _freeze(self, "theta", check_float("theta", self.theta, lo=-2 * math.pi, hi=2 * math.pi))
-        _freeze(self, "covariance", check_covariance("covariance", self.covariance))
+        _check_planar_pose(self)
         _freeze(self, "source", check_choice("source", self.source, POSE_SOURCES))
         _freeze(self, "camera_ids", check_str_tuple("camera_ids", self.camera_ids))
         _freeze(
@@ -345,13 +346,7 @@ class PoseCorrection(Message):
     frame_id: str = "map"
 
     def __post_init__(self) -> None:
-        _freeze(self, "robot_id", check_id("robot_id", self.robot_id))
-        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
-        _freeze(self, "seq", check_int("seq", self.seq))
-        _freeze(self, "x", check_float("x", self.x))
-        _freeze(self, "y", check_float("y", self.y))
-        _freeze(self, "theta", check_float("theta", self.theta, lo=-2 * math.pi, hi=2 * math.pi))
-        _freeze(self, "covariance", check_covariance("covariance", self.covariance))
+        _check_planar_pose(self)
         _freeze(self, "kind", check_choice("kind", self.kind, CORRECTION_KINDS))
         _freeze(self, "offset_m", check_float("offset_m", self.offset_m, lo=0.0))
         _freeze(self, "offset_rad", check_float("offset_rad", self.offset_rad, lo=0.0))
