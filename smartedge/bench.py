@@ -20,15 +20,19 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
 
 
 def main(argv: Sequence[str]) -> int:
-    parser = argparse.ArgumentParser(prog="smartedge bench", description=__doc__)
-    parser.add_argument("what", choices=sorted(BENCHES), help="which benchmark")
-    args, rest = parser.parse_known_args(list(argv))
-    module_name, func_name, _ = BENCHES[args.what]
+    argv = list(argv)
+    if not argv or argv[0] not in BENCHES:  # help, or a clear error listing the benchmarks
+        parser = argparse.ArgumentParser(prog="smartedge bench", description=__doc__)
+        parser.add_argument("what", choices=sorted(BENCHES), help="which benchmark")
+        parser.parse_args(argv)
+        return 2
+    what, rest = argv[0], argv[1:]  # the benchmark parses its own options (and --help)
+    module_name, func_name, _ = BENCHES[what]
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         if exc.name == module_name:
-            print(f"smartedge bench {args.what}: not available in this version", file=sys.stderr)
+            print(f"smartedge bench {what}: not available in this version", file=sys.stderr)
             return 2
         raise
     return int(getattr(module, func_name)(rest) or 0)
