@@ -323,6 +323,9 @@ class SimulatedRobot:
             diffuse = math.sqrt(1.0 - decay * decay)
             sig = np.array([lc.stationary_sigma_m, lc.stationary_sigma_m,
                             math.radians(lc.stationary_sigma_deg)])
+            if self.scenario.clutter:
+                # LiDAR localization degrades where clutter hides the mapped walls
+                sig = sig * self.scenario.localization_sigma_factor_at(self._gt[:2])
             self._err = self._err * decay + sig * diffuse * rng.normal(size=3)
             self.travelled_m += ds
         self._gt = gt_new

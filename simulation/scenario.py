@@ -163,6 +163,38 @@ class Seeds:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class ClutterRegion:
+    """An axis-aligned floor area (``min_xy_m``, ``max_xy_m``: (2,) world frame, metres) where
+    the LiDAR sees mostly clutter that is not in its map: the internal localization's
+    stationary error (position and heading) is ``localization_sigma_factor`` times larger."""
+
+    name: str
+    min_xy_m: np.ndarray
+    max_xy_m: np.ndarray
+    localization_sigma_factor: float = 1.0
+
+    def contains(self, xy: np.ndarray) -> bool:
+        p = np.asarray(xy, dtype=np.float64)[:2]
+        return bool(np.all(p >= self.min_xy_m) and np.all(p <= self.max_xy_m))
+
+
+@dataclasses.dataclass(frozen=True)
+class RobustnessConfig:
+    """Failure model of the robustness experiment (paper Sec. IV-D, docs/simulation.md).
+
+    A run fails with "WP not reached" when, on arrival at a waypoint, the robot's true position
+    is more than ``waypoint_tolerance_m`` from where its localization says it is (the goal
+    tolerance of a navigation stack), and with "emergency stop" when its true footprint
+    (radius of the robot model plus ``collision_margin_m``) touches an obstacle or a wall.
+    ``runs``: runs per condition (paper: 5 without and 5 with correction feedback).
+    """
+
+    waypoint_tolerance_m: float = 0.3
+    collision_margin_m: float = 0.0
+    runs: int = 5
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class Scenario:
     """A loaded, validated scenario with its site."""
 
@@ -183,22 +215,37 @@ class Scenario:
     seeds: Seeds
     start_stamp_ns: int
     source_path: str = "<memory>"
+    #: waypoint sequences used by single experiments (not part of the Table I/II set)
+    routes: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    #: waypoints only routes use (Fig. 6 and Table I show ``waypoints`` only)
+    route_waypoints: Mapping[str, Waypoint] = dataclasses.field(default_factory=dict)
+    clutter: tuple[ClutterRegion, ...] = ()
+    robustness: RobustnessConfig = dataclasses.field(default_factory=RobustnessConfig)
 
     def trajectory(self, name: str, reverse: bool = False) -> tuple[Waypoint, ...]:
-        """The waypoints of a trajectory, in order (reversed for the reverse run)."""
-        try:
-            names = self.trajectories[name]
-        except KeyError:
+        """The waypoints of a trajectory or route, in order (reversed for the reverse run)."""
+        names = self.trajectories.get(name, self.routes.get(name))
+        if names is None:
             raise KeyError(
                 f"trajectory {name!r} is not in {self.source_path}; known: "
-                f"{sorted(self.trajectories)}"
-            ) from None
-        seq = tuple(self.waypoints[n] for n in names)
+                f"{sorted(self.trajectories)}, routes {sorted(self.routes)}"
+            )
+        seq = tuple(self.waypoints[n] if n in self.waypoints else self.route_waypoints[n]
+                    for n in names)
         return tuple(reversed(seq)) if reverse else seq
 
     def with_overrides(self, **changes: Any) -> Scenario:
         """A copy with some top-level fields replaced (e.g. ``noise=...``, ``motion=...``)."""
         return dataclasses.replace(self, **changes)
+
+    def localization_sigma_factor_at(self, xy: np.ndarray) -> float:
+        """Factor on the internal localization's stationary error at floor point ``xy`` (2,):
+        the largest factor of the clutter regions containing it, 1 outside all of them."""
+        factor = 1.0
+        for region in self.clutter:
+            if region.contains(xy):
+                factor = max(factor, region.localization_sigma_factor)
+        return factor
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,6 +255,7 @@ class Scenario:
 _TOP_KEYS: Final = {
     "scenario", "site_file", "robot_id", "room", "obstacles", "waypoints", "trajectories",
     "motion", "odometry", "localization", "cameras", "noise", "seeds", "start_stamp_s",
+    "routes", "route_waypoints", "clutter", "robustness",
 }
 
 
@@ -320,38 +368,48 @@ def parse_scenario(doc: Any, path: str = "<memory>", base_dir: Path | None = Non
     wp_node = ctx.mapping("waypoints", top.get("waypoints"))
     if len(wp_node) < 2:
         raise ctx.fail("waypoints", "define at least two waypoints")
-    waypoints: dict[str, Waypoint] = {}
-    for wp_name, wp in wp_node.items():
-        key = f"waypoints.{wp_name}"
-        wp = ctx.mapping(key, wp)
-        ctx.no_unknown(key, wp, {"xy_m", "theta_deg"})
-        if "xy_m" not in wp:
-            raise ctx.fail(f"{key}.xy_m", "required key is missing")
-        xy = ctx.vector(f"{key}.xy_m", wp["xy_m"], 2)
-        if np.any(xy <= rmin) or np.any(xy >= rmax):
-            raise ctx.fail(f"{key}.xy_m", "lies outside the room")
-        for b in obstacles:
-            if point_in_box_xy(xy, b):
-                raise ctx.fail(f"{key}.xy_m", f"lies inside obstacle {b.name!r}")
-        theta = math.radians(ctx.number(f"{key}.theta_deg", wp.get("theta_deg", 0.0),
-                                        lo=-360, hi=360))
-        theta = math.atan2(math.sin(theta), math.cos(theta))
-        waypoints[str(wp_name)] = Waypoint(str(wp_name), float(xy[0]), float(xy[1]), theta)
+    waypoints = _waypoints(ctx, "waypoints", wp_node, rmin, rmax, obstacles)
+    route_waypoints = _waypoints(
+        ctx, "route_waypoints", ctx.mapping("route_waypoints", top.get("route_waypoints") or {}),
+        rmin, rmax, obstacles)
+    for wp_name in route_waypoints:
+        if wp_name in waypoints:
+            raise ctx.fail(f"route_waypoints.{wp_name}", "a waypoint has the same name")
 
     tr_node = ctx.mapping("trajectories", top.get("trajectories"))
     if not tr_node:
         raise ctx.fail("trajectories", "define at least one trajectory")
-    trajectories: dict[str, tuple[str, ...]] = {}
-    for tr_name, seq in tr_node.items():
-        key = f"trajectories.{tr_name}"
-        if not isinstance(seq, list) or len(seq) < 2:
-            raise ctx.fail(key, "expected a list of at least two waypoint names")
-        for j, wp_name in enumerate(seq):
-            if str(wp_name) not in waypoints:
-                raise ctx.fail(f"{key}[{j}]", f"unknown waypoint {wp_name!r}")
-            if j and str(seq[j - 1]) == str(wp_name):
-                raise ctx.fail(f"{key}[{j}]", "repeats the previous waypoint")
-        trajectories[str(tr_name)] = tuple(str(s) for s in seq)
+    trajectories = _sequences(ctx, "trajectories", tr_node, waypoints)
+    routes = _sequences(ctx, "routes", ctx.mapping("routes", top.get("routes") or {}),
+                        {**waypoints, **route_waypoints})
+    for route_name in routes:
+        if route_name in trajectories:
+            raise ctx.fail(f"routes.{route_name}", "a trajectory has the same name")
+
+    clutter: list[ClutterRegion] = []
+    cl_node = top.get("clutter", []) or []
+    if not isinstance(cl_node, list):
+        raise ctx.fail("clutter", "expected a list of regions")
+    for i, reg in enumerate(cl_node):
+        key = f"clutter[{i}]"
+        reg = ctx.mapping(key, reg)
+        ctx.no_unknown(key, reg, {"name", "min_xy_m", "max_xy_m", "localization_sigma_factor"})
+        for req in ("min_xy_m", "max_xy_m"):
+            if req not in reg:
+                raise ctx.fail(f"{key}.{req}", "required key is missing")
+        lo = ctx.vector(f"{key}.min_xy_m", reg["min_xy_m"], 2)
+        hi = ctx.vector(f"{key}.max_xy_m", reg["max_xy_m"], 2)
+        if np.any(hi <= lo):
+            raise ctx.fail(f"{key}.max_xy_m", "must be larger than min_xy_m on both axes")
+        clutter.append(ClutterRegion(
+            name=str(reg.get("name", f"clutter{i}")), min_xy_m=lo, max_xy_m=hi,
+            localization_sigma_factor=ctx.number(
+                f"{key}.localization_sigma_factor", reg.get("localization_sigma_factor", 1.0),
+                lo=0.0, hi=100.0),
+        ))
+    robustness = ctx.config("robustness", top.get("robustness"), RobustnessConfig)
+    if robustness.runs < 1:
+        raise ctx.fail("robustness.runs", "must be >= 1")
 
     seeds = ctx.config("seeds", top.get("seeds"), Seeds)
     start_s = ctx.number("start_stamp_s", top.get("start_stamp_s", 1.7e9), lo=0.0, hi=4e9)
@@ -365,7 +423,49 @@ def parse_scenario(doc: Any, path: str = "<memory>", base_dir: Path | None = Non
         cameras=ctx.config("cameras", top.get("cameras"), CameraSimConfig),
         noise=ctx.config("noise", top.get("noise"), NoiseConfig),
         seeds=seeds, start_stamp_ns=round(start_s * 1e9), source_path=path,
+        routes=routes, route_waypoints=route_waypoints, clutter=tuple(clutter),
+        robustness=robustness,
     )
+
+
+def _waypoints(ctx: _Ctx, section: str, node: Mapping[str, Any], rmin: np.ndarray,
+               rmax: np.ndarray, obstacles: list[Box]) -> dict[str, Waypoint]:
+    """Validated waypoints of ``waypoints`` or ``route_waypoints``."""
+    out: dict[str, Waypoint] = {}
+    for wp_name, wp in node.items():
+        key = f"{section}.{wp_name}"
+        wp = ctx.mapping(key, wp)
+        ctx.no_unknown(key, wp, {"xy_m", "theta_deg"})
+        if "xy_m" not in wp:
+            raise ctx.fail(f"{key}.xy_m", "required key is missing")
+        xy = ctx.vector(f"{key}.xy_m", wp["xy_m"], 2)
+        if np.any(xy <= rmin) or np.any(xy >= rmax):
+            raise ctx.fail(f"{key}.xy_m", "lies outside the room")
+        for b in obstacles:
+            if point_in_box_xy(xy, b):
+                raise ctx.fail(f"{key}.xy_m", f"lies inside obstacle {b.name!r}")
+        theta = math.radians(ctx.number(f"{key}.theta_deg", wp.get("theta_deg", 0.0),
+                                        lo=-360, hi=360))
+        theta = math.atan2(math.sin(theta), math.cos(theta))
+        out[str(wp_name)] = Waypoint(str(wp_name), float(xy[0]), float(xy[1]), theta)
+    return out
+
+
+def _sequences(ctx: _Ctx, section: str, node: Mapping[str, Any],
+               waypoints: Mapping[str, Waypoint]) -> dict[str, tuple[str, ...]]:
+    """Validated waypoint sequences of ``trajectories`` or ``routes``."""
+    out: dict[str, tuple[str, ...]] = {}
+    for tr_name, seq in node.items():
+        key = f"{section}.{tr_name}"
+        if not isinstance(seq, list) or len(seq) < 2:
+            raise ctx.fail(key, "expected a list of at least two waypoint names")
+        for j, wp_name in enumerate(seq):
+            if str(wp_name) not in waypoints:
+                raise ctx.fail(f"{key}[{j}]", f"unknown waypoint {wp_name!r}")
+            if j and str(seq[j - 1]) == str(wp_name):
+                raise ctx.fail(f"{key}[{j}]", "repeats the previous waypoint")
+        out[str(tr_name)] = tuple(str(s) for s in seq)
+    return out
 
 
 def load_scenario(path: str | Path = PAPER_SCENARIO, site: Site | None = None) -> Scenario:

@@ -4,10 +4,12 @@
 
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
+                             [--experiments 1,2,3] [--feedback-seeds K] [--robustness-runs R]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
 metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
-(Markdown) and Fig. 6-like plots (PNG) into DIR.
+(Markdown) and Fig. 6-like plots (PNG) into DIR, then experiment 2 (correction feedback on
+3x Traj. 3, Fig. 7) and experiment 3 (robustness, Table III), and ``report.md`` with all three.
 """
 
 from __future__ import annotations
@@ -52,7 +54,18 @@ def _paper(args: argparse.Namespace) -> int:
     from smartedge.experiments import PaperConfig, run_paper
 
     trajectories = tuple(t.strip() for t in args.trajectories.split(",") if t.strip())
+    try:
+        experiments = tuple(sorted({int(e) for e in args.experiments.split(",") if e.strip()}))
+    except ValueError:
+        experiments = ()
+    if not experiments or not set(experiments) <= {1, 2, 3}:
+        print("smartedge evaluate paper: --experiments takes a list of 1, 2, 3",
+              file=sys.stderr)
+        return 2
     config = PaperConfig(
+        experiments=experiments,
+        feedback_seeds=args.feedback_seeds,
+        robustness_runs=args.robustness_runs,
         runs_per_direction=args.runs,
         seed=args.seed,
         trajectories=trajectories or None,
@@ -64,8 +77,10 @@ def _paper(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(f"smartedge evaluate paper: {exc}", file=sys.stderr)
         return 1
-    print(report.table1_markdown)
-    print(report.table2_markdown)
+    for text in (report.table1_markdown, report.table2_markdown, report.feedback_markdown,
+                 report.robustness_markdown):
+        if text:
+            print(text)
     print(f"wrote {args.out}")
     return 0
 
@@ -109,6 +124,19 @@ def build_parser() -> argparse.ArgumentParser:
     p_paper.add_argument(
         "--stop-s", type=float, default=None, help="override the dwell time at each waypoint, s"
     )
+    p_paper.add_argument(
+        "--experiments", default="1,2,3",
+        help="which experiments: 1 Table I/II, 2 correction feedback (Fig. 7), "
+        "3 robustness (Table III); default 1,2,3",
+    )
+    p_paper.add_argument(
+        "--feedback-seeds", type=int, default=1,
+        help="experiment 2: seeds (each run without and with feedback; paper: 1)",
+    )
+    p_paper.add_argument(
+        "--robustness-runs", type=int, default=None,
+        help="experiment 3: runs per condition (default: the scenario's, paper: 5)",
+    )
     return parser
 
 
@@ -116,8 +144,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if args.what == "ate":
         return _ate(args)
-    if args.runs < 1:
-        print("smartedge evaluate paper: --runs must be >= 1", file=sys.stderr)
+    if args.runs < 1 or args.feedback_seeds < 1 or (
+            args.robustness_runs is not None and args.robustness_runs < 1):
+        print("smartedge evaluate paper: --runs, --feedback-seeds and --robustness-runs must "
+              "be >= 1", file=sys.stderr)
         return 2
     return _paper(args)
 

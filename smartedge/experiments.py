@@ -107,6 +107,12 @@ class PaperConfig:
     use_fusion: bool = True
     fusion_factory: FusionFactory | None = None
     fused_trajectory_step: int = 4
+    #: which experiments run_paper runs: 1 (Table I/II), 2 (feedback, Fig. 7), 3 (Table III)
+    experiments: tuple[int, ...] = (1, 2, 3)
+    long_route: str = "traj3x3"
+    feedback_seeds: int = 1
+    robustness_route: str = "robustness_route"
+    robustness_runs: int | None = None
 
 
 @dataclasses.dataclass
@@ -484,6 +490,10 @@ class PaperReport:
     fusion_available: bool
     files: list[Path]
     wall_s: float
+    feedback_runs: list[FeedbackRun] = dataclasses.field(default_factory=list)
+    robustness_runs: list[FeedbackRun] = dataclasses.field(default_factory=list)
+    feedback_markdown: str = ""
+    robustness_markdown: str = ""
 
 
 def run_paper(config: PaperConfig, out_dir: str | Path,
@@ -509,19 +519,89 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     fusion_available = factory is not None
     world = World(sc)
     detector = DetectionSimulator(sc, world)
-    plan = [(n, rev, it) for n in names for rev in (False, True)
-            for it in range(config.runs_per_direction)]
-    say(f"paper experiment: {len(plan)} runs on {sc.name} "
-        f"({'with' if fusion_available else 'without'} fusion)")
     results: list[RunResult] = []
-    for k, (n, rev, it) in enumerate(plan, start=1):
-        res = run_once(sc, n, rev, it, config, factory, world, detector)
-        results.append(res)
-        say(f"[{k}/{len(plan)}] {res.name}: {res.simulated_s:.0f} s simulated in "
-            f"{res.wall_s:.1f} s ({res.simulated_s / max(res.wall_s, 1e-9):.0f}x), "
-            f"{len(res.samples)} stops, {res.counters['frame_sets']} frame-sets")
-    t1_md, t1 = table1(results, fusion_available, config.align)
-    t2_md, t2 = table2(results, fusion_available, config.align)
+    t1_md = t2_md = ""
+    t1: dict[str, dict[str, dict[str, float]]] = {}
+    t2: dict[str, dict[str, float]] = {}
+    files: list[Path] = []
+    if 1 in config.experiments:
+        plan = [(n, rev, it) for n in names for rev in (False, True)
+                for it in range(config.runs_per_direction)]
+        say(f"paper experiment 1: {len(plan)} runs on {sc.name} "
+            f"({'with' if fusion_available else 'without'} fusion)")
+        for k, (n, rev, it) in enumerate(plan, start=1):
+            res = run_once(sc, n, rev, it, config, factory, world, detector)
+            results.append(res)
+            say(f"[{k}/{len(plan)}] {res.name}: {res.simulated_s:.0f} s simulated in "
+                f"{res.wall_s:.1f} s ({res.simulated_s / max(res.wall_s, 1e-9):.0f}x), "
+                f"{len(res.samples)} stops, {res.counters['frame_sets']} frame-sets")
+        t1_md, t1 = table1(results, fusion_available, config.align)
+        t2_md, t2 = table2(results, fusion_available, config.align)
+        files += _write_experiment1(out, sc, config, results, t1_md, t2_md, t1, t2,
+                                    fusion_available, detector)
+    fb_runs: list[FeedbackRun] = []
+    fb_md = ""
+    fb_numbers: dict[str, float] = {}
+    if 2 in config.experiments:
+        say(f"paper experiment 2: {config.long_route} without and with correction feedback, "
+            f"{config.feedback_seeds} seed(s)")
+        fb_runs = run_experiment2(sc, config, factory, world, detector, say)
+        fb_md, fb_numbers = feedback_table(fb_runs)
+        files.append(plot_feedback(fb_runs, out / "fig7_feedback_error_over_distance.png"))
+        (out / "experiment2.md").write_text(fb_md, encoding="utf-8")
+        files.append(out / "experiment2.md")
+    rb_runs: list[FeedbackRun] = []
+    rb_md = ""
+    rb_numbers: dict[str, dict[str, float]] = {}
+    if 3 in config.experiments:
+        fm = failure_model(sc)
+        say(f"paper experiment 3: {config.robustness_route}, "
+            f"{config.robustness_runs or sc.robustness.runs} runs without and with feedback "
+            f"(WP tolerance {fm.waypoint_tolerance_m} m, footprint {fm.footprint_m} m)")
+        rb_runs = run_experiment3(sc, config, factory, world, detector, say)
+        rb_md, rb_numbers = robustness_table(rb_runs)
+        (out / "table3.md").write_text(rb_md, encoding="utf-8")
+        files.append(out / "table3.md")
+    if 2 in config.experiments or 3 in config.experiments:
+        (out / "feedback_results.json").write_text(json.dumps({
+            "scenario": sc.name, "seed": config.seed, "experiment2": fb_numbers,
+            "experiment2_runs": [_run_summary(r) for r in fb_runs],
+            "experiment3": rb_numbers,
+            "experiment3_runs": [_run_summary(r) for r in rb_runs],
+        }, indent=2, default=float), encoding="utf-8")
+        files.append(out / "feedback_results.json")
+    wall = time.perf_counter() - wall0
+    sections = ["# Paper experiments on the simulated lab\n"]
+    if 1 in config.experiments:
+        sections += ["## Experiment 1: pose accuracy (Sec. IV-B, Table I/II, Fig. 6)\n", t1_md,
+                     t2_md]
+    if 2 in config.experiments:
+        sections += ["## Experiment 2: correction feedback (Sec. IV-B, Fig. 7)\n", fb_md,
+                     "![Fig. 7](fig7_feedback_error_over_distance.png)\n"]
+    if 3 in config.experiments:
+        sections += ["## Experiment 3: robustness (Sec. IV-D, Table III)\n", rb_md]
+    sections.append(f"Wall time: {wall:.0f} s.\n")
+    (out / "report.md").write_text("\n".join(sections), encoding="utf-8")
+    files.append(out / "report.md")
+    say(f"done in {wall:.1f} s; wrote {out}")
+    return PaperReport(results, t1_md, t2_md, t1, t2, fusion_available, files, wall,
+                       fb_runs, rb_runs, fb_md, rb_md)
+
+
+def _run_summary(r: FeedbackRun) -> dict[str, object]:
+    return {"name": r.name, "feedback": r.feedback, "outcome": r.outcome,
+            "failure_waypoint": r.failure_waypoint, "failure_distance_m": r.failure_distance_m,
+            "travelled_m": r.travelled_m, "robot_rms_cm": r.robot_rms_m() * 100,
+            "fused_rms_cm": r.fused_rms_m() * 100,
+            "corrections_accepted": sum(c.accepted for c in r.corrections),
+            "simulated_s": r.simulated_s, "wall_s": r.wall_s}
+
+
+def _write_experiment1(out: Path, sc: Scenario, config: PaperConfig,
+                       results: list[RunResult], t1_md: str, t2_md: str,
+                       t1: dict[str, dict[str, dict[str, float]]],
+                       t2: dict[str, dict[str, float]], fusion_available: bool,
+                       detector: DetectionSimulator) -> list[Path]:
     files = [out / "table1.md", out / "table2.md", out / "results.json", out / "samples.csv",
              out / "fig6_map.png"]
     files[0].write_text(t1_md, encoding="utf-8")
@@ -544,7 +624,373 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
                             f"{s.ground_truth[2]:.5f},{src},{e[0]:.5f},{e[1]:.5f},{e[2]:.5f}\n")
     plot_map(sc, detector, files[4])
     files += plot_runs(results, sc, out)
-    wall = time.perf_counter() - wall0
-    sim_total = sum(r.simulated_s for r in results)
-    say(f"done: {sim_total:.0f} s simulated in {wall:.1f} s; wrote {out}")
-    return PaperReport(results, t1_md, t2_md, t1, t2, fusion_available, files, wall)
+    return files
+
+
+# --------------------------------------------------------------------------------------------
+# experiments 2 and 3: correction feedback through the robot bridge (Sec. IV-B end, IV-D)
+# --------------------------------------------------------------------------------------------
+
+SUCCESS = "success"
+WP_NOT_REACHED = "wp_not_reached"
+EMERGENCY_STOP = "emergency_stop"
+
+
+@dataclasses.dataclass(frozen=True)
+class FailureModel:
+    """When a run of experiment 3 fails (docs/simulation.md, "Robustness"): the robot drives
+    by its internal localization, so it truly stands at the plan shifted by the localization
+    error. "WP not reached": on arrival at a waypoint that shift exceeds
+    ``waypoint_tolerance_m``; "emergency stop": the true footprint (radius ``footprint_m``)
+    touches an obstacle or a wall."""
+
+    waypoint_tolerance_m: float
+    footprint_m: float
+
+
+@dataclasses.dataclass(frozen=True)
+class AppliedCorrection:
+    """A pose the bridge pushed to the robot: when (s since run start), whether the robot took
+    it, whether the plan was static then and at the correction's stamp, and the offset (m)."""
+
+    t_s: float
+    accepted: bool
+    static_now: bool
+    static_at_stamp: bool
+    offset_m: float
+
+
+@dataclasses.dataclass
+class FeedbackRun:
+    """One run with or without correction feedback.
+
+    ``stamps_ns`` (N,), ``ground_truth`` / ``robot`` / ``fused`` (N, 3) as in
+    :class:`RunResult` (the run may end early on a failure). ``outcome``: ``success``,
+    ``wp_not_reached`` or ``emergency_stop`` (always ``success`` without a failure model);
+    ``failure_distance_m``: travelled distance at the failure.
+    """
+
+    name: str
+    route: str
+    feedback: bool
+    stamps_ns: np.ndarray
+    ground_truth: np.ndarray
+    robot: np.ndarray
+    fused: np.ndarray
+    corrections: list[AppliedCorrection]
+    outcome: str
+    failure_waypoint: str | None
+    failure_distance_m: float
+    travelled_m: float
+    simulated_s: float
+    wall_s: float
+    bridge_counters: dict[str, int]
+
+    def robot_rms_m(self) -> float:
+        """RMS translation error (m) of the robot's internal localization over the run."""
+        return rms(translation_errors(self.ground_truth[:, :2], self.robot[:, :2]))
+
+    def fused_rms_m(self) -> float:
+        """RMS translation error (m) of the fused trajectory (NaN rows skipped)."""
+        ok = np.all(np.isfinite(self.fused), axis=1)
+        if not np.any(ok):
+            return math.nan
+        return rms(translation_errors(self.ground_truth[ok, :2], self.fused[ok, :2]))
+
+
+def run_feedback(scenario: Scenario, route: str, feedback: bool,
+                 seed: int | np.random.SeedSequence, *, name: str | None = None,
+                 dwell_s: float = 1.0, frames: int = 5,
+                 fusion_factory: FusionFactory | None = None,
+                 failure: FailureModel | None = None, fused_trajectory_step: int = 4,
+                 world: World | None = None,
+                 detector: DetectionSimulator | None = None) -> FeedbackRun:
+    """Simulate one run of ``route`` with (``feedback=True``) or without correction feedback.
+
+    The backend part is the one of :func:`run_once`: frame-set synchronizer, ``estimate_pose``
+    with the single-camera heuristic (prior: the robot's localization at the stamp), 5-frame
+    averaging once the robot stood ``dwell_s`` at a waypoint, and the pose-graph fusion. With
+    feedback, the real :class:`robot_bridge.bridge.RobotBridge` (the site's thresholds) gets the
+    robot's odometry and localization through a :class:`SimRobotAdapter` and the camera and
+    fused estimates; the corrections it decides on are pushed to the simulated robot, which
+    takes them only while static. ``failure``: end the run at the first failure (experiment 3).
+    """
+    from backend_service.estimate import SolverConfig, estimate_pose
+    from backend_service.multi_frame import MultiFrameAverager
+    from backend_service.sync import FrameSetSynchronizer
+    from robot_bridge.adapters.sim import SimRobotAdapter
+    from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
+
+    wall0 = time.perf_counter()
+    site = scenario.site
+    robot_id = scenario.robot_id
+    sim = SimulationRun(scenario, route, False, seed=seed, world=world, detector=detector)
+    robot = sim.robot
+    world_ = sim.world
+    run_name = name or f"{route}_{'fb' if feedback else 'nofb'}"
+    sync = FrameSetSynchronizer(site, robot_id)
+    fusion = fusion_factory(robot_id) if fusion_factory is not None else None
+    bridge = RobotBridge(BridgeConfig(robot_id, thresholds=site.thresholds)) if feedback else None
+    adapter = SimRobotAdapter(robot) if feedback else None
+    one_cfg = SolverConfig(use_single_camera_heuristic=True)
+    start_ns = scenario.start_stamp_ns
+    averagers: dict[int, MultiFrameAverager] = {}
+    tries: dict[int, int] = {}
+    done: set[int] = set()
+    corrections: list[AppliedCorrection] = []
+    arrived: set[int] = set()
+    state: dict[str, object] = {"outcome": SUCCESS, "wp": None, "dist": math.nan}
+
+    def localization_at(stamp_ns: int) -> np.ndarray:
+        stamps = sim.log.stamps_ns
+        i = max(bisect.bisect_right(stamps, stamp_ns) - 1, 0)
+        return sim.log.localization[i]
+
+    def push(out: Outbox) -> None:
+        # corrections decided on an estimate: pushed to the robot like RobotBridge.pump does
+        assert bridge is not None and adapter is not None
+        for corr in out.corrections:
+            t_now = robot.t_s
+            accepted = adapter.apply_correction(corr)
+            bridge.on_correction_result(corr, accepted)
+            record(corr, accepted, t_now)
+
+    def record(corr: object, accepted: bool, t_now: float) -> None:
+        stamp = int(corr.stamp_ns)  # type: ignore[attr-defined]
+        corrections.append(AppliedCorrection(
+            t_s=t_now, accepted=accepted, static_now=sim.plan.is_static(t_now),
+            static_at_stamp=sim.plan.is_static((stamp - start_ns) * 1e-9),
+            offset_m=float(corr.offset_m)))  # type: ignore[attr-defined]
+
+    def handle(fs: FrameSet, arrival_ns: int) -> None:
+        t_s = (fs.stamp_ns - start_ns) * 1e-9
+        stop = sim.plan.stop_at(t_s)
+        if stop is None or t_s < stop.t0_s + dwell_s or stop.index in done or not fs.observations:
+            return
+        loc = localization_at(fs.stamp_ns)
+        one = estimate_pose(fs, site, PlanarPose(float(loc[0]), float(loc[1]), float(loc[2])),
+                            one_cfg)
+        avg = averagers.setdefault(stop.index, MultiFrameAverager(frames))
+        averaged = avg.add(one)
+        tries[stop.index] = tries.get(stop.index, 0) + 1
+        if averaged is None or not averaged.ok or averaged.estimate is None:
+            if tries[stop.index] >= 4 * frames:
+                done.add(stop.index)
+            return
+        done.add(stop.index)
+        est = averaged.estimate
+        fused = fusion.add_camera_estimate(est) if fusion is not None else None
+        if bridge is not None:
+            push(bridge.on_pose_estimate(est, arrival_ns))
+            if isinstance(fused, PoseEstimate):
+                push(bridge.on_pose_estimate(fused, arrival_ns))
+
+    def check_failure(t_s: float) -> None:
+        if failure is None or state["outcome"] != SUCCESS:
+            return
+        gt = robot.ground_truth()
+        err = robot.localization_pose()[:2] - gt[:2]
+        # the navigation stack follows the plan in its believed frame: truly it is off by -err
+        if world_.footprint_collides(gt[:2] - err, failure.footprint_m):
+            state.update(outcome=EMERGENCY_STOP, dist=robot.travelled_m, wp=None)
+            return
+        stop = sim.plan.stop_at(t_s)
+        if stop is not None and stop.index > 0 and stop.index not in arrived:
+            arrived.add(stop.index)
+            if float(np.hypot(*err)) > failure.waypoint_tolerance_m:
+                state.update(outcome=WP_NOT_REACHED, dist=robot.travelled_m, wp=stop.waypoint)
+
+    for tm in sim.messages(on_step=check_failure if failure is not None else None):
+        if state["outcome"] != SUCCESS:
+            break
+        msg = tm.message
+        if isinstance(msg, Odometry):
+            if fusion is not None:
+                fusion.add_odometry(msg)
+            if bridge is not None and adapter is not None:
+                adapter.feed([msg])
+                before = robot.corrections_applied
+                t_now = robot.t_s
+                out = bridge.pump(adapter, tm.arrival_ns)
+                for k, corr in enumerate(out.corrections):
+                    record(corr, k < robot.corrections_applied - before, t_now)
+        elif isinstance(msg, RobotDetections):
+            for fs in sync.push(msg, tm.arrival_ns):
+                handle(fs, tm.arrival_ns)
+
+    stamps, gt, loc = sim.log.arrays()
+    fused = np.full_like(gt, np.nan)
+    if fusion is not None:
+        step = max(1, fused_trajectory_step)
+        for i in range(0, len(stamps), step):
+            p = _to_pose(fusion.pose_at(int(stamps[i])))
+            if p is not None:
+                fused[i] = p
+    return FeedbackRun(
+        name=run_name, route=route, feedback=feedback, stamps_ns=stamps, ground_truth=gt,
+        robot=loc, fused=fused, corrections=corrections, outcome=str(state["outcome"]),
+        failure_waypoint=state["wp"] if isinstance(state["wp"], str) else None,
+        failure_distance_m=float(state["dist"]),  # type: ignore[arg-type]
+        travelled_m=robot.travelled_m, simulated_s=robot.t_s,
+        wall_s=time.perf_counter() - wall0,
+        bridge_counters=dict(bridge.counters) if bridge is not None else {},
+    )
+
+
+def feedback_table(runs: Sequence[FeedbackRun]) -> tuple[str, dict[str, float]]:
+    """Experiment 2 as Markdown: RMS translation error (cm) of the robot's localization
+    without and with feedback and of the fused trajectory (mean over seeds), with the paper's
+    numbers."""
+    wo = [r.robot_rms_m() for r in runs if not r.feedback]
+    w = [r.robot_rms_m() for r in runs if r.feedback]
+    fu = [r.fused_rms_m() for r in runs if r.feedback]
+    numbers = {
+        "robot_without_feedback_cm": float(np.mean(wo)) * 100 if wo else math.nan,
+        "robot_with_feedback_cm": float(np.mean(w)) * 100 if w else math.nan,
+        "fused_cm": float(np.nanmean(fu)) * 100 if fu and np.any(np.isfinite(fu)) else math.nan,
+        "seeds": len(w),
+        "corrections_accepted": sum(c.accepted for r in runs for c in r.corrections),
+        "corrections_while_moving": sum(c.accepted and not (c.static_now and c.static_at_stamp)
+                                        for r in runs for c in r.corrections),
+    }
+    route = runs[0].route if runs else "?"
+    length = float(np.mean([r.travelled_m for r in runs])) if runs else math.nan
+
+    def cell(v: float) -> str:
+        return "n/a" if not math.isfinite(v) else f"{v:.2f}"
+
+    lines = [
+        f"**Experiment 2** ({route}, {length:.0f} m, {numbers['seeds']} seed(s)): RMS "
+        "translation error over the whole trajectory in cm.\n",
+        "| Pose Estimation | measured | paper |",
+        "|---|---|---|",
+        f"| Robot w/o correction feedback | {cell(numbers['robot_without_feedback_cm'])} | 17.5 |",
+        f"| Robot w/ correction feedback | {cell(numbers['robot_with_feedback_cm'])} | 5.51 |",
+        f"| Fused (pose graph) | {cell(numbers['fused_cm'])} | 3.34 |",
+        "",
+        f"Corrections accepted by the robot: {numbers['corrections_accepted']}, while moving: "
+        f"{numbers['corrections_while_moving']}.",
+    ]
+    return "\n".join(lines) + "\n", numbers
+
+
+def robustness_table(runs: Sequence[FeedbackRun]) -> tuple[str, dict[str, dict[str, float]]]:
+    """Table III (paper) as Markdown: per condition the runs that did not reach a waypoint,
+    ended in an emergency stop, succeeded, and the mean travelled distance at failure."""
+    lines = ["| | WP not reached | Emergency Stop | Success Rate | mean distance at failure (m) |",
+             "|---|---|---|---|---|"]
+    numbers: dict[str, dict[str, float]] = {}
+    for fb, label in ((False, "w/o correction fb"), (True, "w/ correction fb")):
+        rs = [r for r in runs if r.feedback == fb]
+        n = len(rs)
+        wp = sum(r.outcome == WP_NOT_REACHED for r in rs)
+        es = sum(r.outcome == EMERGENCY_STOP for r in rs)
+        ok = sum(r.outcome == SUCCESS for r in rs)
+        dists = [r.failure_distance_m for r in rs if r.outcome != SUCCESS]
+        mean_d = float(np.mean(dists)) if dists else math.nan
+        numbers["with_feedback" if fb else "without_feedback"] = {
+            "runs": n, "wp_not_reached": wp, "emergency_stop": es, "success": ok,
+            "mean_failure_distance_m": mean_d,
+            "mean_route_length_m": float(np.mean([r.travelled_m for r in rs if r.outcome ==
+                                                  SUCCESS])) if ok else math.nan,
+        }
+        lines.append(f"| {label} | {wp} / {n} | {es} / {n} | {ok} / {n} | "
+                     + ("–" if not dists else f"{mean_d:.1f}") + " |")
+    title = ("**Table III**: robustness over repeated runs of the cluttered route "
+             "(paper: w/o 3/5, 1/5, 1/5, failures after 38 m on average; w/ 0/5, 0/5, 5/5).\n\n")
+    return title + "\n".join(lines) + "\n", numbers
+
+
+def plot_feedback(runs: Sequence[FeedbackRun], path: Path) -> Path:
+    """Fig. 7: translation error over travelled distance of the first seed's runs: robot
+    without feedback, robot with feedback, fused (with-feedback run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    wo = next((r for r in runs if not r.feedback), None)
+    w = next((r for r in runs if r.feedback), None)
+    for r, label, colour in ((wo, "robot w/o correction feedback", "tab:red"),
+                             (w, "robot w/ correction feedback", "tab:blue")):
+        if r is None:
+            continue
+        dist = travelled_distance(r.ground_truth[:, :2])
+        ax.plot(dist, translation_errors(r.ground_truth[:, :2], r.robot[:, :2]) * 100,
+                color=colour, lw=1, label=label)
+    if w is not None:
+        ok = np.all(np.isfinite(w.fused), axis=1)
+        if np.any(ok):
+            dist = travelled_distance(w.ground_truth[:, :2])
+            ax.plot(dist[ok], translation_errors(w.ground_truth[ok, :2], w.fused[ok, :2]) * 100,
+                    color="tab:green", lw=1, label="fused")
+        for c in w.corrections:
+            if c.accepted:
+                i = int(np.clip(np.searchsorted(w.stamps_ns, w.stamps_ns[0] + c.t_s * 1e9), 0,
+                                len(w.stamps_ns) - 1))
+                ax.axvline(travelled_distance(w.ground_truth[:, :2])[i], color="0.8", lw=0.6,
+                           zorder=0)
+    ax.set_xlabel("travelled distance [m]")
+    ax.set_ylabel("translation error [cm]")
+    ax.set_title("Experiment 2: with and without pose correction feedback (grey: corrections)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def failure_model(scenario: Scenario) -> FailureModel:
+    """The scenario's failure model (``robustness:``) with the robot model's footprint."""
+    rc = scenario.robustness
+    radius = scenario.site.robot_model(scenario.robot_id).footprint_radius_m
+    return FailureModel(rc.waypoint_tolerance_m, radius + rc.collision_margin_m)
+
+
+def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+                    world: World, detector: DetectionSimulator,
+                    say: Callable[[str], None]) -> list[FeedbackRun]:
+    """Experiment 2: ``config.long_route`` without and with feedback, per seed (the same seed
+    for both, so the two runs differ only by the feedback)."""
+    runs: list[FeedbackRun] = []
+    total = 2 * config.feedback_seeds
+    for k in range(config.feedback_seeds):
+        seed = run_seed(sc, config.long_route, False, k, config.seed)
+        for fb in (False, True):
+            r = run_feedback(sc, config.long_route, fb, seed,
+                             name=f"{config.long_route}_{'fb' if fb else 'nofb'}_{k + 1}",
+                             dwell_s=config.dwell_s, frames=config.frames,
+                             fusion_factory=factory, world=world, detector=detector,
+                             fused_trajectory_step=config.fused_trajectory_step)
+            runs.append(r)
+            say(f"[exp2 {len(runs)}/{total}] {r.name}: robot RMS {r.robot_rms_m() * 100:.1f} cm"
+                f", fused {r.fused_rms_m() * 100:.1f} cm, "
+                f"{sum(c.accepted for c in r.corrections)} corrections, "
+                f"{r.simulated_s:.0f} s simulated in {r.wall_s:.1f} s")
+    return runs
+
+
+def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+                    world: World, detector: DetectionSimulator,
+                    say: Callable[[str], None]) -> list[FeedbackRun]:
+    """Experiment 3: ``robustness.runs`` runs without, then as many with feedback, each with
+    its own seed (iterations 0..n-1 without, n..2n-1 with)."""
+    n = config.robustness_runs or sc.robustness.runs
+    model = failure_model(sc)
+    runs: list[FeedbackRun] = []
+    for k in range(2 * n):
+        fb = k >= n
+        r = run_feedback(sc, config.robustness_route, fb,
+                         run_seed(sc, config.robustness_route, False, k, config.seed),
+                         name=f"{config.robustness_route}_{'fb' if fb else 'nofb'}_{k % n + 1}",
+                         dwell_s=config.dwell_s, frames=config.frames, fusion_factory=factory,
+                         failure=model, world=world, detector=detector,
+                         fused_trajectory_step=config.fused_trajectory_step)
+        runs.append(r)
+        where = "" if r.outcome == SUCCESS else (
+            f" after {r.failure_distance_m:.1f} m"
+            + (f" at {r.failure_waypoint}" if r.failure_waypoint else ""))
+        say(f"[exp3 {k + 1}/{2 * n}] {r.name}: {r.outcome}{where} "
+            f"({r.travelled_m:.1f} m, {r.wall_s:.1f} s)")
+    return runs

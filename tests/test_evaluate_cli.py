@@ -32,9 +32,12 @@ def _write_pair(tmp_path: Path) -> tuple[Path, Path]:
 
 def _stats(text: str) -> dict[str, float]:
     section = text.split("APE w.r.t. rotation")[0]
-    return {m.group(1): float(m.group(2))
-            for m in re.finditer(r"^\s*(max|mean|median|min|rmse|sse|std)\s+([-\d.e+]+)\s*$",
-                                 section, re.M)}
+    return {
+        m.group(1): float(m.group(2))
+        for m in re.finditer(
+            r"^\s*(max|mean|median|min|rmse|sse|std)\s+([-\d.e+]+)\s*$", section, re.M
+        )
+    }
 
 
 def test_ate_matches_evo_ape_cli(tmp_path: Path, capsys) -> None:
@@ -44,10 +47,13 @@ def test_ate_matches_evo_ape_cli(tmp_path: Path, capsys) -> None:
     evo_ape = Path(sys.executable).with_name("evo_ape")
     if not evo_ape.exists():
         pytest.skip("evo_ape not installed next to this python")
-    proc = subprocess.run([str(evo_ape), "tum", str(gt), str(est), "--align"],
-                          capture_output=True, text=True, timeout=60,
-                          env={"HOME": str(tmp_path), "PATH": "/usr/bin:/bin",
-                               "MPLBACKEND": "Agg"})
+    proc = subprocess.run(
+        [str(evo_ape), "tum", str(gt), str(est), "--align"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={"HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg"},
+    )
     assert proc.returncode == 0, proc.stderr
     theirs = _stats(proc.stdout)
     assert set(theirs) == {"max", "mean", "median", "min", "rmse", "sse", "std"}
@@ -65,8 +71,21 @@ def test_ate_reports_bad_file_with_line(tmp_path: Path, capsys) -> None:
 
 def test_paper_reduced_run_writes_tables_and_plots(tmp_path: Path, capsys) -> None:
     out = tmp_path / "paper"
-    rc = main(["paper", "--out", str(out), "--runs", "1", "--trajectories", "traj3",
-               "--stop-s", "2.0"])
+    rc = main(
+        [
+            "paper",
+            "--out",
+            str(out),
+            "--experiments",
+            "1",
+            "--runs",
+            "1",
+            "--trajectories",
+            "traj3",
+            "--stop-s",
+            "2.0",
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "[1/2]" in text and "[2/2]" in text  # progress lines
