@@ -33,8 +33,8 @@ class DecodeError(ProtocolError):
         self.reason = reason
 
 
-class SiteConfigError(ProtocolError):
-    """A site file (or a camera calibration file) is missing, unreadable or invalid.
+class ConfigFileError(ProtocolError):
+    """A configuration file is missing, unreadable or invalid.
 
     The message always names the file and the key (dotted path) that is wrong.
     """
@@ -45,3 +45,7 @@ class SiteConfigError(ProtocolError):
         self.path = path
         self.key = key
         self.reason = reason
+
+
+class SiteConfigError(ConfigFileError):
+    """A site file (or a camera calibration file) is missing, unreadable or invalid."""

@@ -20,8 +20,8 @@ import numpy as np
 import yaml
 
 from protocol.camera import DISTORTION_LENGTHS, CameraModel, invert_transform
-from protocol.errors import SiteConfigError, ValidationError
-from protocol.validation import check_id
+from protocol.config_file import ConfigReader, join_key
+from protocol.errors import SiteConfigError
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -123,69 +123,6 @@ class Site:
 # --------------------------------------------------------------------------------------------
 
 
-class _Ctx:
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def fail(self, key: str, reason: str) -> SiteConfigError:
-        return SiteConfigError(self.path, key, reason)
-
-    def mapping(self, key: str, value: Any) -> Mapping[str, Any]:
-        if not isinstance(value, Mapping):
-            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
-        return value
-
-    def require(self, key: str, node: Mapping[str, Any], name: str) -> Any:
-        if name not in node:
-            raise self.fail(_join(key, name), "required key is missing")
-        return node[name]
-
-    def no_unknown(self, key: str, node: Mapping[str, Any], allowed: set[str]) -> None:
-        for name in node:
-            if name not in allowed:
-                raise self.fail(_join(key, str(name)), f"unknown key; allowed: {sorted(allowed)}")
-
-    def number(self, key: str, value: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(key, f"expected a number, got {value!r}")
-        if not math.isfinite(value) or not lo <= value <= hi:
-            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
-        return float(value)
-
-    def integer(self, key: str, value: Any, lo: int = 0, hi: int = 2**62) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(key, f"expected an integer, got {value!r}")
-        if not lo <= value <= hi:
-            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
-        return value
-
-    def ident(self, key: str, value: Any) -> str:
-        try:
-            return check_id(key, value)
-        except ValidationError as exc:
-            raise self.fail(key, exc.reason) from None
-
-    def matrix(self, key: str, value: Any, rows: int | None, cols: int | None) -> np.ndarray:
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise self.fail(key, "expected a list of numbers (or list of rows)") from None
-        if arr.ndim == 1 and rows is not None and cols is not None and arr.size == rows * cols:
-            arr = arr.reshape(rows, cols)
-        if cols is None:
-            if arr.ndim != 1:
-                raise self.fail(key, f"expected a flat list, got shape {arr.shape}")
-        elif arr.shape != (rows, cols):
-            raise self.fail(key, f"expected a {rows}x{cols} matrix, got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise self.fail(key, "contains NaN or infinity")
-        return arr
-
-
-def _join(key: str, name: str) -> str:
-    return f"{key}.{name}" if key else name
-
-
 def _rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
     x, y, z, w = q / np.linalg.norm(q)
     return np.array(
@@ -229,7 +166,7 @@ def look_at_T_world_cam(position_m: np.ndarray, target_m: np.ndarray) -> np.ndar
     return T
 
 
-def _parse_transform(ctx: _Ctx, key: str, value: Any) -> np.ndarray:
+def _parse_transform(ctx: ConfigReader, key: str, value: Any) -> np.ndarray:
     """A rigid transform: a 4x4 matrix, or {translation_m, quaternion_xyzw | rpy_deg | matrix},
     or {position_m, look_at_m} (only meaningful for T_world_cam)."""
     if isinstance(value, list):
@@ -239,24 +176,24 @@ def _parse_transform(ctx: _Ctx, key: str, value: Any) -> np.ndarray:
         if "look_at_m" in node:
             ctx.no_unknown(key, node, {"position_m", "look_at_m"})
             pos = ctx.matrix(
-                _join(key, "position_m"), ctx.require(key, node, "position_m"), 3, None
+                join_key(key, "position_m"), ctx.require(key, node, "position_m"), 3, None
             )
-            tgt = ctx.matrix(_join(key, "look_at_m"), node["look_at_m"], 3, None)
+            tgt = ctx.matrix(join_key(key, "look_at_m"), node["look_at_m"], 3, None)
             if pos.shape != (3,) or tgt.shape != (3,):
                 raise ctx.fail(key, "position_m and look_at_m need 3 numbers each")
             if np.linalg.norm(tgt - pos) < 1e-6:
-                raise ctx.fail(_join(key, "look_at_m"), "coincides with position_m")
+                raise ctx.fail(join_key(key, "look_at_m"), "coincides with position_m")
             return look_at_T_world_cam(pos, tgt)
         ctx.no_unknown(key, node, {"translation_m", "quaternion_xyzw", "rpy_deg", "matrix"})
         t = ctx.matrix(
-            _join(key, "translation_m"), ctx.require(key, node, "translation_m"), 3, None
+            join_key(key, "translation_m"), ctx.require(key, node, "translation_m"), 3, None
         )
         if t.shape != (3,):
-            raise ctx.fail(_join(key, "translation_m"), "expected 3 numbers")
+            raise ctx.fail(join_key(key, "translation_m"), "expected 3 numbers")
         given = [k for k in ("quaternion_xyzw", "rpy_deg", "matrix") if k in node]
         if len(given) != 1:
             raise ctx.fail(key, "give exactly one of quaternion_xyzw, rpy_deg, matrix")
-        rkey = _join(key, given[0])
+        rkey = join_key(key, given[0])
         if given[0] == "quaternion_xyzw":
             q = ctx.matrix(rkey, node["quaternion_xyzw"], 4, None)
             if q.shape != (4,) or np.linalg.norm(q) < 1e-9:
@@ -308,13 +245,13 @@ class CameraCalibration:
 
 
 def _calib_matrix(
-    ctx: _Ctx, key: str, value: Any, rows: int | None, cols: int | None
+    ctx: ConfigReader, key: str, value: Any, rows: int | None, cols: int | None
 ) -> np.ndarray:
     if isinstance(value, Mapping):  # OpenCV matrix or ROS {rows, cols, data}
         data = ctx.require(key, value, "data")
-        r = ctx.integer(_join(key, "rows"), value.get("rows", rows or 1), lo=1, hi=16)
-        c = ctx.integer(_join(key, "cols"), value.get("cols", cols or len(data)), lo=1, hi=16)
-        arr = ctx.matrix(_join(key, "data"), data, r, c)
+        r = ctx.integer(join_key(key, "rows"), value.get("rows", rows or 1), lo=1, hi=16)
+        c = ctx.integer(join_key(key, "cols"), value.get("cols", cols or len(data)), lo=1, hi=16)
+        arr = ctx.matrix(join_key(key, "data"), data, r, c)
         return arr if cols is not None else arr.reshape(-1)
     return ctx.matrix(key, value, rows, cols)
 
@@ -324,7 +261,7 @@ def load_camera_calibration(path: str | Path) -> CameraCalibration:
     ``distortion_coefficients``, ``image_width``, ``image_height``; the ``%YAML:1.0`` header and
     ``!!opencv-matrix`` tags are understood) or a ROS ``camera_info`` YAML (same key names with
     plain ``{rows, cols, data}`` maps). An optional ``T_cam_world`` 4x4 matrix is read too."""
-    ctx = _Ctx(str(path))
+    ctx = ConfigReader(str(path))
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as exc:
@@ -368,37 +305,37 @@ _CAMERA_KEYS: Final = {
 _TOP_KEYS: Final = {"site", "world_frame", "cameras", "robot_models", "robots", "thresholds"}
 
 
-def _parse_K(ctx: _Ctx, key: str, node: Mapping[str, Any]) -> np.ndarray:
+def _parse_K(ctx: ConfigReader, key: str, node: Mapping[str, Any]) -> np.ndarray:
     if "K" in node and "intrinsics" in node:
-        raise ctx.fail(_join(key, "K"), "give either K or intrinsics, not both")
+        raise ctx.fail(join_key(key, "K"), "give either K or intrinsics, not both")
     if "K" in node:
-        K = ctx.matrix(_join(key, "K"), node["K"], 3, 3)
+        K = ctx.matrix(join_key(key, "K"), node["K"], 3, 3)
     elif "intrinsics" in node:
-        ik = _join(key, "intrinsics")
+        ik = join_key(key, "intrinsics")
         intr = ctx.mapping(ik, node["intrinsics"])
         ctx.no_unknown(ik, intr, {"fx", "fy", "cx", "cy"})
         fx, fy, cx, cy = (
-            ctx.number(_join(ik, n), ctx.require(ik, intr, n)) for n in ("fx", "fy", "cx", "cy")
+            ctx.number(join_key(ik, n), ctx.require(ik, intr, n)) for n in ("fx", "fy", "cx", "cy")
         )
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     else:
         raise ctx.fail(
-            _join(key, "K"), "required key is missing (or give intrinsics/calibration_file)"
+            join_key(key, "K"), "required key is missing (or give intrinsics/calibration_file)"
         )
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise ctx.fail(_join(key, "K"), "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
+        raise ctx.fail(join_key(key, "K"), "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
     return K
 
 
-def _parse_camera(ctx: _Ctx, key: str, value: Any, base_dir: Path) -> CameraModel:
+def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> CameraModel:
     node = ctx.mapping(key, value)
     ctx.no_unknown(key, node, _CAMERA_KEYS)
-    cam_id = ctx.ident(_join(key, "id"), ctx.require(key, node, "id"))
+    cam_id = ctx.ident(join_key(key, "id"), ctx.require(key, node, "id"))
     T_cam_world: np.ndarray | None = None
     if "calibration_file" in node:
         for clash in ("K", "intrinsics", "distortion", "resolution"):
             if clash in node:
-                raise ctx.fail(_join(key, clash), "also given by calibration_file; give one")
+                raise ctx.fail(join_key(key, clash), "also given by calibration_file; give one")
         calib_path = Path(str(node["calibration_file"]))
         if not calib_path.is_absolute():
             calib_path = base_dir / calib_path
@@ -406,36 +343,36 @@ def _parse_camera(ctx: _Ctx, key: str, value: Any, base_dir: Path) -> CameraMode
         width, height, K, dist = calib.width, calib.height, calib.K, calib.dist
         T_cam_world = calib.T_cam_world
     else:
-        res_key = _join(key, "resolution")
+        res_key = join_key(key, "resolution")
         res = ctx.require(key, node, "resolution")
         if not isinstance(res, list) or len(res) != 2:
             raise ctx.fail(res_key, "expected [width, height] in pixels")
         width = ctx.integer(res_key, res[0], lo=1, hi=65535)
         height = ctx.integer(res_key, res[1], lo=1, hi=65535)
         K = _parse_K(ctx, key, node)
-        dist = ctx.matrix(_join(key, "distortion"), node.get("distortion", []), None, None)
+        dist = ctx.matrix(join_key(key, "distortion"), node.get("distortion", []), None, None)
         if dist.size not in DISTORTION_LENGTHS:
             raise ctx.fail(
-                _join(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}"
+                join_key(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}"
             )
     given = [k for k in ("T_cam_world", "T_world_cam") if k in node]
     if len(given) > 1:
         raise ctx.fail(key, "give T_cam_world or T_world_cam, not both")
     if given:
-        T = _parse_transform(ctx, _join(key, given[0]), node[given[0]])
+        T = _parse_transform(ctx, join_key(key, given[0]), node[given[0]])
         T_cam_world = T if given[0] == "T_cam_world" else invert_transform(T)
     if T_cam_world is None:
-        raise ctx.fail(_join(key, "T_world_cam"), "required key is missing (camera extrinsics)")
+        raise ctx.fail(join_key(key, "T_world_cam"), "required key is missing (camera extrinsics)")
     offset = ctx.integer(
-        _join(key, "clock_offset_ns"), node.get("clock_offset_ns", 0), lo=-(10**15), hi=10**15
+        join_key(key, "clock_offset_ns"), node.get("clock_offset_ns", 0), lo=-(10**15), hi=10**15
     )
     return CameraModel(cam_id, width, height, K, dist, T_cam_world, offset)
 
 
-def _parse_robot_model(ctx: _Ctx, key: str, name: str, value: Any) -> RobotModel:
+def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any) -> RobotModel:
     node = ctx.mapping(key, value)
     ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m"})
-    kkey = _join(key, "keypoints")
+    kkey = join_key(key, "keypoints")
     kps = ctx.require(key, node, "keypoints")
     if not isinstance(kps, list) or len(kps) < 3:
         raise ctx.fail(kkey, "expected a list of at least 3 keypoints {name, xyz_m}")
@@ -445,43 +382,33 @@ def _parse_robot_model(ctx: _Ctx, key: str, name: str, value: Any) -> RobotModel
         ik = f"{kkey}[{i}]"
         kp = ctx.mapping(ik, kp)
         ctx.no_unknown(ik, kp, {"name", "xyz_m"})
-        kp_name = ctx.ident(_join(ik, "name"), ctx.require(ik, kp, "name"))
+        kp_name = ctx.ident(join_key(ik, "name"), ctx.require(ik, kp, "name"))
         if kp_name in names:
-            raise ctx.fail(_join(ik, "name"), f"duplicate keypoint name {kp_name!r}")
-        p = ctx.matrix(_join(ik, "xyz_m"), ctx.require(ik, kp, "xyz_m"), 3, None)
+            raise ctx.fail(join_key(ik, "name"), f"duplicate keypoint name {kp_name!r}")
+        p = ctx.matrix(join_key(ik, "xyz_m"), ctx.require(ik, kp, "xyz_m"), 3, None)
         if p.shape != (3,):
-            raise ctx.fail(_join(ik, "xyz_m"), "expected 3 numbers")
+            raise ctx.fail(join_key(ik, "xyz_m"), "expected 3 numbers")
         names.append(kp_name)
         xyz.append(p)
     radius = ctx.number(
-        _join(key, "footprint_radius_m"),
+        join_key(key, "footprint_radius_m"),
         ctx.require(key, node, "footprint_radius_m"),
         lo=0.01,
         hi=10.0,
     )
-    height = ctx.number(_join(key, "height_m"), node.get("height_m", 1.0), lo=0.01, hi=10.0)
+    height = ctx.number(join_key(key, "height_m"), node.get("height_m", 1.0), lo=0.01, hi=10.0)
     pts = np.stack(xyz)
     pts.setflags(write=False)
     return RobotModel(name, tuple(names), pts, radius, height)
 
 
-def _parse_thresholds(ctx: _Ctx, value: Any) -> Thresholds:
-    node = ctx.mapping("thresholds", value)
-    fields = {f.name: f for f in dataclasses.fields(Thresholds)}
-    ctx.no_unknown("thresholds", node, set(fields))
-    kwargs: dict[str, Any] = {}
-    for name, val in node.items():
-        key = f"thresholds.{name}"
-        if isinstance(fields[name].default, int) and not isinstance(fields[name].default, bool):
-            kwargs[name] = ctx.integer(key, val, lo=1, hi=10**6)
-        else:
-            kwargs[name] = ctx.number(key, val, lo=0.0)
-    return Thresholds(**kwargs)
+def _parse_thresholds(ctx: ConfigReader, value: Any) -> Thresholds:
+    return ctx.section("thresholds", value, Thresholds, int_lo=1)
 
 
 def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -> Site:
     """Validate an already-parsed YAML document as a site (``path`` is used in errors)."""
-    ctx = _Ctx(path)
+    ctx = ConfigReader(path)
     base_dir = base_dir or Path(".")
     top = ctx.mapping("", doc)
     ctx.no_unknown("", top, _TOP_KEYS)
@@ -511,15 +438,15 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
         rk = f"robots[{i}]"
         r = ctx.mapping(rk, r)
         ctx.no_unknown(rk, r, {"id", "model"})
-        rid = ctx.ident(_join(rk, "id"), ctx.require(rk, r, "id"))
+        rid = ctx.ident(join_key(rk, "id"), ctx.require(rk, r, "id"))
         model_name = ctx.require(rk, r, "model")
         if model_name not in robot_models:
             raise ctx.fail(
-                _join(rk, "model"),
+                join_key(rk, "model"),
                 f"unknown robot model {model_name!r}; defined: {sorted(robot_models)}",
             )
         if rid in robots:
-            raise ctx.fail(_join(rk, "id"), f"duplicate robot id {rid!r}")
+            raise ctx.fail(join_key(rk, "id"), f"duplicate robot id {rid!r}")
         robots[rid] = model_name
     thresholds = _parse_thresholds(ctx, top.get("thresholds", {}) or {})
     return Site(name, world_frame, cameras, robot_models, robots, thresholds, path)

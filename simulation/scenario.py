@@ -18,22 +18,16 @@ from typing import Any, Final
 import numpy as np
 import yaml
 
-from protocol.errors import SiteConfigError
+from protocol.config_file import ConfigReader
+from protocol.errors import ConfigFileError, SiteConfigError
 from protocol.site import Site, load_site
 
 SITES_DIR: Final = Path(__file__).resolve().parent / "sites"
 PAPER_SCENARIO: Final = SITES_DIR / "paper_lab.scenario.yaml"
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ConfigFileError, ValueError):
     """A scenario file is missing or invalid; names the file and the key."""
-
-    def __init__(self, path: str, key: str, reason: str) -> None:
-        where = f"{path}: {key}" if key else path
-        super().__init__(f"{where}: {reason}")
-        self.path = path
-        self.key = key
-        self.reason = reason
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -259,56 +253,21 @@ _TOP_KEYS: Final = {
 }
 
 
-class _Ctx:
+class _Ctx(ConfigReader):
+    """The shared config checks, raising :class:`ScenarioError`, plus scenario sections."""
+
     def __init__(self, path: str) -> None:
-        self.path = path
-
-    def fail(self, key: str, reason: str) -> ScenarioError:
-        return ScenarioError(self.path, key, reason)
-
-    def mapping(self, key: str, value: Any) -> Mapping[str, Any]:
-        if not isinstance(value, Mapping):
-            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
-        return value
-
-    def no_unknown(self, key: str, node: Mapping[str, Any], allowed: set[str]) -> None:
-        for k in node:
-            if k not in allowed:
-                where = f"{key}.{k}" if key else str(k)
-                raise self.fail(where, f"unknown key (allowed: {', '.join(sorted(allowed))})")
-
-    def number(self, key: str, value: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(key, f"expected a number, got {value!r}")
-        v = float(value)
-        if not math.isfinite(v) or v < lo or v > hi:
-            raise self.fail(key, f"{v} is outside [{lo}, {hi}]")
-        return v
-
-    def vector(self, key: str, value: Any, n: int) -> np.ndarray:
-        if not isinstance(value, list) or len(value) != n:
-            raise self.fail(key, f"expected a list of {n} numbers")
-        return np.array([self.number(f"{key}[{i}]", v) for i, v in enumerate(value)])
+        super().__init__(path, ScenarioError)
 
     def config(self, key: str, value: Any, cls: type) -> Any:
-        node = self.mapping(key, value if value is not None else {})
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        self.no_unknown(key, node, set(fields))
-        kwargs: dict[str, Any] = {}
-        for name, val in node.items():
-            default = fields[name].default
-            if isinstance(default, int) and not isinstance(default, bool):
-                if isinstance(val, bool) or not isinstance(val, int):
-                    raise self.fail(f"{key}.{name}", f"expected an integer, got {val!r}")
-                kwargs[name] = int(val)
-            else:
-                kwargs[name] = self.number(f"{key}.{name}", val, lo=0.0)
-        for name, val in kwargs.items():
-            if name.endswith("probability") and val > 1.0:
-                raise self.fail(f"{key}.{name}", "a probability must lie in [0, 1]")
-            if name.endswith("rate_hz") and val <= 0:
-                raise self.fail(f"{key}.{name}", "must be > 0")
-        return cls(**kwargs)
+        section = self.section(key, value, cls)
+        for f in dataclasses.fields(cls):
+            val = getattr(section, f.name)
+            if f.name.endswith("probability") and val > 1.0:
+                raise self.fail(f"{key}.{f.name}", "a probability must lie in [0, 1]")
+            if f.name.endswith("rate_hz") and val <= 0:
+                raise self.fail(f"{key}.{f.name}", "must be > 0")
+        return section
 
 
 def parse_scenario(doc: Any, path: str = "<memory>", base_dir: Path | None = None,

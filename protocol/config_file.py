@@ -1,0 +1,111 @@
+"""Reading YAML configuration files with errors that name the file and the dotted key.
+
+:class:`ConfigReader` holds the checks every config parser here shares (site files, camera
+calibration files, simulation scenarios): each raises the reader's error type (a
+:class:`~protocol.errors.ConfigFileError`) carrying the file path, the key such as
+``cameras[2].K`` and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import ConfigFileError, SiteConfigError, ValidationError
+from protocol.validation import check_id
+
+
+def join_key(key: str, name: str) -> str:
+    """``key.name``, or ``name`` at the top level."""
+    return f"{key}.{name}" if key else name
+
+
+class ConfigReader:
+    """Typed access to a parsed YAML document; ``error`` is the exception type raised."""
+
+    def __init__(self, path: str, error: type[ConfigFileError] = SiteConfigError) -> None:
+        self.path = path
+        self.error = error
+
+    def fail(self, key: str, reason: str) -> ConfigFileError:
+        return self.error(self.path, key, reason)
+
+    def mapping(self, key: str, value: Any) -> Mapping[str, Any]:
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
+        return value
+
+    def require(self, key: str, node: Mapping[str, Any], name: str) -> Any:
+        if name not in node:
+            raise self.fail(join_key(key, name), "required key is missing")
+        return node[name]
+
+    def no_unknown(self, key: str, node: Mapping[str, Any], allowed: set[str]) -> None:
+        for name in node:
+            if name not in allowed:
+                raise self.fail(
+                    join_key(key, str(name)), f"unknown key; allowed: {sorted(allowed)}"
+                )
+
+    def number(self, key: str, value: Any, lo: float = -math.inf, hi: float = math.inf) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        if not math.isfinite(value) or not lo <= value <= hi:
+            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
+        return float(value)
+
+    def integer(self, key: str, value: Any, lo: int = 0, hi: int = 2**62) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, f"expected an integer, got {value!r}")
+        if not lo <= value <= hi:
+            raise self.fail(key, f"{value} outside [{lo}, {hi}]")
+        return value
+
+    def ident(self, key: str, value: Any) -> str:
+        try:
+            return check_id(key, value)
+        except ValidationError as exc:
+            raise self.fail(key, exc.reason) from None
+
+    def vector(self, key: str, value: Any, n: int) -> np.ndarray:
+        """A list of exactly ``n`` finite numbers."""
+        if not isinstance(value, list) or len(value) != n:
+            raise self.fail(key, f"expected a list of {n} numbers")
+        return np.array([self.number(f"{key}[{i}]", v) for i, v in enumerate(value)])
+
+    def matrix(self, key: str, value: Any, rows: int | None, cols: int | None) -> np.ndarray:
+        """A ``rows x cols`` matrix (nested or flat list), or a flat list when ``cols`` is None."""
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(key, "expected a list of numbers (or list of rows)") from None
+        if arr.ndim == 1 and rows is not None and cols is not None and arr.size == rows * cols:
+            arr = arr.reshape(rows, cols)
+        if cols is None:
+            if arr.ndim != 1:
+                raise self.fail(key, f"expected a flat list, got shape {arr.shape}")
+        elif arr.shape != (rows, cols):
+            raise self.fail(key, f"expected a {rows}x{cols} matrix, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(key, "contains NaN or infinity")
+        return arr
+
+    def section(self, key: str, value: Any, cls: type, *, int_lo: int = 0) -> Any:
+        """A flat dataclass of numbers with defaults (``thresholds``, ``noise``, ...): unknown
+        keys are errors, integer fields need integers (>= ``int_lo``), the others non-negative
+        numbers."""
+        node = self.mapping(key, value if value is not None else {})
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        self.no_unknown(key, node, set(fields))
+        kwargs: dict[str, Any] = {}
+        for name, val in node.items():
+            default = fields[name].default
+            if isinstance(default, int) and not isinstance(default, bool):
+                kwargs[name] = self.integer(join_key(key, name), val, lo=int_lo)
+            else:
+                kwargs[name] = self.number(join_key(key, name), val, lo=0.0)
+        return cls(**kwargs)
