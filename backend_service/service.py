@@ -20,7 +20,6 @@ import collections
 import dataclasses
 import logging
 import math
-import sys
 from collections.abc import Iterable, Sequence
 from typing import Any, Final
 
@@ -32,7 +31,6 @@ from backend_service.fusion import FusionConfig, PoseGraphFusion
 from backend_service.multi_frame import MultiFrameAverager
 from backend_service.sync import FrameSetSynchronizer
 from protocol import keys
-from protocol.errors import SiteConfigError
 from protocol.messages import (
     Message,
     Odometry,
@@ -40,8 +38,8 @@ from protocol.messages import (
     RobotDetections,
     ServiceStatus,
 )
-from protocol.runtime import Outgoing, ServiceNode, Subscription, run_node
-from protocol.session import add_session_arguments, make_config, options_from_args
+from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
+from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
@@ -365,11 +363,4 @@ def build_node(args: argparse.Namespace) -> BackendNode:
 
 
 def main(argv: Sequence[str]) -> int:
-    args = build_parser().parse_args(list(argv))
-    try:
-        node = build_node(args)
-        config = make_config(options_from_args(args))
-    except (SiteConfigError, KeyError, ValueError) as exc:
-        print(f"smartedge backend: {exc}", file=sys.stderr)
-        return 1
-    return run_node(node, config)
+    return service_main("backend", argv, build_parser, build_node)

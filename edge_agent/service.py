@@ -23,10 +23,9 @@ from collections.abc import Iterable, Sequence
 from typing import Protocol
 
 from protocol import keys
-from protocol.errors import SiteConfigError
 from protocol.messages import RobotDetections
-from protocol.runtime import Outgoing, ServiceNode, run_node
-from protocol.session import add_session_arguments, make_config, options_from_args
+from protocol.runtime import Outgoing, ServiceNode, service_main
+from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
@@ -101,27 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str]) -> int:
-    args = build_parser().parse_args(list(argv))
-    if args.source == "camera":
-        print(
-            "smartedge edge-agent: the camera source needs the robot keypoint model "
-            "(ONNX), which this version does not ship; use --source sim for the simulated "
-            "site",
-            file=sys.stderr,
-        )
-        return 2
+def build_node(args: argparse.Namespace) -> EdgeAgentNode:
+    """The edge agent for ``args`` (only the simulated source exists in this version)."""
     from simulation.live import CameraFeed, LiveSimulation, spec_from_args
 
-    try:
-        live = LiveSimulation(spec_from_args(args))
-        site = load_site(args.site) if args.site else live.site
-        source = SimulatedCameraSource(CameraFeed(live, args.camera))
-        node = EdgeAgentNode(site, args.camera, source)
-        config = make_config(options_from_args(args))
-    except (SiteConfigError, KeyError, ValueError) as exc:
-        print(f"smartedge edge-agent: {exc}", file=sys.stderr)
-        return 1
+    live = LiveSimulation(spec_from_args(args))
+    site = load_site(args.site) if args.site else live.site
+    node = EdgeAgentNode(site, args.camera, SimulatedCameraSource(CameraFeed(live, args.camera)))
     log.info(
         "edge agent %s: SIMULATED source (scenario %s, trajectory %s, t0 in %.1f s)",
         args.camera,
@@ -129,4 +114,15 @@ def main(argv: Sequence[str]) -> int:
         live.spec.trajectory,
         (live.spec.epoch_ns - time.time_ns()) * 1e-9,
     )
-    return run_node(node, config)
+    return node
+
+
+def main(argv: Sequence[str]) -> int:
+    if build_parser().parse_args(list(argv)).source == "camera":
+        print(
+            "smartedge edge-agent: the camera source needs the robot keypoint model (ONNX), "
+            "which this version does not ship; use --source sim for the simulated site",
+            file=sys.stderr,
+        )
+        return 2
+    return service_main("edge-agent", argv, build_parser, build_node)

@@ -469,3 +469,26 @@ def run_node(
             target=lambda: (runner.started.wait(), on_started(runner)), daemon=True
         ).start()
     return runner.run()
+
+
+def service_main(
+    name: str,
+    argv: Sequence[str],
+    build_parser: Callable[[], Any],
+    build_node: Callable[[Any], ServiceNode],
+) -> int:
+    """The ``main`` of a service: parse ``argv``, build the node and the Zenoh config, run until
+    SIGINT/SIGTERM. A bad site file, id or option is reported on stderr with exit code 1."""
+    import sys
+
+    from protocol.errors import ProtocolError
+    from protocol.session import make_config, options_from_args
+
+    args = build_parser().parse_args(list(argv))
+    try:
+        node = build_node(args)
+        config = make_config(options_from_args(args))
+    except (ProtocolError, KeyError, ValueError) as exc:
+        print(f"smartedge {name}: {exc}", file=sys.stderr)
+        return 1
+    return run_node(node, config)

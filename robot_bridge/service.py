@@ -18,17 +18,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
 
 from protocol import keys
-from protocol.errors import SiteConfigError
 from protocol.messages import Message, PoseEstimate
-from protocol.runtime import Outgoing, ServiceNode, Subscription, run_node
-from protocol.session import add_session_arguments, make_config, options_from_args
+from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
+from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
 from robot_bridge.adapters.base import RobotAdapter
 from robot_bridge.bridge import BridgeConfig, RobotBridge
@@ -318,11 +316,4 @@ def build_node(args: argparse.Namespace) -> RobotBridgeNode:
 
 
 def main(argv: Sequence[str]) -> int:
-    args = build_parser().parse_args(list(argv))
-    try:
-        node = build_node(args)
-        config = make_config(options_from_args(args))
-    except (SiteConfigError, KeyError, ValueError) as exc:
-        print(f"smartedge robot-bridge: {exc}", file=sys.stderr)
-        return 1
-    return run_node(node, config)
+    return service_main("robot-bridge", argv, build_parser, build_node)

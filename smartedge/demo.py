@@ -254,28 +254,19 @@ class Services:
 
 def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
     """The node and Zenoh config a service would build from ``argv`` (same code path)."""
+    import importlib
+
     from protocol.session import make_config, options_from_args
 
     command, rest = argv[0], argv[1:]
-    if command == "backend":
-        from backend_service import service as svc
-    elif command == "robot-bridge":
-        from robot_bridge import service as svc  # type: ignore[no-redef]
-    else:
-        from edge_agent import service as svc  # type: ignore[no-redef]
+    module = {
+        "backend": "backend_service.service",
+        "robot-bridge": "robot_bridge.service",
+        "edge-agent": "edge_agent.service",
+    }[command]
+    svc = importlib.import_module(module)
     args = svc.build_parser().parse_args(rest)
-    if command == "edge-agent":
-        from edge_agent.service import EdgeAgentNode, SimulatedCameraSource
-        from protocol.site import load_site
-        from simulation.live import CameraFeed, LiveSimulation, spec_from_args
-
-        live = LiveSimulation(spec_from_args(args))
-        node = EdgeAgentNode(
-            load_site(args.site), args.camera, SimulatedCameraSource(CameraFeed(live, args.camera))
-        )
-    else:
-        node = svc.build_node(args)
-    return node, make_config(options_from_args(args))
+    return svc.build_node(args), make_config(options_from_args(args))
 
 
 def build_parser() -> argparse.ArgumentParser:
