@@ -101,9 +101,9 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
                    min_score: float) -> tuple[list[View], list[str]]:
     M = kp_base.shape[0]
-    views: list[View] = []
     problems: list[str] = []
     seen: set[str] = set()
+    cams, uvs, scores_list = [], [], []
     for obs in frame_set.observations:
         cam = site.cameras.get(obs.camera_id)
         if cam is None:
@@ -118,13 +118,26 @@ def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
             problems.append(f"camera {obs.camera_id!r}: keypoints {uv.shape} / scores "
                             f"{scores.shape}, model has {M}")
             continue
-        finite = np.all(np.isfinite(uv), axis=1) & np.isfinite(scores)
-        w = np.where(finite & (scores >= min_score) & (scores > 0), scores, 0.0)
-        if not np.any(w > 0):
-            problems.append(f"camera {obs.camera_id!r}: no usable keypoints")
-            continue
         seen.add(obs.camera_id)
-        views.append(View(cam, np.where(finite[:, None], uv, np.nan), np.clip(w, 0.0, 1.0)))
+        cams.append(cam)
+        uvs.append(uv)
+        scores_list.append(scores)
+    if not cams:
+        return [], problems
+    # all views at once: one vectorized pass instead of a dozen numpy calls per view
+    uv_all = np.stack(uvs)
+    scores_all = np.stack(scores_list)
+    finite = np.isfinite(uv_all).all(axis=2) & np.isfinite(scores_all)
+    w_all = np.clip(np.where(finite & (scores_all >= min_score) & (scores_all > 0),
+                             scores_all, 0.0), 0.0, 1.0)
+    uv_all = np.where(finite[:, :, None], uv_all, np.nan)
+    usable = (w_all > 0).any(axis=1)
+    views: list[View] = []
+    for k, cam in enumerate(cams):
+        if not usable[k]:
+            problems.append(f"camera {cam.camera_id!r}: no usable keypoints")
+            continue
+        views.append(View(cam, uv_all[k], w_all[k]))
     return views, problems
 
 

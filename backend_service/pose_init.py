@@ -15,6 +15,7 @@ mean yaw, weights = inlier keypoints over *all* views.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 from collections.abc import Sequence
@@ -48,9 +49,9 @@ class View:
     keypoints_px: np.ndarray
     weights: np.ndarray
 
-    @property
+    @functools.cached_property
     def valid(self) -> np.ndarray:
-        """(M,) bool: usable keypoints."""
+        """(M,) bool: usable keypoints (computed once per view)."""
         return (self.weights > 0) & np.all(np.isfinite(self.keypoints_px), axis=1)
 
 

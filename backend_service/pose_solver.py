@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import hashlib
 import logging
 import math
@@ -712,7 +713,10 @@ class PoseProblem:
 _CACHE: collections.OrderedDict[tuple, PoseProblem] = collections.OrderedDict()
 
 
+@functools.lru_cache(maxsize=4096)
 def _camera_fingerprint(camera: CameraModel) -> tuple[str, str]:
+    # CameraModel is immutable (frozen, read-only arrays) and hashed by identity, so the
+    # fingerprint of one object never changes: compute it once
     h = hashlib.blake2b(digest_size=12)
     for arr in (camera.K, camera.dist, camera.T_cam_world):
         h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
