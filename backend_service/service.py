@@ -15,7 +15,6 @@ The algorithms live in pure modules; this one only wires them to messages
 from __future__ import annotations
 
 import argparse
-import bisect
 import collections
 import dataclasses
 import logging
@@ -83,8 +82,10 @@ class RobotTrack:
         gt = self.ground_truth
         if len(gt) < 2 or not gt[0][0] <= stamp_ns <= gt[-1][0]:
             return None
-        stamps = [s for s, _ in gt]
-        i = max(1, bisect.bisect_left(stamps, stamp_ns))
+        # estimates refer to recent stamps: walk back from the newest sample, not a full scan
+        i = len(gt) - 1
+        while i > 1 and gt[i - 1][0] >= stamp_ns:
+            i -= 1
         (s0, p0), (s1, p1) = gt[i - 1], gt[i]
         a = 0.0 if s1 == s0 else (stamp_ns - s0) / (s1 - s0)
         theta = p0[2] + a * _wrap(p1[2] - p0[2])
