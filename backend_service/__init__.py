@@ -1,7 +1,7 @@
 """Backend service: frame-set synchronization, multi-view pose estimation (CasADi), pose-graph
 fusion (GTSAM), semantic map (Open3D), Rerun logging and the service loop.
 
-The algorithmic modules (frame sets, solver, initialization, metrics, fusion) are pure: they take
+The algorithmic modules (frame sets, solver, initialization, averaging, fusion) are pure: they take
 messages and site data and never touch Zenoh. Only ``backend_service.service`` does. Heavy
 dependencies are imported lazily by the modules that need them, so ``import backend_service``
 stays cheap.
@@ -22,7 +22,6 @@ _LAZY = {
     "estimate_pose": "backend_service.estimate",
     "FrameSetSynchronizer": "backend_service.sync",
     "MultiFrameAverager": "backend_service.multi_frame",
-    "cramer_rao_bound": "backend_service.cramer_rao",
     "FusionConfig": "backend_service.fusion",
     "PoseGraphFusion": "backend_service.fusion",
 }

@@ -36,10 +36,10 @@ from backend_service.pose_solver import (
     get_problem,
     robust_weights,
     weighted_residuals,
-    wrap_angle,
 )
 from backend_service.single_camera import apply_single_camera_heuristic
 from protocol.camera import CameraModel
+from protocol.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
 from protocol.messages import PoseEstimate
 from protocol.site import Site
 
@@ -270,10 +270,7 @@ def _q0(start: np.ndarray, T_world_robot: np.ndarray | None, dof: int) -> np.nda
         return start
     if T_world_robot is None:
         return np.array([start[0], start[1], 0.0, 0.0, 0.0, start[2]])
-    R = T_world_robot[:3, :3]
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-    roll = math.atan2(R[2, 1], R[2, 2])
+    roll, pitch, yaw = rpy_from_rotation(T_world_robot[:3, :3])
     t = T_world_robot[:3, 3]
     return np.array([t[0], t[1], t[2], roll, pitch, yaw])
 
@@ -281,14 +278,8 @@ def _q0(start: np.ndarray, T_world_robot: np.ndarray | None, dof: int) -> np.nda
 def _T_from_q(q: np.ndarray, dof: int) -> np.ndarray:
     if dof == 3:
         return PlanarPose(float(q[0]), float(q[1]), float(q[2])).T()
-    roll, pitch, yaw = q[3], q[4], q[5]
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     T = np.eye(4)
-    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, :3] = rotation_from_rpy(float(q[3]), float(q[4]), float(q[5]))
     T[:3, 3] = q[:3]
     return T
 

@@ -8,10 +8,10 @@ arrays (simulation, tests).
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
+from protocol.geometry import se3_from_planar
 from protocol.messages import Detection, RobotDetections
 
 
@@ -28,11 +28,7 @@ class PlanarPose:
 
     def T(self) -> np.ndarray:
         """(4, 4) homogeneous transform of this pose (robot base → frame), z = 0."""
-        c, s = math.cos(self.theta), math.sin(self.theta)
-        out = np.eye(4)
-        out[:2, :2] = [[c, -s], [s, c]]
-        out[0, 3], out[1, 3] = self.x, self.y
-        return out
+        return se3_from_planar(self.x, self.y, self.theta)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

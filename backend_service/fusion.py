@@ -41,7 +41,9 @@ from typing import Final
 import gtsam
 import numpy as np
 
+from protocol.geometry import rotation_z
 from protocol.messages import Odometry, PoseEstimate
+from protocol.site import Site
 
 logger = logging.getLogger(__name__)
 
@@ -148,6 +150,12 @@ class FusionConfig:
             raise ValueError("FusionConfig: extra_iterations and max_future_s must be >= 0")
 
 
+def fusion_config_from_site(site: Site) -> FusionConfig:
+    """The site file's ``fusion`` section as a :class:`FusionConfig` (every field optional;
+    errors name the file and the key)."""
+    return site.section_reader().section("fusion", site.section("fusion"), FusionConfig)
+
+
 # --------------------------------------------------------------------------------------------
 # small planar helpers
 # --------------------------------------------------------------------------------------------
@@ -160,20 +168,14 @@ def _finite(*values: object) -> bool:
         return False
 
 
-def _rot3(theta_rad: float) -> np.ndarray:
-    """(3, 3) map from body-frame (x, y, theta) perturbations to map-frame axes."""
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _cov_body_to_world(cov_body: np.ndarray, theta_rad: float) -> np.ndarray:
-    J = _rot3(theta_rad)
+    J = rotation_z(theta_rad)  # body-frame (x, y, theta) perturbations → map-frame axes
     cov = J @ cov_body @ J.T
     return 0.5 * (cov + cov.T)
 
 
 def _cov_world_to_body(cov_world: np.ndarray, theta_rad: float) -> np.ndarray:
-    J = _rot3(theta_rad)
+    J = rotation_z(theta_rad)
     cov = J.T @ cov_world @ J
     return 0.5 * (cov + cov.T)
 

@@ -20,11 +20,40 @@ import numpy as np
 from backend_service.estimate import PoseResult
 from backend_service.frame_set import PlanarPose
 from backend_service.pose_init import circular_mean
-from backend_service.pose_solver import wrap_angle
+from protocol.geometry import angle_diff
+
+
+@dataclasses.dataclass(frozen=True)
+class MultiFrameConfig:
+    """Averaging while static: ``count`` estimates (the paper's 5 frames); an estimate more than
+    ``max_jump_m`` / ``max_jump_deg`` from the window's mean, or after a gap over ``max_gap_s``,
+    restarts the window. ``once_per_stop``: one average per stop (the paper's "sparsely at
+    waypoints"); further averages of the same stop see the same robot from the same cameras,
+    so their errors are not independent and fusing each would make the pose graph
+    overconfident."""
+
+    count: int = 5
+    max_jump_m: float = 0.15
+    max_jump_deg: float = 5.0
+    max_gap_s: float = 5.0
+    once_per_stop: bool = True
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.count, int) and self.count >= 1):
+            raise ValueError(f"MultiFrameConfig.count must be an integer >= 1, got {self.count!r}")
+        for name in ("max_jump_m", "max_jump_deg", "max_gap_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"MultiFrameConfig.{name} must be > 0, got {value!r}")
 
 
 class MultiFrameAverager:
     """Average the last ``k`` camera estimates of one robot while it is static."""
+
+    @classmethod
+    def from_config(cls, config: MultiFrameConfig) -> MultiFrameAverager:
+        return cls(config.count, config.max_jump_m, math.radians(config.max_jump_deg),
+                   config.max_gap_s)
 
     def __init__(self, k: int, max_jump_m: float = 0.15, max_jump_rad: float = math.radians(5.0),
                  max_gap_s: float = 5.0) -> None:
@@ -58,7 +87,7 @@ class MultiFrameAverager:
             last = self._window[-1].estimate
             mean = self._mean_pose()
             jump = math.hypot(result.pose.x - mean.x, result.pose.y - mean.y)
-            turn = abs(wrap_angle(result.pose.theta - mean.theta))
+            turn = abs(angle_diff(result.pose.theta, mean.theta))
             gap = result.estimate.stamp_ns - last.stamp_ns  # type: ignore[union-attr]
             if (jump > self.max_jump_m or turn > self.max_jump_rad or gap > self.max_gap_ns
                     or gap < 0):

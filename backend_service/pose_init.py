@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from backend_service.frame_set import PlanarPose
-from backend_service.pose_solver import wrap_angle
 from protocol.camera import CameraModel
+from protocol.geometry import angle_diff, se2_from_matrix, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,7 @@ def init_from_prior(prior: PlanarPose) -> np.ndarray:
 
 
 def circular_mean(angles_rad: np.ndarray, weights: np.ndarray | None = None) -> float:
-    """Weighted circular mean of angles (rad), in (-pi, pi]."""
+    """Weighted circular mean of angles (rad), in [-pi, pi)."""
     a = np.asarray(angles_rad, dtype=float)
     w = np.ones_like(a) if weights is None else np.asarray(weights, dtype=float)
     return wrap_angle(math.atan2(float(np.sum(w * np.sin(a))), float(np.sum(w * np.cos(a)))))
@@ -129,8 +129,7 @@ def pnp_candidate(view: View, keypoints_base_m: np.ndarray, min_keypoints: int =
     if abs(T_world_robot[2, 3]) > MAX_HEIGHT_M:
         return None
     # Ground projection: the heading is the base x axis projected onto the floor.
-    yaw = math.atan2(T_world_robot[1, 0], T_world_robot[0, 0])
-    pose = PlanarPose(float(T_world_robot[0, 3]), float(T_world_robot[1, 3]), wrap_angle(yaw))
+    pose = PlanarPose(*(float(v) for v in se2_from_matrix(T_world_robot)))
     return PoseCandidate(view.camera.camera_id, T_world_robot, pose)
 
 
@@ -170,7 +169,7 @@ def init_without_prior(views: Sequence[View], keypoints_base_m: np.ndarray,
     best = max(candidates, key=lambda c: (c.inliers, -c.median_error_px))
     agree = [c for c in candidates
              if math.hypot(c.pose.x - best.pose.x, c.pose.y - best.pose.y) < AGREE_XY_M
-             and abs(wrap_angle(c.pose.theta - best.pose.theta)) < AGREE_YAW_RAD]
+             and abs(angle_diff(c.pose.theta, best.pose.theta)) < AGREE_YAW_RAD]
     w = np.array([max(c.inliers, 1) for c in agree], dtype=float)
     x = float(np.sum(w * [c.pose.x for c in agree]) / w.sum())
     y = float(np.sum(w * [c.pose.y for c in agree]) / w.sum())

@@ -56,6 +56,7 @@ import casadi as ca
 import numpy as np
 
 from protocol.camera import CameraModel
+from protocol.geometry import distort_normalized
 
 log = logging.getLogger(__name__)
 
@@ -292,12 +293,6 @@ def robust_weights(s_px2: np.ndarray, loss: str, scale_px: float) -> np.ndarray:
     if loss == "cauchy":
         return 1.0 / (1.0 + s_px2 / scale_px**2)
     return np.ones_like(s_px2)
-
-
-def wrap_angle(theta_rad: float) -> float:
-    """Angle wrapped to (-pi, pi]."""
-    out = math.remainder(theta_rad, 2.0 * math.pi)
-    return math.pi if out == -math.pi else out
 
 
 # --------------------------------------------------------------------------------------------
@@ -800,14 +795,9 @@ def project_planar(cams: StackedCameras, keypoints_base_m: np.ndarray,
     pc = np.einsum("nij,bmj->bnmi", cams.R_cw, pw) + cams.t_cw[None, :, None, :]
     z = pc[..., 2]
     zs = np.maximum(z, 1e-3)
-    x, y = pc[..., 0] / zs, pc[..., 1] / zs
-    d = cams.dist[None, :, None, :]
-    k1, k2, p1, p2, k3, k4, k5, k6 = (d[..., i] for i in range(8))
-    r2 = x * x + y * y
-    r4, r6 = r2 * r2, r2 * r2 * r2
-    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    xy = pc[..., :2] / zs[..., None]
+    xyd = distort_normalized(xy, cams.dist[None, :, None, :])
+    xd, yd = xyd[..., 0], xyd[..., 1]
     K = cams.K[None, :, None]
     u = K[..., 0, 0] * xd + K[..., 0, 1] * yd + K[..., 0, 2]
     v = K[..., 1, 1] * yd + K[..., 1, 2]

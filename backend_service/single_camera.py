@@ -21,8 +21,8 @@ from collections.abc import Callable
 import numpy as np
 
 from backend_service.frame_set import PlanarPose
-from backend_service.pose_solver import wrap_angle
 from protocol.camera import CameraModel
+from protocol.geometry import angle_diff, wrap_angle
 
 #: (B, 3) poses -> (B, K) weighted residuals in px (e.g. pose_solver.weighted_residuals).
 ResidualFn = Callable[[np.ndarray], np.ndarray]
@@ -61,7 +61,7 @@ def apply_single_camera_heuristic(
     c_xy = camera_ground_xy(camera)
     d_prior = float(np.hypot(prior.x - c_xy[0], prior.y - c_xy[1]))
     d_est = float(np.hypot(estimate.x - c_xy[0], estimate.y - c_xy[1]))
-    d_theta = wrap_angle(estimate.theta - prior.theta)
+    d_theta = angle_diff(estimate.theta, prior.theta)
     d_depth = d_est - d_prior
     if abs(d_theta) <= max_dtheta_rad and abs(d_depth) <= max_ddepth_m:
         return HeuristicOutcome(estimate, False, d_theta, d_depth)

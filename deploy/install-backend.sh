@@ -2,9 +2,9 @@
 # Install smartedge on the backend host: a venv in /opt/smartedge with the `backend` and `bridge`
 # extras (plus libusb-1.0-0, which open3d needs at import), the system user `smartedge`,
 # /etc/smartedge (site file, zenoh router and client configs, settings), the site's Zenoh router
-# (zenohd, or the backend's own session), smartedge-backend.service, and one
-# smartedge-robot-bridge@<robot>.service per robot id. Safe to re-run. Walkthrough:
-# docs/deployment.md.
+# (zenohd, or the backend's own session), smartedge-backend.service, smartedge-viewer.service
+# (Rerun drawing of the site; optional, --no-viewer) and one smartedge-robot-bridge@<robot>.service
+# per robot id. Safe to re-run. Walkthrough: docs/deployment.md.
 set -euo pipefail
 PROG="install-backend.sh"
 # shellcheck source=deploy/install-common.sh
@@ -14,8 +14,9 @@ usage() {
   cat <<USAGE
 Usage: sudo $PROG --site SITE.yaml [options] [ROBOT_ID...]
 
-Install smartedge[backend,bridge], the Zenoh router, the backend service and one robot-bridge
-service per ROBOT_ID (ids of the site file's robots section).
+Install smartedge[backend,bridge], the Zenoh router, the backend service, the viewer service
+(draws the site into Rerun) and one robot-bridge service per ROBOT_ID (ids of the site file's
+robots section).
 
 Required:
   --site FILE              site file; installed as $ETC/site.yaml
@@ -34,7 +35,11 @@ Options:
   --tls DIR                Zenoh over TLS (mTLS): DIR holds ca.crt, router.crt, router.key and,
                            for the local services, client.crt, client.key (see docs)
   --adapter ros2|sim       SMARTEDGE_ADAPTER for a new smartedge.env (default: ros2)
-  --rerun SINK             SMARTEDGE_RERUN for a new smartedge.env (save:PATH.rrd, serve, ...)
+  --rerun SINK             the viewer's Rerun sink, SMARTEDGE_RERUN for a new smartedge.env
+                           (save:PATH.rrd, serve, connect:URL; default: a recording under
+                           $STATE/recordings)
+  --no-viewer              do not install smartedge-viewer.service (one installed by an earlier
+                           run is stopped, disabled and removed)
   --with FILE              another file the site file refers to; repeatable
   --package SPEC           wheel file or source directory to pip install with [backend,bridge]
                            (default: the checkout this script is in)
@@ -59,6 +64,7 @@ ROUTER_HOST=127.0.0.1
 TLS_DIR=""
 ADAPTER=ros2
 RERUN=""
+VIEWER=1
 EXTRA_FILES=()
 ROBOTS=()
 while [ $# -gt 0 ]; do
@@ -72,6 +78,7 @@ while [ $# -gt 0 ]; do
     --tls) TLS_DIR="${2:?--tls needs a directory}"; shift 2 ;;
     --adapter) ADAPTER="${2:?--adapter needs ros2 or sim}"; shift 2 ;;
     --rerun) RERUN="${2:?--rerun needs a sink}"; shift 2 ;;
+    --no-viewer) VIEWER=0; shift ;;
     --with) EXTRA_FILES+=("${2:?--with needs a file}"); shift 2 ;;
     -*) usage >&2; die "unknown option $1" ;;
     *) ROBOTS+=("$1"); shift ;;
@@ -94,6 +101,7 @@ case "$ROUTER" in
 esac
 [ "$ROUTER" = external ] || [ "$ROUTER_HOST" = 127.0.0.1 ] \
   || die "--router-host only goes with --router external"
+[ "$VIEWER" = 1 ] || [ -z "$RERUN" ] || die "--rerun configures the viewer: not with --no-viewer"
 if [ -n "$TLS_DIR" ]; then
   for f in ca.crt router.crt router.key client.crt client.key; do
     [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing"
@@ -103,7 +111,9 @@ default_package
 normalize_root
 ensure_root_privileges
 [ "$DRY_RUN" = 1 ] && log "dry run: nothing is changed"
-log "backend host: router $ROUTER, robots ${ROBOTS[*]:-none}, package $PACKAGE[backend,bridge]"
+viewer_note=""
+[ "$VIEWER" = 1 ] || viewer_note=", no viewer"
+log "backend host: router $ROUTER, robots ${ROBOTS[*]:-none}$viewer_note, package $PACKAGE[backend,bridge]"
 
 # 1. system packages (open3d needs libusb-1.0 at import time) and user
 ensure_apt python3-venv libusb-1.0-0 libgomp1
@@ -136,7 +146,7 @@ if [ "$ROUTER" != external ]; then
 else
   remove_file "$ETC/zenoh-router.json5"
 fi
-# The local services (robot bridges; the backend unless it is the router) are clients too.
+# The local services (viewer, robot bridges; the backend unless it is the router) are clients too.
 install_rendered 0640 "$DEPLOY_DIR/zenoh/$client_template" "$ETC/zenoh-client.json5" \
   "s/BACKEND_HOST/$ROUTER_HOST/g"
 env_edits=("s/^SMARTEDGE_ADAPTER=.*/SMARTEDGE_ADAPTER=$ADAPTER/")
@@ -172,6 +182,14 @@ else
   remove_file "$dropin/zenoh-router.conf"
 fi
 units+=(smartedge-backend.service)
+# The viewer: a unit of its own, so that it can fail or be left out without touching the backend.
+if [ "$VIEWER" = 1 ]; then
+  install_system_file "$DEPLOY_DIR/systemd/smartedge-viewer.service" "$UNIT_DIR/smartedge-viewer.service"
+  units+=(smartedge-viewer.service)
+else
+  system systemctl disable --now smartedge-viewer.service 2>/dev/null || true
+  remove_file "$UNIT_DIR/smartedge-viewer.service"
+fi
 install_system_file "$DEPLOY_DIR/systemd/smartedge-robot-bridge@.service" \
   "$UNIT_DIR/smartedge-robot-bridge@.service"
 for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do units+=("smartedge-robot-bridge@$robot.service"); done
@@ -180,3 +198,4 @@ units_start "${units[@]}"
 log "done. Check with:"
 log "  systemctl status 'smartedge-*'    journalctl -u smartedge-backend -f"
 [ "$ROUTER" != zenohd ] || log "  zenohd: journalctl -u smartedge-zenohd"
+[ "$VIEWER" = 0 ] || log "  viewer: journalctl -u smartedge-viewer (Rerun sink: SMARTEDGE_RERUN)"

@@ -4,13 +4,13 @@ Frames come from a source, the robot keypoint detector turns them into
 :class:`protocol.RobotDetections`, which are published on
 ``smartedge/<site>/edge/<camera_id>/detections`` (best effort: a stale frame is worthless).
 
-Sources:
+Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the registered ones:
 
-- ``sim``: the simulated site (:mod:`simulation.live`): detections computed from the simulated
-  robot's ground truth with the scenario's detector noise model. Clearly labelled
-  ``source=sim`` in the status and the ``model_id``.
 - ``camera``: a real camera through the ONNX keypoint detector (needs a keypoint model, which
   this version does not ship; the agent says so and exits with code 2).
+- ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.plugins`): the simulated
+  site; detections computed from the simulated robot's ground truth with the scenario's
+  detector noise model. Clearly labelled ``source=sim`` in the status.
 """
 
 from __future__ import annotations
@@ -18,25 +18,17 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
 from collections.abc import Iterable, Sequence
-from typing import Protocol
 
+from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
-from protocol.messages import RobotDetections
 from protocol.runtime import Outgoing, ServiceNode, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 
-
-class FrameSource(Protocol):
-    """Produces the detections of one camera that are due at ``now_ns``."""
-
-    label: str
-
-    def poll(self, now_ns: int) -> list[RobotDetections]: ...
+__all__ = ["EdgeAgentNode", "FrameSource", "build_node", "build_parser", "main"]
 
 
 class EdgeAgentNode(ServiceNode):
@@ -68,61 +60,41 @@ class EdgeAgentNode(ServiceNode):
         return "ok", f"source={self.source.label}"
 
 
-class SimulatedCameraSource:
-    """Detections of one camera of the simulated site (see :mod:`simulation.live`)."""
-
-    def __init__(self, feed) -> None:
-        self._feed = feed
-        self.label = "sim"
-
-    def poll(self, now_ns: int) -> list[RobotDetections]:
-        return self._feed.poll(now_ns)
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="smartedge edge-agent",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--site", help="site file (with --source sim: default the scenario's)")
-    parser.add_argument("--camera", required=True, help="camera id in the site file")
     parser.add_argument(
-        "--source",
-        choices=("sim", "camera"),
-        default="camera",
-        help="frame source (default: camera)",
+        "--site", help="site file (optional with a source that brings its own site, e.g. sim)"
     )
+    parser.add_argument("--camera", required=True, help="camera id in the site file")
     add_session_arguments(parser)
-    from simulation.live import add_sim_arguments  # numpy-only; fine on an edge board
-
-    add_sim_arguments(parser)
+    add_source_arguments(parser, default="camera")
     return parser
 
 
 def build_node(args: argparse.Namespace) -> EdgeAgentNode:
-    """The edge agent for ``args`` (only the simulated source exists in this version)."""
-    from simulation.live import CameraFeed, LiveSimulation, spec_from_args
-
-    live = LiveSimulation(spec_from_args(args))
-    site = load_site(args.site) if args.site else live.site
-    node = EdgeAgentNode(site, args.camera, SimulatedCameraSource(CameraFeed(live, args.camera)))
-    log.info(
-        "edge agent %s: SIMULATED source (scenario %s, trajectory %s, t0 in %.1f s)",
-        args.camera,
-        live.scenario.name,
-        live.spec.trajectory,
-        (live.spec.epoch_ns - time.time_ns()) * 1e-9,
-    )
-    return node
+    """The edge agent for ``args``: the chosen source plug-in builds the frame source."""
+    site = load_site(args.site) if args.site else None
+    source = get_source(args.source).build(args, site)
+    site = site or getattr(source, "site", None)
+    if site is None:
+        raise ValueError(f"--site is required with --source {args.source}")
+    return EdgeAgentNode(site, args.camera, source)
 
 
 def main(argv: Sequence[str]) -> int:
-    if build_parser().parse_args(list(argv)).source == "camera":
-        print(
-            "smartedge edge-agent: the camera source needs the robot keypoint model (ONNX), "
-            "which this version does not ship; use --source sim for the simulated site",
-            file=sys.stderr,
+    args = build_parser().parse_args(list(argv))
+    unavailable = getattr(get_source(args.source), "unavailable", None)
+    if unavailable:
+        others = [n for n in source_names() if not getattr(get_source(n), "unavailable", None)]
+        hint = (
+            "use " + " or ".join(f"--source {n}" for n in others)
+            if others
+            else "no other frame source is registered"
         )
+        print(f"smartedge edge-agent: {unavailable}; {hint}", file=sys.stderr)
         return 2
     return service_main("edge-agent", argv, build_parser, build_node)

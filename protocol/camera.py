@@ -1,4 +1,5 @@
-"""Pinhole camera with OpenCV lens distortion, in plain numpy (no OpenCV on this path).
+"""Pinhole camera with OpenCV lens distortion, in plain numpy (no OpenCV on this path); the
+distortion model and transform helpers are those of :mod:`protocol.geometry`.
 
 Frames: ``T_cam_world`` maps world coordinates to the camera's optical frame (OpenCV
 convention: z forward along the optical axis, x right, y down). Pixels: (u, v) with the origin at
@@ -12,35 +13,11 @@ from typing import Final
 
 import numpy as np
 
+from protocol.geometry import distort_normalized, invert_transform
 from protocol.validation import check_array, check_id, check_int
 
 #: Distortion vector lengths OpenCV understands: (k1, k2, p1, p2[, k3[, k4, k5, k6]]).
 DISTORTION_LENGTHS: Final = (0, 4, 5, 8)
-
-
-def invert_transform(T: np.ndarray) -> np.ndarray:
-    """Inverse of a (4, 4) rigid transform."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
-def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Apply the OpenCV radial-tangential model to normalized image coordinates (N, 2)."""
-    if dist.size == 0:
-        return xy
-    d = np.zeros(8)
-    d[: dist.size] = dist
-    k1, k2, p1, p2, k3, k4, k5, k6 = d
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    r4, r6 = r2 * r2, r2 * r2 * r2
-    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([xd, yd], axis=1)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -94,18 +94,51 @@ class ConfigReader:
             raise self.fail(key, "contains NaN or infinity")
         return arr
 
-    def section(self, key: str, value: Any, cls: type, *, int_lo: int = 0) -> Any:
-        """A flat dataclass of numbers with defaults (``thresholds``, ``noise``, ...): unknown
-        keys are errors, integer fields need integers (>= ``int_lo``), the others non-negative
-        numbers."""
+    def section(self, key: str, value: Any, cls: type, *, int_lo: int = 0,
+                fields: set[str] | None = None, base: Any = None) -> Any:
+        """A flat dataclass with defaults from a mapping (``thresholds``, ``fusion``, ...).
+
+        Unknown keys are errors; a field takes the type of its default: integers (>=
+        ``int_lo``), booleans, strings, otherwise non-negative numbers (a ``None`` default
+        takes a number). ``fields``: only these fields may be set (a section shared by
+        several dataclasses); ``base``: an instance to start from instead of the defaults.
+        The dataclass's own checks (``__post_init__``) are reported with the file and key.
+        """
         node = self.mapping(key, value if value is not None else {})
+        all_fields = {f.name: f for f in dataclasses.fields(cls)}
+        allowed = set(all_fields) if fields is None else set(fields) & set(all_fields)
+        kwargs = self.section_values(key, node, cls, allowed, int_lo=int_lo, strict=True)
+        try:
+            return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
+        except (TypeError, ValueError) as exc:
+            raise self.fail(key, str(exc)) from None
+
+    def section_values(self, key: str, node: Mapping[str, Any], cls: type, allowed: set[str],
+                       *, int_lo: int = 0, strict: bool = False) -> dict[str, Any]:
+        """The typed values of ``node``'s keys that are fields of ``cls`` in ``allowed``
+        (``strict``: any other key is an error)."""
         fields = {f.name: f for f in dataclasses.fields(cls)}
-        self.no_unknown(key, node, set(fields))
+        if strict:
+            self.no_unknown(key, node, allowed)
         kwargs: dict[str, Any] = {}
         for name, val in node.items():
-            default = fields[name].default
-            if isinstance(default, int) and not isinstance(default, bool):
-                kwargs[name] = self.integer(join_key(key, name), val, lo=int_lo)
+            if name not in allowed or name not in fields:
+                continue
+            f = fields[name]
+            default = f.default
+            if default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING:
+                default = f.default_factory()
+            k = join_key(key, name)
+            if isinstance(default, bool):
+                if not isinstance(val, bool):
+                    raise self.fail(k, f"expected true or false, got {val!r}")
+                kwargs[name] = val
+            elif isinstance(default, int):
+                kwargs[name] = self.integer(k, val, lo=int_lo)
+            elif isinstance(default, str):
+                if not isinstance(val, str):
+                    raise self.fail(k, f"expected a string, got {val!r}")
+                kwargs[name] = val
             else:
-                kwargs[name] = self.number(join_key(key, name), val, lo=0.0)
-        return cls(**kwargs)
+                kwargs[name] = self.number(k, val, lo=0.0)
+        return kwargs

@@ -1,14 +1,20 @@
-"""Exceptions of the wire contract.
+"""Exceptions of the project.
 
-Everything raised on purpose by :mod:`protocol` derives from :class:`ProtocolError`, so a service
-can catch one type at its boundary. :class:`DecodeError` is the only exception
+:class:`SmartedgeError` is the one root of every user-facing error the project raises on purpose
+(bad input, bad configuration, bad files): a command reports those as bad input; anything else is
+a programming error and surfaces with its traceback. Everything raised on purpose by
+:mod:`protocol` derives from :class:`ProtocolError`. :class:`DecodeError` is the only exception
 :func:`protocol.decode` lets escape, whatever the input bytes.
 """
 
 from __future__ import annotations
 
 
-class ProtocolError(Exception):
+class SmartedgeError(Exception):
+    """Root of every user-facing error of the project (configuration, input, files)."""
+
+
+class ProtocolError(SmartedgeError):
     """Base class of every error raised on purpose by the ``protocol`` package."""
 
 
@@ -49,3 +55,14 @@ class ConfigFileError(ProtocolError):
 
 class SiteConfigError(ConfigFileError):
     """A site file (or a camera calibration file) is missing, unreadable or invalid."""
+
+
+class UsageError(SmartedgeError, ValueError):
+    """A command-line option or a combination of options is wrong (the message says which)."""
+
+
+class UnknownIdError(SmartedgeError, KeyError):
+    """An id (camera, robot, source, adapter) is not known; the message lists the known ones."""
+
+    def __str__(self) -> str:  # KeyError would print the message quoted
+        return str(self.args[0]) if self.args else ""

@@ -250,7 +250,7 @@ class SemanticCloud(Message):
 class Odometry(Message):
     """The robot's own planar pose in its odometry frame, with body velocities.
 
-    ``x``, ``y`` in metres and ``theta`` in radians (normalised to (-pi, pi]) of the base in the
+    ``x``, ``y`` in metres and ``theta`` in radians (normalised to [-pi, pi)) of the base in the
     odom frame; ``vx``, ``vy`` (m/s) and ``wz`` (rad/s) in the base frame.
     ``covariance``: (3, 3) of (x, y, theta), SI units.
     """

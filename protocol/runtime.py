@@ -478,17 +478,19 @@ def service_main(
     build_node: Callable[[Any], ServiceNode],
 ) -> int:
     """The ``main`` of a service: parse ``argv``, build the node and the Zenoh config, run until
-    SIGINT/SIGTERM. A bad site file, id or option is reported on stderr with exit code 1."""
+    SIGINT/SIGTERM. A bad site file, id or option (a :class:`~protocol.errors.SmartedgeError`)
+    is reported on stderr with exit code 1; anything else is a bug and surfaces with its
+    traceback (non-zero exit, so systemd restarts the service)."""
     import sys
 
-    from protocol.errors import ProtocolError
+    from protocol.errors import SmartedgeError
     from protocol.session import make_config, options_from_args
 
     args = build_parser().parse_args(list(argv))
     try:
         node = build_node(args)
         config = make_config(options_from_args(args))
-    except (ProtocolError, KeyError, ValueError) as exc:
+    except SmartedgeError as exc:
         print(f"smartedge {name}: {exc}", file=sys.stderr)
         return 1
     return run_node(node, config)

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
+from protocol.errors import UsageError
+
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT: Final = "tcp/127.0.0.1:7447"
@@ -102,19 +104,19 @@ def make_config(options: SessionOptions | None = None, *, env: os._Environ | dic
         try:
             conf = zenoh.Config.from_file(options.config_file)
         except Exception as exc:
-            raise ValueError(f"{options.config_file}: invalid zenoh config: {exc}") from None
+            raise UsageError(f"{options.config_file}: invalid zenoh config: {exc}") from None
     elif env.get(ENV_CONFIG):
         try:
             conf = zenoh.Config.from_file(env[ENV_CONFIG])
         except Exception as exc:
-            raise ValueError(
+            raise UsageError(
                 f"${ENV_CONFIG}={env[ENV_CONFIG]}: invalid zenoh config: {exc}"
             ) from None
     else:
         conf = zenoh.Config.from_json5(json.dumps(_default_json()))
     if options.mode:
         if options.mode not in MODES:
-            raise ValueError(f"--mode {options.mode!r}: expected one of {MODES}")
+            raise UsageError(f"--mode {options.mode!r}: expected one of {MODES}")
         conf.insert_json5("mode", json.dumps(options.mode))
     if options.connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(options.connect)))

@@ -10,18 +10,19 @@ also come from an OpenCV ``FileStorage`` YAML or a ROS ``camera_info`` YAML
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Final
 
 import numpy as np
 import yaml
 
-from protocol.camera import DISTORTION_LENGTHS, CameraModel, invert_transform
+from protocol.camera import DISTORTION_LENGTHS, CameraModel
 from protocol.config_file import ConfigReader, join_key
-from protocol.errors import SiteConfigError
+from protocol.errors import SiteConfigError, UnknownIdError
+from protocol.geometry import invert_transform, quaternion_to_rotation, rotation_from_rpy
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -93,13 +94,26 @@ class Site:
     robots: Mapping[str, str]
     thresholds: Thresholds = dataclasses.field(default_factory=Thresholds)
     source_path: str = "<memory>"
+    #: raw package-owned sections (:data:`PACKAGE_SECTIONS`); each package parses its own
+    sections: Mapping[str, Mapping[str, Any]] = dataclasses.field(
+        default_factory=lambda: MappingProxyType({}))
+
+    def section_reader(self) -> ConfigReader:
+        """A reader whose errors name this site file (for a package parsing its section)."""
+        return ConfigReader(self.source_path)
+
+    def section(self, name: str) -> Mapping[str, Any]:
+        """The raw mapping of a package-owned section (empty when the file has none)."""
+        if name not in PACKAGE_SECTIONS:
+            raise KeyError(f"{name!r} is not a package section; known: {PACKAGE_SECTIONS}")
+        return self.sections.get(name, MappingProxyType({}))
 
     def camera(self, camera_id: str) -> CameraModel:
         """The camera with this id; ``KeyError`` naming the known ids if it is not in the site."""
         try:
             return self.cameras[camera_id]
         except KeyError:
-            raise KeyError(
+            raise UnknownIdError(
                 f"camera {camera_id!r} is not in site {self.name!r} ({self.source_path}); "
                 f"known: {sorted(self.cameras)}"
             ) from None
@@ -108,12 +122,12 @@ class Site:
         """The robot model of ``robot_id`` (or of the only robot when ``None``)."""
         if robot_id is None or robot_id == "":
             if len(self.robots) != 1:
-                raise KeyError(f"site {self.name!r} has {len(self.robots)} robots; name one")
+                raise UnknownIdError(f"site {self.name!r} has {len(self.robots)} robots; name one")
             robot_id = next(iter(self.robots))
         try:
             return self.robot_models[self.robots[robot_id]]
         except KeyError:
-            raise KeyError(
+            raise UnknownIdError(
                 f"robot {robot_id!r} is not in site {self.name!r}; known: {sorted(self.robots)}"
             ) from None
 
@@ -121,32 +135,6 @@ class Site:
 # --------------------------------------------------------------------------------------------
 # parsing helpers: each names the file and the dotted key on failure
 # --------------------------------------------------------------------------------------------
-
-
-def _rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = (
-        math.cos(roll),
-        math.sin(roll),
-        math.cos(pitch),
-        math.sin(pitch),
-        math.cos(yaw),
-        math.sin(yaw),
-    )
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return Rz @ Ry @ Rx
 
 
 def look_at_T_world_cam(position_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
@@ -198,12 +186,12 @@ def _parse_transform(ctx: ConfigReader, key: str, value: Any) -> np.ndarray:
             q = ctx.matrix(rkey, node["quaternion_xyzw"], 4, None)
             if q.shape != (4,) or np.linalg.norm(q) < 1e-9:
                 raise ctx.fail(rkey, "expected 4 numbers, not all zero")
-            R = _rotation_from_quaternion_xyzw(q)
+            R = quaternion_to_rotation(q)
         elif given[0] == "rpy_deg":
             rpy = ctx.matrix(rkey, node["rpy_deg"], 3, None)
             if rpy.shape != (3,):
                 raise ctx.fail(rkey, "expected 3 numbers")
-            R = _rotation_from_rpy(*np.deg2rad(rpy))
+            R = rotation_from_rpy(*(float(a) for a in np.deg2rad(rpy)))
         else:
             R = ctx.matrix(rkey, node["matrix"], 3, 3)
         T = np.eye(4)
@@ -302,7 +290,13 @@ _CAMERA_KEYS: Final = {
     "calibration_file",
     "clock_offset_ns",
 }
-_TOP_KEYS: Final = {"site", "world_frame", "cameras", "robot_models", "robots", "thresholds"}
+#: Sections owned by a service package: the site file holds them, the package parses them into
+#: its own dataclass (``backend_service``: pose, multi_frame, fusion; ``robot_bridge``: bridge;
+#: map and edge are reserved for the semantic map and the edge pipeline).
+PACKAGE_SECTIONS: Final = ("pose", "multi_frame", "fusion", "bridge", "map", "edge")
+_TOP_KEYS: Final = {
+    "site", "world_frame", "cameras", "robot_models", "robots", "thresholds", *PACKAGE_SECTIONS,
+}
 
 
 def _parse_K(ctx: ConfigReader, key: str, node: Mapping[str, Any]) -> np.ndarray:
@@ -449,7 +443,12 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
             raise ctx.fail(join_key(rk, "id"), f"duplicate robot id {rid!r}")
         robots[rid] = model_name
     thresholds = _parse_thresholds(ctx, top.get("thresholds", {}) or {})
-    return Site(name, world_frame, cameras, robot_models, robots, thresholds, path)
+    sections = {
+        name: MappingProxyType(dict(ctx.mapping(name, top.get(name) or {})))
+        for name in PACKAGE_SECTIONS
+    }
+    return Site(name, world_frame, cameras, robot_models, robots, thresholds, path,
+                MappingProxyType(sections))
 
 
 def load_site(path: str | Path) -> Site:

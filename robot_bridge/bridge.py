@@ -24,6 +24,7 @@ from collections.abc import Mapping
 from typing import Any, Final
 
 from protocol.errors import ProtocolError
+from protocol.geometry import MotionState, StaticDetector, wrap_angle
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
@@ -32,10 +33,7 @@ from robot_bridge.policy import (
     SEND,
     CorrectionDecision,
     CorrectionPolicy,
-    MotionState,
-    StaticDetector,
     localization_known,
-    wrap_angle,
 )
 
 log = logging.getLogger(__name__)
@@ -111,7 +109,7 @@ class RobotBridge:
         self._max_future_ns = round(th.max_future_ms * 1e6)
         self._backend_timeout_ns = round(config.backend_timeout_s * NS_PER_S)
         self._robot_timeout_ns = round(config.robot_timeout_s * NS_PER_S)
-        self._static = StaticDetector(th)
+        self._static = StaticDetector.from_thresholds(th)
         self._policy = CorrectionPolicy(th)
         self._counters: dict[str, int] = {}
         self._now_ns = 0
@@ -189,10 +187,17 @@ class RobotBridge:
         self._backend_gone = True
 
     def on_correction_result(self, correction: PoseCorrection, accepted: bool) -> None:
-        """What the adapter said when the correction was pushed (counted for the status)."""
+        """What the adapter said when the correction was pushed: counted for the status and
+        logged, one line per correction (info when accepted, warning when refused)."""
         self._count("corrections_accepted" if accepted else "corrections_refused")
-        if not accepted:
-            log.warning("robot refused %s (seq %d)", correction.kind, correction.seq)
+        log.log(
+            logging.INFO if accepted else logging.WARNING,
+            "%s %d %s %s: (%.3f, %.3f, %.1f deg), offset %.3f m / %.1f deg",
+            correction.kind, correction.seq,
+            "applied to" if accepted else "refused by", self.config.robot_id,
+            correction.x, correction.y, math.degrees(correction.theta),
+            correction.offset_m, math.degrees(correction.offset_rad),
+        )
 
     def tick(self, now_ns: int) -> Outbox:
         """Advance the bridge clock to ``now_ns`` (ns, same clock as the odometry stamps) and
@@ -211,7 +216,7 @@ class RobotBridge:
         """One step of a worker loop between a robot adapter and this core (no transport).
 
         Reads the adapter's new odometry and its latest localization, feeds them in, ticks at
-        ``now_ns``, pushes any corrections to the robot with ``adapter.apply_correction`` and
+        ``now_ns``, pushes any corrections to the robot (:meth:`apply`) and
         returns everything produced (odometry to publish; corrections to publish for
         monitoring). Adapter exceptions are counted as ``adapter_error``, never raised.
         """
@@ -232,8 +237,16 @@ class RobotBridge:
         else:
             if localization is not None and localization is not self._localization:
                 out = out + self.on_robot_localization(localization, now_ns)
-        out = out + self.tick(now_ns)
-        for correction in out.corrections:
+        return self.apply(adapter, out + self.tick(now_ns))
+
+    def apply(self, adapter: RobotAdapter, outbox: Outbox) -> Outbox:
+        """Push every correction of ``outbox`` to the robot with ``adapter.apply_correction``
+        and record the answer (:meth:`on_correction_result`). The one place a correction
+        reaches the robot: :meth:`pump` uses it for the corrections it decides, a service loop
+        for those decided on an incoming estimate (:meth:`on_pose_estimate`). Returns
+        ``outbox`` unchanged (to publish); adapter exceptions are counted as
+        ``adapter_error`` and the correction as refused, never raised."""
+        for correction in outbox.corrections:
             try:
                 accepted = bool(adapter.apply_correction(correction))
             except Exception:
@@ -241,7 +254,7 @@ class RobotBridge:
                 self._count("adapter_error")
                 accepted = False
             self.on_correction_result(correction, accepted)
-        return out
+        return outbox
 
     # ---------------------------------------------------------------------------------------
     # status
@@ -451,11 +464,8 @@ class RobotBridge:
         self._policy.mark_sent(motion, self._now_ns)
         self._count("initializations_sent" if decision.kind == "initialization" else
                     "corrections_sent")
-        log.info(
-            "%s for %s: (%.3f, %.3f, %.1f deg), offset %.3f m / %.1f deg",
-            decision.kind, self.config.robot_id, est.x, est.y, math.degrees(est.theta),
-            decision.offset_m, math.degrees(decision.offset_rad),
-        )
+        # logged once, when the robot answers (on_correction_result)
+        log.debug("%s %d decided for %s", decision.kind, correction.seq, self.config.robot_id)
         return Outbox(corrections=(correction,))
 
 

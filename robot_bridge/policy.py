@@ -7,7 +7,9 @@ The rule (paper Sec. III-C: corrections "sparsely at waypoints where the robot i
 
 1. The robot is *static* when its odometry velocities stayed below ``static_max_speed_mps`` and
    ``static_max_yaw_rate_radps`` for at least ``static_dwell_s``. Every such still period is one
-   *stop* (numbered by ``stop_id``); any sample above the thresholds ends it.
+   *stop* (numbered by ``stop_id``); any sample above the thresholds ends it. This is the one
+   :class:`protocol.geometry.StaticDetector` (the backend averages with the same one);
+   ``StaticDetector.from_thresholds`` builds it from the site's thresholds.
 2. Only estimates observed during the current stop count (``stamp_ns >= still_since_ns``): an
    estimate from while the robot moved refers to another place than the robot's current
    localization.
@@ -31,6 +33,7 @@ from typing import Final
 
 import numpy as np
 
+from protocol.geometry import MotionState, angle_diff
 from protocol.messages import PoseEstimate
 from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose
@@ -53,12 +56,6 @@ JUMP_TOO_LARGE: Final = "jump_too_large"
 UNFIT_INIT_FLAGS: Final = frozenset({"lateral_only"})
 
 
-def wrap_angle(angle_rad: float) -> float:
-    """``angle_rad`` wrapped into (-pi, pi]."""
-    wrapped = math.remainder(angle_rad, 2.0 * math.pi)
-    return math.pi if wrapped == -math.pi else wrapped
-
-
 def position_std_m(covariance: np.ndarray) -> float:
     """Largest position standard deviation (m) of a (3, 3) (x, y, theta) covariance: the square
     root of the largest eigenvalue of its x/y block. ``inf`` when it is not finite."""
@@ -74,61 +71,7 @@ def pose_offset(
 ) -> tuple[float, float]:
     """Distance (m) and absolute heading difference (rad, in [0, pi]) of two planar poses in
     the same frame."""
-    return math.hypot(x_a - x_b, y_a - y_b), abs(wrap_angle(theta_a - theta_b))
-
-
-# --------------------------------------------------------------------------------------------
-# Static detection
-# --------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class MotionState:
-    """Result of static detection after the latest odometry sample.
-
-    ``still_since_ns``: stamp of the first sample of the current run of below-threshold
-    samples (``None`` while moving). ``is_static``: that run lasted ``static_dwell_s``.
-    ``stop_id``: number of stops so far; the current stop's id while static.
-    """
-
-    stamp_ns: int | None = None
-    still_since_ns: int | None = None
-    is_static: bool = False
-    stop_id: int = 0
-
-
-class StaticDetector:
-    """Static detection from odometry body velocities with a dwell time.
-
-    Velocities are the ones the robot reports (its wheel odometry twist), which do not suffer
-    from the quantisation of differentiating poses at high rate.
-    """
-
-    def __init__(self, thresholds: Thresholds) -> None:
-        self._max_speed_mps = thresholds.static_max_speed_mps
-        self._max_yaw_rate_radps = thresholds.static_max_yaw_rate_radps
-        self._dwell_ns = round(thresholds.static_dwell_s * NS_PER_S)
-        self._state = MotionState()
-
-    @property
-    def state(self) -> MotionState:
-        return self._state
-
-    def update(self, stamp_ns: int, vx_mps: float, vy_mps: float, wz_radps: float) -> MotionState:
-        """Feed one odometry sample (stamps increasing); returns the new state."""
-        prev = self._state
-        still = (
-            math.hypot(vx_mps, vy_mps) <= self._max_speed_mps
-            and abs(wz_radps) <= self._max_yaw_rate_radps
-        )
-        if not still:
-            self._state = MotionState(stamp_ns, None, False, prev.stop_id)
-            return self._state
-        since = prev.still_since_ns if prev.still_since_ns is not None else stamp_ns
-        is_static = stamp_ns - since >= self._dwell_ns
-        stop_id = prev.stop_id + 1 if is_static and not prev.is_static else prev.stop_id
-        self._state = MotionState(stamp_ns, since, is_static, stop_id)
-        return self._state
+    return math.hypot(x_a - x_b, y_a - y_b), abs(angle_diff(theta_a, theta_b))
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,21 +17,12 @@ from collections.abc import Mapping
 import numpy as np
 
 from protocol.camera import CameraModel
+from protocol.geometry import invert_transform, rotation_from_rotvec, se3_from_planar
 from protocol.messages import Detection, RobotDetections
 from simulation.scenario import Scenario
 from simulation.world import World
 
 MODEL_ID = "sim-noise-v1"
-
-
-def _small_rotation(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues: (3,) rotation vector (rad) → (3, 3)."""
-    th = float(np.linalg.norm(rotvec))
-    if th < 1e-15:
-        return np.eye(3)
-    k = rotvec / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
 
 
 def true_cameras(scenario: Scenario) -> dict[str, CameraModel]:
@@ -44,24 +35,11 @@ def true_cameras(scenario: Scenario) -> dict[str, CameraModel]:
     for cam_id in sorted(scenario.site.cameras):
         cam = scenario.site.cameras[cam_id]
         T_world_cam = cam.T_world_cam.copy()
-        dR = _small_rotation(rng.normal(0.0, math.radians(cfg.calib_rotation_sigma_deg), 3))
+        dR = rotation_from_rotvec(rng.normal(0.0, math.radians(cfg.calib_rotation_sigma_deg), 3))
         T_world_cam[:3, :3] = dR @ T_world_cam[:3, :3]
         T_world_cam[:3, 3] += rng.normal(0.0, cfg.calib_translation_sigma_m, 3)
-        R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
-        T_cam_world = np.eye(4)
-        T_cam_world[:3, :3] = R.T
-        T_cam_world[:3, 3] = -R.T @ t
-        out[cam_id] = dataclasses.replace(cam, T_cam_world=T_cam_world)
+        out[cam_id] = dataclasses.replace(cam, T_cam_world=invert_transform(T_world_cam))
     return out
-
-
-def planar_T(pose: np.ndarray) -> np.ndarray:
-    """(4, 4) base → world of a planar pose (x, y, theta)."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[0, 3], T[1, 3] = pose[0], pose[1]
-    return T
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +90,7 @@ class DetectionSimulator:
         """Geometric visibility of the robot at planar ``pose`` from ``camera_id``."""
         cam = self.cameras[camera_id]
         cfg = self.scenario.cameras
-        T = planar_T(pose)
+        T = se3_from_planar(*pose)
         kps_w = (self._kps_h @ T.T)[:, :3]
         uv, depth = cam.project(kps_w)
         cam_pos = cam.position_world
@@ -189,7 +167,7 @@ class DetectionSimulator:
         uv = np.where(np.isfinite(uv), uv, centroid)
         uv[:, 0] = np.clip(uv[:, 0], 0.0, cam.width - 1.0)
         uv[:, 1] = np.clip(uv[:, 1], 0.0, cam.height - 1.0)
-        hull_w = (self._hull_h @ planar_T(pose).T)[:, :3]
+        hull_w = (self._hull_h @ se3_from_planar(*pose).T)[:, :3]
         huv, hdepth = cam.project(hull_w)
         huv = huv[np.all(np.isfinite(huv), axis=1) & (hdepth > 0.1)]
         box_pts = np.vstack([huv, uv[scores > 0]]) if len(huv) else uv[scores > 0]

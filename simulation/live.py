@@ -1,4 +1,5 @@
-"""The simulated site in real time, for the services (``--source sim`` / ``--adapter sim``).
+"""The simulated site in real time, for the services (``--source sim`` / ``--adapter sim``,
+registered into the services by :mod:`smartedge.plugins`; this module knows no service).
 
 Every process that takes part in a live simulation builds the same :class:`LiveSimulation`
 from the same :class:`LiveSimSpec` (scenario, trajectory, seed and the wall-clock epoch of
@@ -53,7 +54,9 @@ class LiveSimSpec:
         return out + (["--sim-reverse"] if self.reverse else [])
 
 
-def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
+def add_sim_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
+    """The ``--sim-*`` options of :class:`LiveSimSpec` (see :func:`spec_from_args`), in their
+    own group, which is returned so that a plug-in can add its own simulation options."""
     group = parser.add_argument_group("simulation (only with the simulated source/adapter)")
     group.add_argument(
         "--sim-scenario",
@@ -73,6 +76,7 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--sim-stop-s", type=float, help="override the dwell at each waypoint")
     group.add_argument("--sim-max-speed", type=float, help="override the robot's top speed (m/s)")
+    return group
 
 
 def spec_from_args(args: argparse.Namespace) -> LiveSimSpec:

@@ -16,16 +16,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from protocol.geometry import angle_diff, se2_between, se2_compose, wrap_angle, wrap_angle_array
 from protocol.messages import Odometry
 from protocol.site import RobotModel
 from simulation.scenario import MotionConfig, Scenario, Waypoint
 
 STOP, TURN, DRIVE = 0, 1, 2
-
-
-def wrap(angle_rad: float | np.ndarray) -> float | np.ndarray:
-    """Wrap to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - np.asarray(angle_rad, dtype=np.float64), 2 * np.pi)
 
 
 def _profile(distance: float, v_max: float, accel: float) -> float:
@@ -93,7 +89,7 @@ class MotionPlan:
             else:
                 n = rng.normal(size=3)
                 goals.append((wp.x + sig_xy * n[0], wp.y + sig_xy * n[1],
-                              float(wrap(wp.theta + sig_th * n[2]))))
+                              wrap_angle(wp.theta + sig_th * n[2])))
         # segments: kind, t0, duration, start pose, amount (m or rad)
         kinds: list[int] = []
         t0s: list[float] = []
@@ -116,7 +112,7 @@ class MotionPlan:
             t += dur
             x, y, th = pose
             if kind == TURN:
-                pose = (x, y, float(wrap(th + amount)))
+                pose = (x, y, wrap_angle(th + amount))
             elif kind == DRIVE:
                 pose = (x + amount * math.cos(th), y + amount * math.sin(th), th)
 
@@ -126,11 +122,11 @@ class MotionPlan:
             gx, gy, gth = goals[i]
             x, y, th = pose
             heading = math.atan2(gy - y, gx - x)
-            add(TURN, _profile(float(wrap(heading - th)), motion.max_yaw_rate_radps,
-                               motion.yaw_accel_radps2), float(wrap(heading - th)))
+            add(TURN, _profile(angle_diff(heading, th), motion.max_yaw_rate_radps,
+                               motion.yaw_accel_radps2), angle_diff(heading, th))
             dist = math.hypot(gx - x, gy - y)
             add(DRIVE, _profile(dist, motion.max_speed_mps, motion.accel_mps2), dist)
-            dth = float(wrap(gth - pose[2]))
+            dth = angle_diff(gth, pose[2])
             add(TURN, _profile(dth, motion.max_yaw_rate_radps, motion.yaw_accel_radps2), dth)
             self.stops.append(WaypointStop(i, waypoints[i].name, t, t + motion.stop_s, pose))
             add(STOP, motion.stop_s, 0.0)
@@ -164,7 +160,7 @@ class MotionPlan:
                 s, v = _progress(tau[rows], float(self._dur[j]), float(self._amount[j]), v_max,
                                  acc)
                 if kind == TURN:
-                    pose[rows, 2] = wrap(self._start[j, 2] + s)
+                    pose[rows, 2] = wrap_angle_array(self._start[j, 2] + s)
                     vel[rows, 1] = v
                 else:
                     th = self._start[j, 2]
@@ -201,7 +197,7 @@ class MotionPlan:
             s, v = d - 0.5 * acc * (dur - tau) ** 2, acc * (dur - tau)
         s, v = sign * min(s, d), sign * max(v, 0.0)
         if kind == TURN:
-            return np.array([x, y, float(wrap(th + s))]), 0.0, v
+            return np.array([x, y, wrap_angle(th + s)]), 0.0, v
         return np.array([x + s * math.cos(th), y + s * math.sin(th), th]), v, 0.0
 
     def velocity_at(self, t_s: np.ndarray | float) -> np.ndarray:
@@ -219,20 +215,6 @@ class MotionPlan:
             if st.t0_s <= t_s <= st.t1_s:
                 return st
         return None
-
-
-def relative_pose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pose of ``b`` (x, y, theta) expressed in the frame of ``a``."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap(b[2] - a[2]))])
-
-
-def compose(a: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``a ⊕ d`` for planar poses (x, y, theta)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1],
-                     float(wrap(a[2] + d[2]))])
 
 
 class SimulatedRobot:
@@ -284,7 +266,7 @@ class SimulatedRobot:
     def localization_pose(self) -> np.ndarray:
         """(3,) the robot's internal localization (map frame) at the current time."""
         return np.array([self._gt[0] + self._err[0], self._gt[1] + self._err[1],
-                         float(wrap(self._gt[2] + self._err[2]))])
+                         wrap_angle(self._gt[2] + self._err[2])])
 
     def odometry_pose(self) -> np.ndarray:
         """(3,) integrated wheel odometry (odom frame) at the current time."""
@@ -302,7 +284,7 @@ class SimulatedRobot:
         oc, lc = self.scenario.odometry, self.scenario.localization
         rng = self._rng
         gt_new, v_now, w_now = self.plan.state_at(t_s)
-        d = relative_pose(self._gt, gt_new)
+        d = se2_between(self._gt, gt_new)
         ds, dth = float(math.hypot(d[0], d[1])), float(d[2])
         if ds > 0.0 or dth != 0.0:
             # wheel odometry: systematic scale errors plus random walk per metre / radian
@@ -312,7 +294,7 @@ class SimulatedRobot:
             meas[2] = (dth * self._yaw_scale
                        + rng.normal(0.0, oc.sigma_rad_per_sqrt_m * math.sqrt(ds))
                        + rng.normal(0.0, oc.sigma_rad_per_sqrt_rad * math.sqrt(abs(dth))))
-            self._odom = compose(self._odom, meas)
+            self._odom = se2_compose(self._odom, meas)
             self._odom_var += np.array([oc.sigma_m_per_sqrt_m ** 2 * ds] * 2
                                        + [oc.sigma_rad_per_sqrt_m ** 2 * ds
                                           + oc.sigma_rad_per_sqrt_rad ** 2 * abs(dth)])
@@ -336,7 +318,7 @@ class SimulatedRobot:
             seq=self._seq,
             x=float(self._odom[0]),
             y=float(self._odom[1]),
-            theta=float(wrap(self._odom[2])),
+            theta=wrap_angle(self._odom[2]),
             vx=float(v_now * self._scale),
             wz=float(w_now * self._yaw_scale),
             covariance=np.diag(self._odom_var + 1e-9),
@@ -357,7 +339,7 @@ class SimulatedRobot:
             return False
         p = np.asarray(pose, dtype=np.float64).reshape(3)
         self._err = np.array([p[0] - self._gt[0], p[1] - self._gt[1],
-                              float(wrap(p[2] - self._gt[2]))])
+                              angle_diff(p[2], self._gt[2])])
         self.corrections_applied += 1
         return True
 

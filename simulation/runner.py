@@ -16,13 +16,16 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from protocol.messages import Message, Odometry, RobotDetections
+from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 from simulation.detections import DetectionSimulator
 from simulation.robot import MotionPlan, SimulatedRobot, WaypointStop
 from simulation.scenario import Scenario
 from simulation.world import World
 
 log = logging.getLogger(__name__)
+
+#: robot → backend link latency of odometry and localization messages
+LINK_LATENCY_NS = 5_000_000
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -120,12 +123,16 @@ class SimulationRun:
         return self.plan.pose_at(t)
 
     def messages(self, until_s: float | None = None,
-                 on_step: Callable[[float], None] | None = None) -> Iterator[TimedMessage]:
+                 on_step: Callable[[float], None] | None = None,
+                 localization_rate_hz: float | None = None) -> Iterator[TimedMessage]:
         """Generate the run's messages in arrival order (until the plan ends, or ``until_s``).
 
         ``on_step(t_s)`` is called after each simulation event (a camera frame or an odometry
         tick) and may call ``self.robot.apply_correction``: a consumer that reacts to the
         messages already yielded sees the robot respond like the real one.
+        ``localization_rate_hz``: also yield the robot's own localization as a
+        :class:`PoseEstimate` (source ``robot``) at about this rate, as the robot bridge
+        publishes it (default: none).
         """
         end_s = self.duration_s if until_s is None else min(until_s, self.duration_s)
         cfg = self.scenario.cameras
@@ -140,6 +147,10 @@ class SimulationRun:
         pending: list[tuple[int, int, Message]] = []
         counter = 0
         seq = dict.fromkeys(self.camera_ids, 0)
+        loc_every = 0
+        if localization_rate_hz:
+            loc_every = max(1, round(self.scenario.odometry.rate_hz / localization_rate_hz))
+        loc_seq = 0
         self._record(0.0)
         while events:
             t_s, order, cam, k = heapq.heappop(events)
@@ -162,15 +173,26 @@ class SimulationRun:
             else:
                 for odom in self.robot.step_to(t_s):
                     # odometry travels over the robot's link: small constant latency
-                    heapq.heappush(pending, (odom.stamp_ns + 5_000_000, counter, odom))
+                    heapq.heappush(pending, (odom.stamp_ns + LINK_LATENCY_NS, counter, odom))
                     counter += 1
                 self._record(t_s)
+                if loc_every and k % loc_every == 0:
+                    loc = self._localization_message(now_ns, loc_seq)
+                    loc_seq += 1
+                    heapq.heappush(pending, (now_ns + LINK_LATENCY_NS, counter, loc))
+                    counter += 1
                 heapq.heappush(events, ((k + 1) * odom_period_s, 0, "", k + 1))
             if on_step is not None:
                 on_step(t_s)
         while pending:
             arr, _, msg = heapq.heappop(pending)
             yield TimedMessage(arr, msg)
+
+    def _localization_message(self, stamp_ns: int, seq: int) -> PoseEstimate:
+        x, y, theta = (float(v) for v in self.robot.localization_pose())
+        return PoseEstimate(self.scenario.robot_id, stamp_ns, seq, x, y, theta,
+                            np.diag([1e-2, 1e-2, 1e-3]), "robot",
+                            frame_id=self.scenario.site.world_frame)
 
     def _record(self, t_s: float) -> None:
         self.log.stamps_ns.append(self.stamp_ns(t_s))

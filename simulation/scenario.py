@@ -20,6 +20,7 @@ import yaml
 
 from protocol.config_file import ConfigReader
 from protocol.errors import ConfigFileError, SiteConfigError
+from protocol.geometry import rotation_z, wrap_angle
 from protocol.site import Site, load_site
 
 SITES_DIR: Final = Path(__file__).resolve().parent / "sites"
@@ -405,8 +406,7 @@ def _waypoints(ctx: _Ctx, section: str, node: Mapping[str, Any], rmin: np.ndarra
                 raise ctx.fail(f"{key}.xy_m", f"lies inside obstacle {b.name!r}")
         theta = math.radians(ctx.number(f"{key}.theta_deg", wp.get("theta_deg", 0.0),
                                         lo=-360, hi=360))
-        theta = math.atan2(math.sin(theta), math.cos(theta))
-        out[str(wp_name)] = Waypoint(str(wp_name), float(xy[0]), float(xy[1]), theta)
+        out[str(wp_name)] = Waypoint(str(wp_name), float(xy[0]), float(xy[1]), wrap_angle(theta))
     return out
 
 
@@ -443,7 +443,5 @@ def load_scenario(path: str | Path = PAPER_SCENARIO, site: Site | None = None) -
 
 def point_in_box_xy(xy: np.ndarray, box: Box, margin_m: float = 0.0) -> bool:
     """Whether a floor point lies inside a box's footprint (grown by ``margin_m``)."""
-    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
-    d = np.asarray(xy, float) - box.center_xy_m
-    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    local = (np.asarray(xy, float) - box.center_xy_m) @ rotation_z(box.yaw_rad)[:2, :2]  # box frame
     return bool(np.all(np.abs(local) <= box.size_m[:2] / 2 + margin_m))

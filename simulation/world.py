@@ -5,10 +5,9 @@ Frames: world (= map), z up, metres.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from protocol.geometry import rotation_z
 from simulation.scenario import Box, Scenario
 
 
@@ -21,7 +20,7 @@ class World:
         self.num_boxes = len(boxes)
         # Per box: rotation world→box (about z), centre (3,), half extents (3,)
         self._R_box_world = np.array(
-            [_rot_z(-b.yaw_rad) for b in boxes]).reshape(-1, 3, 3)
+            [rotation_z(-b.yaw_rad) for b in boxes]).reshape(-1, 3, 3)
         self._center = np.array(
             [[*b.center_xy_m, b.z_min_m + b.size_m[2] / 2] for b in boxes]).reshape(-1, 3)
         self._half = np.array([b.size_m / 2 for b in boxes]).reshape(-1, 3)
@@ -63,23 +62,16 @@ class World:
         if np.any(xy - radius_m < sc.room_min_xy_m) or np.any(xy + radius_m > sc.room_max_xy_m):
             return True
         for b in sc.obstacles:
-            c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
-            d = xy - b.center_xy_m
-            local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+            local = (xy - b.center_xy_m) @ rotation_z(b.yaw_rad)[:2, :2]  # R^T d: box frame
             nearest = np.clip(local, -b.size_m[:2] / 2, b.size_m[:2] / 2)
             if np.linalg.norm(local - nearest) < radius_m:
                 return True
         return False
 
 
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def box_corners_xy(box: Box) -> np.ndarray:
     """(4, 2) footprint corners of a box in the world frame (for plotting)."""
     hx, hy = box.size_m[0] / 2, box.size_m[1] / 2
     local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
-    R = _rot_z(box.yaw_rad)[:2, :2]
+    R = rotation_z(box.yaw_rad)[:2, :2]
     return local @ R.T + box.center_xy_m

@@ -14,12 +14,15 @@ from typing import Final
 
 from smartedge import __version__
 
-#: subcommand → (module, function taking argv and returning an exit code, one-line help)
+#: subcommand → (module, function taking argv and returning an exit code, one-line help).
+#: The edge agent and the robot bridge start through :mod:`smartedge.plugins`, which registers
+#: the simulated source / adapter into them first.
 COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "demo": ("smartedge.demo", "main", "run the whole system on the simulated paper site"),
-    "edge-agent": ("edge_agent.service", "main", "run an edge agent (one camera)"),
+    "edge-agent": ("smartedge.plugins", "edge_agent_main", "run an edge agent (one camera)"),
     "backend": ("backend_service.service", "main", "run the backend service"),
-    "robot-bridge": ("robot_bridge.service", "main", "run the robot bridge"),
+    "robot-bridge": ("smartedge.plugins", "robot_bridge_main", "run the robot bridge"),
+    "viewer": ("smartedge.viewer", "main", "watch a running system in Rerun (a sink of the keys)"),
     "evaluate": ("smartedge.evaluate", "main", "trajectory metrics and the paper's experiments"),
     "bench": ("smartedge.bench", "main", "benchmarks: codec, pose, sim, fusion, backend"),
     "site": ("smartedge.site_tool", "main", "check a site file or a camera calibration file"),

@@ -1,7 +1,7 @@
 """``smartedge demo``: the whole system on the simulated paper site, over Zenoh on loopback.
 
-Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph, Rerun
-recording) and the robot bridge (simulated HSR with drifting localization that accepts
+Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph), the viewer
+(Rerun recording, with the simulator's ground truth) and the robot bridge (simulated HSR with drifting localization that accepts
 corrections while static) talk over real Zenoh sessions on 127.0.0.1 (no router, no multicast).
 By default they run as threads of this process, each with its own Zenoh session; with
 ``--processes`` each is its own OS process started with the same command a deployment uses.
@@ -180,16 +180,8 @@ class Services:
         sim = self.spec.to_argv()
         site = ["--site", str(self.site_path)]
         listen_any = ["--listen", "tcp/127.0.0.1:0", "--connect", self.endpoint]
-        backend = [
-            "backend",
-            *site,
-            "--rerun",
-            self.rrd,
-            "--listen",
-            self.endpoint,
-            "--connect",
-            self.endpoint,
-        ]
+        backend = ["backend", *site, "--listen", self.endpoint, "--connect", self.endpoint]
+        viewer = ["viewer", *site, "--rerun", self.rrd, "--sim-truth", *sim, *listen_any]
         bridge = ["robot-bridge", *site, "--adapter", "sim", *sim, *listen_any]
         if self.args.no_feedback:
             bridge.append("--no-feedback")
@@ -203,6 +195,7 @@ class Services:
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
             ("robot-bridge", bridge),
+            *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
 
     def start(self, log_dir: Path) -> None:
@@ -257,12 +250,15 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
     import importlib
 
     from protocol.session import make_config, options_from_args
+    from smartedge.plugins import register_simulation
 
+    register_simulation()
     command, rest = argv[0], argv[1:]
     module = {
         "backend": "backend_service.service",
         "robot-bridge": "robot_bridge.service",
         "edge-agent": "edge_agent.service",
+        "viewer": "smartedge.viewer",
     }[command]
     svc = importlib.import_module(module)
     args = svc.build_parser().parse_args(rest)
@@ -283,7 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--trajectory", default="traj3", help="traj1, traj2 or traj3")
     parser.add_argument("--seed", type=int, default=0, help="noise seed")
     parser.add_argument("--out", default="runs/demo", help="output folder (recording, logs)")
-    parser.add_argument("--rerun", help="backend --rerun target (default save:OUT/smartedge.rrd)")
+    parser.add_argument(
+        "--rerun",
+        help="viewer target: save:PATH.rrd (default save:OUT/smartedge.rrd), spawn, "
+        "connect[:URL], serve, or none (no viewer)",
+    )
     parser.add_argument(
         "--processes", action="store_true", help="run every service as its own OS process"
     )

@@ -18,8 +18,8 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from backend_service.metrics import MetricsError, ape, format_stats
-from backend_service.trajectory_io import TrajectoryFileError, read_tum
+from smartedge.evaluation.metrics import MetricsError, ape, format_stats
+from smartedge.evaluation.trajectory_io import TrajectoryFileError, read_tum
 
 
 def _ate(args: argparse.Namespace) -> int:

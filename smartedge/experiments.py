@@ -1,26 +1,27 @@
 """The paper's pose-accuracy experiments (Sec. IV-B) on the simulated lab.
 
-For each trajectory, direction and iteration (paper: 3 x 2 x 3 = 18 runs) the simulation streams
-detections and odometry in arrival order through the backend's own pieces: the frame-set
-synchronizer, the pose solver with and without the single-camera heuristic, the multi-frame
-averager and (when available) the pose-graph fusion. At every waypoint, once the robot has been
-static for ``dwell_s``, one sample per pose source is taken:
+For each trajectory, direction and iteration (paper: 3 x 2 x 3 = 18 runs) the simulation's
+messages (detections, odometry, the robot's own localization) go in arrival order through the
+backend's one pipeline (:class:`backend_service.pipeline.BackendPipeline`, the object the
+backend service runs), set up for the paper's protocol (:func:`paper_pipeline_config`: prior =
+the robot's localization, camera estimates fused as the averages taken while static). At every
+waypoint, once the robot has been static for ``dwell_s``, one sample per pose source is taken:
 
 - Robot: the robot's internal localization (no corrections are fed back, as in the paper);
-- Cameras (raw): the first frame-set's estimate without the single-camera heuristic;
-- Cameras (1 frame): the same frame-set with the heuristic (prior = internal localization);
-- Cameras (5 frames): the average of the first ``frames`` frame-sets (with the heuristic);
-- Fused: the pose graph's smoothed pose at that stamp (after the run).
+- Cameras (raw): the first solved frame-set, solved again from the same prior without the
+  single-camera heuristic (the ablation);
+- Cameras (1 frame): the pipeline's estimate of that frame-set (heuristic on);
+- Cameras (5 frames): the pipeline's first average of ``frames`` estimates while static;
+- Fused: the pipeline's pose graph, smoothed, at that stamp (after the run).
 
 Table I groups the errors by the number of cameras that see the waypoint; Table II is the RMS
 translation error over whole trajectories (Robot, Fused). The ground truth is the simulation's
 true pose, in the same world frame, so no alignment is needed; ``align=True`` applies the
 paper's per-run Procrustes (SE(2)) alignment anyway.
 
-Fusion is pluggable: ``PaperConfig.fusion_factory`` builds a :class:`FusionBackend` per run
-(``robot_id`` → object with ``add_odometry``, ``add_camera_estimate``, ``pose_at``). The default
-uses :class:`backend_service.fusion.PoseGraphFusion` when it can be imported; otherwise the
-Fused row says "fusion not available".
+Fusion is pluggable: ``PaperConfig.fusion_factory`` builds the pose graph of each run's
+pipeline (``robot_id`` → an object like :class:`backend_service.fusion.PoseGraphFusion`); the
+default is GTSAM's when it imports, otherwise the Fused row says "fusion not available".
 """
 
 from __future__ import annotations
@@ -33,12 +34,24 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
+from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
-from backend_service.metrics import (
+from backend_service.pipeline import (
+    BackendPipeline,
+    FusionFactory,
+    PipelineConfig,
+    PipelineOutput,
+)
+from protocol.messages import Odometry, PoseEstimate
+from protocol.site import Site
+from simulation.detections import DetectionSimulator
+from simulation.runner import SimulationRun, run_seed
+from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
+from simulation.world import World
+from smartedge.evaluation.metrics import (
     MeanStd,
     align_planar,
     group_by_camera_count,
@@ -47,11 +60,6 @@ from backend_service.metrics import (
     translation_errors,
     travelled_distance,
 )
-from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from simulation.detections import DetectionSimulator
-from simulation.runner import SimulationRun, run_seed
-from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
-from simulation.world import World
 
 log = logging.getLogger(__name__)
 
@@ -65,21 +73,8 @@ ROW_NAMES = {
 }
 CAMERA_GROUPS = (1, 2, 4)
 FUSION_UNAVAILABLE = "fusion not available"
-
-
-class FusionBackend(Protocol):
-    """What the experiment needs from a fusion: feed odometry and camera estimates in arrival
-    order, then query smoothed poses. ``pose_at`` returns (3,) (x, y, theta), a
-    :class:`protocol.PoseEstimate`, or ``None`` where it has no pose."""
-
-    def add_odometry(self, msg: Odometry) -> object: ...
-
-    def add_camera_estimate(self, est: PoseEstimate) -> object: ...
-
-    def pose_at(self, stamp_ns: int) -> object: ...
-
-
-FusionFactory = Callable[[str], FusionBackend]
+#: the robot bridge publishes the robot's own localization at this rate (robot_bridge.service)
+LOCALIZATION_RATE_HZ = 10.0
 
 
 def default_fusion_factory() -> FusionFactory | None:
@@ -161,28 +156,42 @@ def _to_pose(value: object) -> np.ndarray | None:
     return arr[:3] if arr.size >= 3 and np.all(np.isfinite(arr[:3])) else None
 
 
+def paper_pipeline_config(site: Site, heuristic: bool = True, frames: int | None = None,
+                          ) -> PipelineConfig:
+    """The deployed pipeline set up for the paper's protocol: the prior is the robot's own
+    localization, and camera estimates go into the pose graph only as the averages taken at
+    static waypoints. ``heuristic``: the single-camera heuristic (off for "Cameras (raw)");
+    ``frames``: estimates averaged while static (default: the site's)."""
+    config = PipelineConfig.from_site(
+        site, prior="localization", fuse_while_moving=False,
+        solver=SolverConfig(use_single_camera_heuristic=heuristic))
+    if frames is not None:
+        config = dataclasses.replace(
+            config, multi_frame=dataclasses.replace(config.multi_frame, count=int(frames)))
+    return config
+
+
 def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
              config: PaperConfig, fusion_factory: FusionFactory | None,
              world: World | None = None,
              detector: DetectionSimulator | None = None) -> RunResult:
-    """Simulate one run and take the per-stop samples (see the module docstring)."""
-    from backend_service.estimate import SolverConfig, estimate_pose
-    from backend_service.multi_frame import MultiFrameAverager
-    from backend_service.sync import FrameSetSynchronizer
+    """Simulate one run and take the per-stop samples (see the module docstring).
 
+    The simulated messages go in arrival order through :class:`BackendPipeline` (the backend
+    service's own object) exactly as the service receives them. The raw row is an ablation on
+    the pipeline's own record: the stop's first frame-set, from the prior the pipeline used,
+    solved with the single-camera heuristic off."""
     wall0 = time.perf_counter()
     site = scenario.site
-    robot_id = scenario.robot_id
     sim = SimulationRun(scenario, trajectory, reverse,
                         seed=run_seed(scenario, trajectory, reverse, iteration, config.seed),
                         world=world, detector=detector)
     name = f"{trajectory}{'r' if reverse else ''}_{iteration + 1}"
-    sync = FrameSetSynchronizer(site, robot_id)
-    fusion = fusion_factory(robot_id) if fusion_factory is not None else None
-    raw_cfg = SolverConfig(use_single_camera_heuristic=False)
-    one_cfg = SolverConfig(use_single_camera_heuristic=True)
+    pipeline = BackendPipeline(site, paper_pipeline_config(site, frames=config.frames),
+                               fusion_factory=fusion_factory,
+                               with_fusion=fusion_factory is not None)
+    raw_solver = SolverConfig(use_single_camera_heuristic=False)
     start_ns = scenario.start_stamp_ns
-    per_stop: dict[int, dict[str, object]] = {}
     counters = {"frame_sets": 0, "solved": 0, "failed": 0}
     samples: dict[int, StopSample] = {}
 
@@ -191,54 +200,43 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
         i = max(bisect.bisect_right(stamps, stamp_ns) - 1, 0)
         return sim.log.localization[i]
 
-    def handle(fs: FrameSet) -> None:
-        counters["frame_sets"] += 1
+    def sample_for(fs: FrameSet) -> StopSample | None:
+        """The sample of the stop ``fs`` falls in, once the robot stood there ``dwell_s``."""
         t_s = (fs.stamp_ns - start_ns) * 1e-9
         stop = sim.plan.stop_at(t_s)
-        if stop is None or t_s < stop.t0_s + config.dwell_s:
-            return
-        state = per_stop.setdefault(stop.index, {"n": 0, "avg": MultiFrameAverager(
-            config.frames), "done": False})
-        if state["done"] or not fs.observations:
-            return
-        loc = localization_at(fs.stamp_ns)
-        prior = PlanarPose(float(loc[0]), float(loc[1]), float(loc[2]))
+        if stop is None or t_s < stop.t0_s + config.dwell_s or not fs.observations:
+            return None
         sample = samples.get(stop.index)
         if sample is None:
             sample = StopSample(
                 run=name, trajectory=trajectory, waypoint=stop.waypoint,
                 num_cameras=len(sim.stop_cameras[stop.index]), stamp_ns=fs.stamp_ns,
                 ground_truth=np.asarray(sim.ground_truth_at(fs.stamp_ns)[0]),
-                estimates={"robot": loc.copy()},
+                estimates={"robot": localization_at(fs.stamp_ns).copy()},
             )
             samples[stop.index] = sample
-        one = estimate_pose(fs, site, prior, one_cfg)
-        counters["solved" if one.ok else "failed"] += 1
-        if one.ok and "one_frame" not in sample.estimates:
-            raw = estimate_pose(fs, site, prior, raw_cfg)
-            sample.estimates["raw"] = _to_pose(raw.pose) if raw.ok else None
-            sample.estimates["one_frame"] = _to_pose(one.pose)
-        averaged = state["avg"].add(one)  # type: ignore[union-attr]
-        state["n"] = int(state["n"]) + 1  # type: ignore[call-overload]
-        if averaged is not None and averaged.ok:
-            sample.estimates["five_frames"] = _to_pose(averaged.pose)
-            state["done"] = True
-            if fusion is not None and averaged.estimate is not None:
-                fusion.add_camera_estimate(averaged.estimate)
-        elif int(state["n"]) >= 4 * config.frames:  # type: ignore[call-overload]
-            state["done"] = True  # too few consistent frames at this stop
+        return sample
 
-    for tm in sim.messages():
-        msg = tm.message
-        if isinstance(msg, Odometry):
-            if fusion is not None:
-                fusion.add_odometry(msg)
-        elif isinstance(msg, RobotDetections):
-            for fs in sync.push(msg, tm.arrival_ns):
-                handle(fs)
-    for fs in sync.flush():
-        handle(fs)
+    def take(out: PipelineOutput) -> None:
+        for rec in out.solves:
+            counters["frame_sets"] += 1
+            counters["solved" if rec.result.ok else "failed"] += 1
+            sample = sample_for(rec.frame_set)
+            if sample is None or not rec.result.ok:
+                continue
+            if "one_frame" not in sample.estimates:
+                sample.estimates["one_frame"] = _to_pose(rec.result.pose)
+                # the ablation: the same frame-set from the same prior, heuristic off
+                raw = estimate_pose(rec.frame_set, site, rec.prior, raw_solver)
+                sample.estimates["raw"] = _to_pose(raw.pose) if raw.ok else None
+            if rec.averaged is not None:
+                sample.estimates.setdefault("five_frames", _to_pose(rec.averaged))
 
+    for tm in sim.messages(localization_rate_hz=LOCALIZATION_RATE_HZ):
+        take(pipeline.step(tm.message, tm.arrival_ns))
+    take(pipeline.flush())
+
+    fusion = pipeline.tracks[scenario.robot_id].fusion
     stamps, gt, loc = sim.log.arrays()
     fused = np.full_like(gt, np.nan)
     if fusion is not None:
@@ -700,51 +698,40 @@ class FeedbackRun:
 
 def run_feedback(scenario: Scenario, route: str, feedback: bool,
                  seed: int | np.random.SeedSequence, *, name: str | None = None,
-                 dwell_s: float = 1.0, frames: int = 5,
                  fusion_factory: FusionFactory | None = None,
+                 pipeline_config: PipelineConfig | None = None,
                  failure: FailureModel | None = None, fused_trajectory_step: int = 4,
                  world: World | None = None,
                  detector: DetectionSimulator | None = None) -> FeedbackRun:
     """Simulate one run of ``route`` with (``feedback=True``) or without correction feedback.
 
-    The backend part is the one of :func:`run_once`: frame-set synchronizer, ``estimate_pose``
-    with the single-camera heuristic (prior: the robot's localization at the stamp), 5-frame
-    averaging once the robot stood ``dwell_s`` at a waypoint, and the pose-graph fusion. With
+    The simulated messages go in arrival order through the backend's :class:`BackendPipeline`
+    (``pipeline_config``, default :func:`paper_pipeline_config`), as in :func:`run_once`. With
     feedback, the real :class:`robot_bridge.bridge.RobotBridge` (the site's thresholds) gets the
-    robot's odometry and localization through a :class:`SimRobotAdapter` and the camera and
-    fused estimates; the corrections it decides on are pushed to the simulated robot, which
-    takes them only while static. ``failure``: end the run at the first failure (experiment 3).
+    robot's odometry and localization through a :class:`SimRobotAdapter` and the fused poses the
+    pipeline publishes, as the bridge service does; the corrections it decides on are pushed to
+    the simulated robot, which takes them only while static. ``failure``: end the run at the
+    first failure (experiment 3).
     """
-    from backend_service.estimate import SolverConfig, estimate_pose
-    from backend_service.multi_frame import MultiFrameAverager
-    from backend_service.sync import FrameSetSynchronizer
     from robot_bridge.adapters.sim import SimRobotAdapter
     from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
 
     wall0 = time.perf_counter()
     site = scenario.site
-    robot_id = scenario.robot_id
     sim = SimulationRun(scenario, route, False, seed=seed, world=world, detector=detector)
     robot = sim.robot
     world_ = sim.world
     run_name = name or f"{route}_{'fb' if feedback else 'nofb'}"
-    sync = FrameSetSynchronizer(site, robot_id)
-    fusion = fusion_factory(robot_id) if fusion_factory is not None else None
-    bridge = RobotBridge(BridgeConfig(robot_id, thresholds=site.thresholds)) if feedback else None
+    pipeline = BackendPipeline(site, pipeline_config or paper_pipeline_config(site),
+                               fusion_factory=fusion_factory,
+                               with_fusion=fusion_factory is not None)
+    bridge = RobotBridge(BridgeConfig(scenario.robot_id, thresholds=site.thresholds,
+                                      world_frame=site.world_frame)) if feedback else None
     adapter = SimRobotAdapter(robot) if feedback else None
-    one_cfg = SolverConfig(use_single_camera_heuristic=True)
     start_ns = scenario.start_stamp_ns
-    averagers: dict[int, MultiFrameAverager] = {}
-    tries: dict[int, int] = {}
-    done: set[int] = set()
     corrections: list[AppliedCorrection] = []
     arrived: set[int] = set()
     state: dict[str, object] = {"outcome": SUCCESS, "wp": None, "dist": math.nan}
-
-    def localization_at(stamp_ns: int) -> np.ndarray:
-        stamps = sim.log.stamps_ns
-        i = max(bisect.bisect_right(stamps, stamp_ns) - 1, 0)
-        return sim.log.localization[i]
 
     def push(out: Outbox) -> None:
         # corrections decided on an estimate: pushed to the robot like RobotBridge.pump does
@@ -762,29 +749,6 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
             static_at_stamp=sim.plan.is_static((stamp - start_ns) * 1e-9),
             offset_m=float(corr.offset_m)))  # type: ignore[attr-defined]
 
-    def handle(fs: FrameSet, arrival_ns: int) -> None:
-        t_s = (fs.stamp_ns - start_ns) * 1e-9
-        stop = sim.plan.stop_at(t_s)
-        if stop is None or t_s < stop.t0_s + dwell_s or stop.index in done or not fs.observations:
-            return
-        loc = localization_at(fs.stamp_ns)
-        one = estimate_pose(fs, site, PlanarPose(float(loc[0]), float(loc[1]), float(loc[2])),
-                            one_cfg)
-        avg = averagers.setdefault(stop.index, MultiFrameAverager(frames))
-        averaged = avg.add(one)
-        tries[stop.index] = tries.get(stop.index, 0) + 1
-        if averaged is None or not averaged.ok or averaged.estimate is None:
-            if tries[stop.index] >= 4 * frames:
-                done.add(stop.index)
-            return
-        done.add(stop.index)
-        est = averaged.estimate
-        fused = fusion.add_camera_estimate(est) if fusion is not None else None
-        if bridge is not None:
-            push(bridge.on_pose_estimate(est, arrival_ns))
-            if isinstance(fused, PoseEstimate):
-                push(bridge.on_pose_estimate(fused, arrival_ns))
-
     def check_failure(t_s: float) -> None:
         if failure is None or state["outcome"] != SUCCESS:
             return
@@ -800,24 +764,25 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
             if float(np.hypot(*err)) > failure.waypoint_tolerance_m:
                 state.update(outcome=WP_NOT_REACHED, dist=robot.travelled_m, wp=stop.waypoint)
 
-    for tm in sim.messages(on_step=check_failure if failure is not None else None):
+    for tm in sim.messages(on_step=check_failure if failure is not None else None,
+                           localization_rate_hz=LOCALIZATION_RATE_HZ):
         if state["outcome"] != SUCCESS:
             break
         msg = tm.message
+        out = pipeline.step(msg, tm.arrival_ns)
+        if bridge is None or adapter is None:
+            continue
         if isinstance(msg, Odometry):
-            if fusion is not None:
-                fusion.add_odometry(msg)
-            if bridge is not None and adapter is not None:
-                adapter.feed([msg])
-                before = robot.corrections_applied
-                t_now = robot.t_s
-                out = bridge.pump(adapter, tm.arrival_ns)
-                for k, corr in enumerate(out.corrections):
-                    record(corr, k < robot.corrections_applied - before, t_now)
-        elif isinstance(msg, RobotDetections):
-            for fs in sync.push(msg, tm.arrival_ns):
-                handle(fs, tm.arrival_ns)
+            adapter.feed([msg])
+            before = robot.corrections_applied
+            t_now = robot.t_s
+            box = bridge.pump(adapter, tm.arrival_ns)
+            for k, corr in enumerate(box.corrections):
+                record(corr, k < robot.corrections_applied - before, t_now)
+        for fused_pose in out.fused:
+            push(bridge.on_pose_estimate(fused_pose, tm.arrival_ns))
 
+    fusion = pipeline.tracks[scenario.robot_id].fusion
     stamps, gt, loc = sim.log.arrays()
     fused = np.full_like(gt, np.nan)
     if fusion is not None:
@@ -960,7 +925,6 @@ def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
         for fb in (False, True):
             r = run_feedback(sc, config.long_route, fb, seed,
                              name=f"{config.long_route}_{'fb' if fb else 'nofb'}_{k + 1}",
-                             dwell_s=config.dwell_s, frames=config.frames,
                              fusion_factory=factory, world=world, detector=detector,
                              fused_trajectory_step=config.fused_trajectory_step)
             runs.append(r)
@@ -984,8 +948,8 @@ def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
         r = run_feedback(sc, config.robustness_route, fb,
                          run_seed(sc, config.robustness_route, False, k, config.seed),
                          name=f"{config.robustness_route}_{'fb' if fb else 'nofb'}_{k % n + 1}",
-                         dwell_s=config.dwell_s, frames=config.frames, fusion_factory=factory,
-                         failure=model, world=world, detector=detector,
+                         fusion_factory=factory, failure=model, world=world,
+                         detector=detector,
                          fused_trajectory_step=config.fused_trajectory_step)
         runs.append(r)
         where = "" if r.outcome == SUCCESS else (

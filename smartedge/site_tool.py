@@ -1,5 +1,6 @@
 """``smartedge site check FILE`` / ``smartedge site calib FILE``: validate a site file or a
-camera calibration file and print what was understood."""
+camera calibration file and print what was understood. ``smartedge site reference``: print the
+configuration reference (every section, key and default; docs/configuration.md)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,18 @@ from protocol.errors import SiteConfigError
 from protocol.site import load_camera_calibration, load_site
 
 
+def check_sections(site: object) -> None:
+    """Parse the package-owned sections too (each package's own parser), where the package is
+    installed, so ``site check`` reports a bad ``fusion.window_s`` before a service starts."""
+    try:
+        from backend_service.fusion import fusion_config_from_site
+        from backend_service.pipeline import PipelineConfig
+    except ImportError:  # an edge board has no backend packages
+        return
+    PipelineConfig.from_site(site)  # type: ignore[arg-type]
+    fusion_config_from_site(site)  # type: ignore[arg-type]
+
+
 def main(argv: Sequence[str]) -> int:
     parser = argparse.ArgumentParser(prog="smartedge site", description=__doc__)
     sub = parser.add_subparsers(dest="action", required=True)
@@ -21,13 +34,20 @@ def main(argv: Sequence[str]) -> int:
     check.add_argument("path")
     calib = sub.add_parser("calib", help="read an OpenCV/ROS camera calibration YAML")
     calib.add_argument("path")
+    sub.add_parser("reference", help="print the configuration reference (Markdown)")
     args = parser.parse_args(list(argv))
+    if args.action == "reference":
+        from smartedge.config_reference import render
+
+        print(render(), end="")
+        return 0
     try:
         if args.action == "calib":
             c = load_camera_calibration(args.path)
             print(f"{args.path}: {c.width}x{c.height}\nK=\n{c.K}\ndist={c.dist.tolist()}")
             return 0
         site = load_site(args.path)
+        check_sections(site)
     except SiteConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

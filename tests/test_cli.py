@@ -52,6 +52,63 @@ def test_services_reject_unknown_site_ids() -> None:
     assert proc.returncode == 1 and "r2d2" in proc.stderr
 
 
+def test_simulation_plugin_registers_twice_harmlessly() -> None:
+    from edge_agent import service as edge_service
+    from edge_agent import sources
+    from robot_bridge import service as bridge_service
+    from robot_bridge.adapters import registry
+    from smartedge import plugins
+
+    plugins.register_simulation()
+    plugins.register_simulation()
+    sources.register_source("sim", plugins.SIM_SOURCE)  # the same plug-in again: a no-op
+    registry.register_adapter("sim", plugins.SIM_ADAPTER)
+    registry.register_adapter("ros2", registry.ROS_ADAPTERS)
+    assert sources.source_names() == ("camera", "sim")
+    assert registry.adapter_names() == ("ros1", "ros2", "sim")
+    # another plug-in under a taken name is a mistake, said so
+    with pytest.raises(ValueError, match="already registered"):
+        sources.register_source("sim", plugins.SimSourcePlugin())
+    with pytest.raises(ValueError, match="already registered"):
+        registry.register_adapter("sim", plugins.SimAdapterPlugin())
+    # each plug-in's argument group is added once (argparse would refuse a duplicate option)
+    args = edge_service.build_parser().parse_args(["--camera", "cam1", "--source", "sim"])
+    assert args.sim_trajectory == "traj3"
+    args = bridge_service.build_parser().parse_args(["--adapter", "ros1", "--kidnapped"])
+    assert args.kidnapped and args.robot_profile == "hsr"
+
+
+def test_unknown_source_or_adapter_is_a_clear_argparse_error() -> None:
+    proc = _run("edge-agent", "--camera", "cam1", "--source", "webcam")
+    assert proc.returncode == 2
+    assert "--source: invalid choice: 'webcam'" in proc.stderr
+    assert "'camera'" in proc.stderr and "'sim'" in proc.stderr
+    proc = _run("robot-bridge", "--adapter", "ros3")
+    assert proc.returncode == 2
+    assert "--adapter: invalid choice: 'ros3'" in proc.stderr
+    assert all(f"'{name}'" in proc.stderr for name in ("ros1", "ros2", "sim"))
+
+
+def test_services_alone_offer_no_simulation() -> None:
+    """Without the top floor's plug-in assembly the services offer only what they ship."""
+    script = (
+        "import sys\n"
+        "from edge_agent.service import build_parser as edge\n"
+        "from robot_bridge.service import build_parser as bridge\n"
+        "from edge_agent.sources import source_names\n"
+        "from robot_bridge.adapters.registry import adapter_names\n"
+        "assert source_names() == ('camera',), source_names()\n"
+        "assert adapter_names() == ('ros1', 'ros2'), adapter_names()\n"
+        "assert not [m for m in sys.modules if m.split('.')[0] in ('simulation', 'smartedge')]\n"
+        "edge().parse_args(['--camera', 'c', '--source', 'sim'])\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "invalid choice: 'sim'" in proc.stderr
+
+
 def test_json_log_lines_parse(capsys: pytest.CaptureFixture[str]) -> None:
     root = logging.getLogger()
     saved = root.handlers[:]

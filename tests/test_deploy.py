@@ -30,6 +30,7 @@ SERVICE_UNITS = {
     "smartedge-edge-agent@.service": "edge-agent",
     "smartedge-backend.service": "backend",
     "smartedge-robot-bridge@.service": "robot-bridge",
+    "smartedge-viewer.service": "viewer",
 }
 ALL_UNITS = (*SERVICE_UNITS, "smartedge-zenohd.service")
 #: file → (mode, connect endpoints, listen endpoints) after BACKEND_HOST → 127.0.0.1
@@ -281,8 +282,10 @@ def test_exec_start_runs_a_real_subcommand_with_its_flags(name: str) -> None:
         assert args[args.index("--adapter") + 1] == "${SMARTEDGE_ADAPTER}"
     if sub == "edge-agent":
         assert args[args.index("--source") + 1] == "${SMARTEDGE_SOURCE}"
-    if sub == "backend":
+    if sub == "viewer":
         assert args[args.index("--rerun") + 1] == "${SMARTEDGE_RERUN}"
+    else:
+        assert "--rerun" not in args  # drawing in Rerun is the viewer's job alone
 
 
 @pytest.mark.parametrize("name", ALL_UNITS)
@@ -298,6 +301,22 @@ def test_exec_start_variables_are_defined(name: str) -> None:
         assert var in example, f"{name}: ${var} not documented in smartedge.env.example"
     for var in set(example) & set(defaults):
         assert example[var] == defaults[var], f"{var}: example and unit default differ"
+
+
+def test_viewer_unit_is_independent_of_the_backend() -> None:
+    """The viewer is optional: nothing ties its unit to the backend's, so its failure (or its
+    absence) never stops or restarts the backend, and it records into its own state directory."""
+    viewer = parse_unit(UNIT_DIR / "smartedge-viewer.service")
+    for key in ("Requires", "Requisite", "BindsTo", "PartOf", "Wants", "Upholds"):
+        for value in viewer["Unit"].get(key, []):
+            assert "smartedge-backend" not in value, f"viewer {key}={value}"
+    backend = parse_unit(UNIT_DIR / "smartedge-backend.service")
+    for values in backend["Unit"].values():
+        assert not any("smartedge-viewer" in v for v in values)
+    assert "smartedge/recordings" in _one(viewer, "Service", "StateDirectory").split()
+    sink = _env_defaults(viewer)["SMARTEDGE_RERUN"]
+    assert sink.startswith("save:/var/lib/smartedge/recordings/") and sink.endswith(".rrd")
+    assert "SMARTEDGE_RERUN" not in _env_defaults(backend)
 
 
 @pytest.mark.parametrize("name", sorted(SERVICE_UNITS))
@@ -447,6 +466,37 @@ def test_backend_and_edge_stacks_run_with_write_xor_execute(tmp_path: Path) -> N
     assert proc.stdout.strip().endswith("ok")
 
 
+MDWE_VIEWER_WORKLOAD = textwrap.dedent(
+    """
+    import ctypes, sys, urllib.request
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(65, 1, 0, 0, 0) != 0:  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
+        print("no-mdwe"); sys.exit(0)
+    import numpy as np, rerun as rr
+    rec = rr.RecordingStream("mdwe")
+    url = rec.serve_grpc(grpc_port=int(sys.argv[1]))
+    rr.serve_web_viewer(web_port=int(sys.argv[2]), open_browser=False, connect_to=url)
+    rec.log("p", rr.Points3D(np.zeros((3, 3))))
+    assert urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[2]}/", timeout=10).status == 200
+    print("ok")
+    """
+)
+
+
+def test_viewer_rerun_serve_runs_with_write_xor_execute() -> None:
+    """The viewer unit's MemoryDenyWriteExecute=yes also holds for ``--rerun serve`` (rerun's
+    gRPC server and web viewer server); saving a recording is covered above."""
+    pytest.importorskip("rerun")
+    proc = subprocess.run(
+        [sys.executable, "-c", MDWE_VIEWER_WORKLOAD, str(free_tcp_port()), str(free_tcp_port())],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    if proc.stdout.strip() == "no-mdwe":
+        pytest.skip("kernel without PR_SET_MDWE")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip().endswith("ok")
+
+
 # --------------------------------------------------------------------------------------------
 # install scripts
 # --------------------------------------------------------------------------------------------
@@ -528,6 +578,22 @@ def test_backend_dry_run_prints_the_steps_and_changes_nothing(tmp_path: Path) ->
     assert "zenoh/router.json5 → " in out
     assert "smartedge-backend.service.d/zenoh-router.conf" in out
     assert "smartedge-robot-bridge@hsr.service" in out
+    assert "systemctl enable smartedge-backend.service smartedge-viewer.service " in out
+
+    no_viewer = _run_script(
+        "install-backend.sh", "--dry-run", "--root", str(root), "--site", str(EXAMPLE_SITE),
+        "--no-viewer", "hsr",
+    )  # fmt: skip
+    assert no_viewer.returncode == 0, no_viewer.stderr
+    assert "smartedge-viewer.service" not in no_viewer.stdout.replace(
+        "systemctl disable --now smartedge-viewer.service", ""
+    )
+    assert "systemctl disable --now smartedge-viewer.service" in no_viewer.stdout
+    assert not root.exists()
+
+    both = _run_script("install-backend.sh", "--dry-run", "--site", str(EXAMPLE_SITE),
+                       "--no-viewer", "--rerun", "serve")  # fmt: skip
+    assert both.returncode == 2 and "--rerun configures the viewer" in both.stderr
 
 
 def test_edge_staged_install_is_complete_and_idempotent(tmp_path: Path) -> None:
@@ -552,6 +618,7 @@ def test_edge_staged_install_is_complete_and_idempotent(tmp_path: Path) -> None:
         UNIT_DIR / "smartedge-edge-agent@.service"
     ).read_bytes()
     assert not (root / "etc" / "systemd" / "system" / "smartedge-backend.service").exists()
+    assert not (root / "etc" / "systemd" / "system" / "smartedge-viewer.service").exists()
 
     # Re-run: same result, the administrator's edits of smartedge.env survive.
     (etc / "smartedge.env").write_text(env + "SMARTEDGE_EDGE_AGENT_ARGS=--edited\n")
@@ -613,6 +680,34 @@ def test_backend_staged_install_router_modes_and_tls(tmp_path: Path) -> None:
     assert json.loads(router.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
 
 
+def test_backend_staged_install_viewer_sink_and_no_viewer(tmp_path: Path) -> None:
+    """--rerun SINK is the viewer's sink in a new smartedge.env; the viewer unit is installed
+    next to the backend's, and --no-viewer removes it again without touching the backend."""
+    root = tmp_path / "root"
+    _fake_venv(root)
+    base = ("--root", str(root), "--skip-pip", "--site", str(EXAMPLE_SITE), "--router", "backend")
+    units = root / "etc" / "systemd" / "system"
+    etc = root / "etc" / "smartedge"
+
+    proc = _run_script("install-backend.sh", *base, "--rerun", "serve", "hsr")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (units / "smartedge-viewer.service").read_bytes() == (
+        UNIT_DIR / "smartedge-viewer.service"
+    ).read_bytes()
+    env = (etc / "smartedge.env").read_text()
+    assert "\nSMARTEDGE_RERUN=serve\n" in env
+    assert "\nSMARTEDGE_VIEWER_ARGS=\n" in env
+    assert "enable smartedge-backend.service smartedge-viewer.service" in proc.stdout
+    backend = (units / "smartedge-backend.service").read_bytes()
+
+    proc = _run_script("install-backend.sh", *base, "--no-viewer", "hsr")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert not (units / "smartedge-viewer.service").exists()
+    assert "smartedge-viewer.service" not in proc.stdout.split("systemctl daemon-reload")[-1]
+    assert (units / "smartedge-backend.service").read_bytes() == backend
+    assert (units / "smartedge-backend.service.d" / "zenoh-router.conf").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # documentation
 # --------------------------------------------------------------------------------------------
@@ -628,7 +723,8 @@ def test_deployment_doc_covers_the_tls_keys_and_scripts() -> None:
     missing = sorted(k for k in keys if k not in doc)
     assert not missing, f"docs/deployment.md does not explain {missing}"
     for needle in ("install-edge.sh", "install-backend.sh", "smartedge site check", "openssl",
-                   "journalctl", "--rerun serve"):  # fmt: skip
+                   "journalctl", "--rerun serve", "smartedge-viewer.service",
+                   "smartedge viewer --site"):  # fmt: skip
         assert needle in doc, needle
 
 
@@ -689,6 +785,7 @@ SERVICE_RUNS = {
     "smartedge-edge-agent@.service": ("cam1", {"SMARTEDGE_SOURCE": "sim"}),
     "smartedge-robot-bridge@.service": ("hsr", {"SMARTEDGE_ADAPTER": "sim"}),
     "smartedge-backend.service": ("", {}),
+    "smartedge-viewer.service": ("", {}),  # SMARTEDGE_RERUN: a recording under tmp_path
 }
 
 
@@ -713,7 +810,7 @@ def test_unit_command_line_notifies_ready_watchdog_and_stops_cleanly(
     env.update(
         SMARTEDGE_SITE=str(SIM_SITE),
         ZENOH_CONFIG=str(client_conf),
-        SMARTEDGE_RERUN=f"save:{tmp_path / 'backend.rrd'}",
+        SMARTEDGE_RERUN=f"save:{tmp_path / 'recordings' / 'viewer.rrd'}",
     )
     argv = expand_exec_start(_one(unit, "Service", "ExecStart"), env, instance)
     assert argv[0] == SMARTEDGE_BIN
@@ -740,3 +837,6 @@ def test_unit_command_line_notifies_ready_watchdog_and_stops_cleanly(
     assert watchdog, f"no WATCHDOG=1 within 3 s: {notify.messages}\n{output}"
     assert stopping, notify.messages
     assert code == 0, output
+    if name == "smartedge-viewer.service":
+        recording = tmp_path / "recordings" / "viewer.rrd"
+        assert recording.is_file() and recording.stat().st_size > 0, output

@@ -1,17 +1,33 @@
-"""An edge board installs only ``smartedge[edge]``: protocol and edge_agent must import without
-casadi, gtsam, open3d, rerun or torch. A fresh interpreter blocks those imports to prove it."""
+"""Import floors, checked in fresh interpreters.
+
+An edge board installs only ``smartedge[edge]``: protocol and edge_agent must import without
+casadi, gtsam, open3d, rerun or torch, and ``smartedge edge-agent`` (the simulated source
+registered) must not load them either, nor the other services.
+
+Service packages never import ``simulation``, ``smartedge`` or each other: every module of each
+service package is imported in a fresh interpreter and nothing of those may be loaded, and no
+import statement in the package (lazy ones inside functions included) may name them. The
+simulation (a plug-in wired in from the top floor) names no service and no top floor either.
+"""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
+
+import pytest
 
 from tests.conftest import REPO_ROOT
 
 BLOCKED = ("casadi", "gtsam", "open3d", "rerun", "torch", "scipy", "matplotlib", "rosbags")
+SERVICES = ("edge_agent", "robot_bridge", "backend_service")
+#: top-level packages no service package may import (besides the other services)
+ABOVE_SERVICES = ("simulation", "smartedge")
 
-SCRIPT = textwrap.dedent(
+EDGE_SCRIPT = textwrap.dedent(
     """
     import importlib, pkgutil, sys
     BLOCKED = {blocked!r}
@@ -30,20 +46,82 @@ SCRIPT = textwrap.dedent(
                 continue  # benchmarks and the optional training pipeline may use more
             importlib.import_module(info.name)
     import smartedge.cli
+    # what `smartedge edge-agent` loads: the plug-in assembly and the simulated source
+    from smartedge.plugins import register_sim_source
+    register_sim_source()
+    from edge_agent.service import build_parser
+    build_parser().parse_args(["--camera", "cam1", "--source", "sim"])
     leaked = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
+    assert not leaked, leaked
+    services = ("backend_service", "robot_bridge")
+    others = sorted(m for m in sys.modules if m.split(".")[0] in services)
+    assert not others, others
+    print("ok")
+    """
+)
+
+SERVICE_SCRIPT = textwrap.dedent(
+    """
+    import importlib, pkgutil, sys
+    PACKAGE = {package!r}
+    FORBIDDEN = {forbidden!r}
+    pkg = importlib.import_module(PACKAGE)
+    importlib.import_module(PACKAGE + ".service")
+    for info in pkgutil.walk_packages(pkg.__path__, PACKAGE + "."):
+        if info.name.split(".")[-1].startswith("training"):
+            continue  # the optional training pipeline (torch) is not the service's
+        importlib.import_module(info.name)
+    leaked = sorted(m for m in sys.modules if m.split(".")[0] in FORBIDDEN)
     assert not leaked, leaked
     print("ok")
     """
 )
 
 
-def test_protocol_and_edge_agent_import_with_edge_extra_only() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT.format(blocked=BLOCKED)],
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
+def _python(script: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", script], cwd=REPO_ROOT, capture_output=True, text=True, timeout=120
     )
+
+
+def test_protocol_and_edge_agent_import_with_edge_extra_only() -> None:
+    proc = _python(EDGE_SCRIPT.format(blocked=BLOCKED))
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip().endswith("ok")
+
+
+def _forbidden(package: str) -> tuple[str, ...]:
+    return ABOVE_SERVICES + tuple(s for s in SERVICES if s != package)
+
+
+@pytest.mark.parametrize("package", SERVICES)
+def test_service_package_loads_no_simulation_top_floor_or_other_service(package: str) -> None:
+    proc = _python(SERVICE_SCRIPT.format(package=package, forbidden=_forbidden(package)))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().endswith("ok")
+
+
+def _imported_names(path: Path) -> list[tuple[int, str]]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.extend((node.lineno, alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.append((node.lineno, node.module))
+    return out
+
+
+@pytest.mark.parametrize("package", [*SERVICES, "simulation"])
+def test_package_names_no_forbidden_import(package: str) -> None:
+    """Also the imports inside functions, which loading the modules does not run. The
+    simulation is a plug-in: it imports only ``protocol`` of the project."""
+    forbidden = (*ABOVE_SERVICES, *SERVICES) if package == "simulation" else _forbidden(package)
+    forbidden = tuple(f for f in forbidden if f != package)
+    bad = [
+        f"{path.relative_to(REPO_ROOT)}:{line}: {name}"
+        for path in sorted((REPO_ROOT / package).rglob("*.py"))
+        for line, name in _imported_names(path)
+        if name.split(".")[0] in forbidden
+    ]
+    assert not bad, bad

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend_service.metrics import Trajectory
-from backend_service.trajectory_io import write_tum
+from protocol.geometry import rotation_z
 from smartedge.evaluate import main
+from smartedge.evaluation.metrics import Trajectory
+from smartedge.evaluation.trajectory_io import write_tum
 
 
 def _write_pair(tmp_path: Path) -> tuple[Path, Path]:
@@ -21,8 +22,7 @@ def _write_pair(tmp_path: Path) -> tuple[Path, Path]:
     xyth = np.column_stack([np.cos(0.1 * t) * 4, np.sin(0.13 * t) * 3, 0.2 * t])
     gt = Trajectory.from_planar(t, xyth)
     noisy = xyth + rng.normal(0, [0.05, 0.05, 0.01], xyth.shape)
-    c, s = np.cos(0.5), np.sin(0.5)
-    noisy[:, :2] = noisy[:, :2] @ np.array([[c, -s], [s, c]]).T + [1.0, -2.0]
+    noisy[:, :2] = noisy[:, :2] @ rotation_z(0.5)[:2, :2].T + [1.0, -2.0]
     noisy[:, 2] += 0.5
     est = Trajectory.from_planar(t[::2] + 0.003, noisy[::2])
     write_tum(tmp_path / "gt.tum", gt)

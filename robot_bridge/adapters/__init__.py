@@ -1,8 +1,10 @@
 """Robot adapters behind one interface (:class:`RobotAdapter`).
 
 Only the interface is imported here: ``robot_bridge.adapters.ros2`` needs ``rosbags`` (and
-``zenoh`` for its transport class) and ``robot_bridge.adapters.sim`` needs ``simulation``, so
-each is imported by name where it is used.
+``zenoh`` for its transport class), so it is imported by name where it is used.
+``robot_bridge.adapters.sim`` is written against a structural interface of a simulated robot
+and imports no simulation code; which adapters the bridge offers is decided by
+:mod:`robot_bridge.adapters.registry` (the simulated one is registered from the top floor).
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from protocol.geometry import quaternion_to_yaw, yaw_to_quaternion
 from protocol.messages import PoseCorrection
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 
@@ -129,20 +130,14 @@ def ros_to_stamp_ns(sec: int, nanosec: int) -> int:
     return int(sec) * _NS_PER_S + int(nanosec)
 
 
-def yaw_to_quaternion_xyzw(theta_rad: float) -> tuple[float, float, float, float]:
-    """Planar heading (rad, about +z) → unit quaternion (x, y, z, w)."""
-    half = 0.5 * float(theta_rad)
-    return 0.0, 0.0, math.sin(half), math.cos(half)
-
-
-def quaternion_xyzw_to_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Yaw (rad, in (-pi, pi]) of a quaternion; it need not be normalised, must not be zero."""
-    q = np.array([x, y, z, w], dtype=np.float64)
-    norm = float(np.linalg.norm(q))
-    if not math.isfinite(norm) or norm < 1e-9:
-        raise RosConversionError(f"invalid orientation quaternion {q.tolist()}")
-    x, y, z, w = q / norm
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+def orientation_to_yaw(orientation: Any) -> float:
+    """Yaw (rad, in [-pi, pi)) of a ``geometry_msgs/Quaternion``; it need not be normalised,
+    must not be zero (:class:`RosConversionError`)."""
+    q = orientation
+    try:
+        return quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
+    except ValueError as exc:
+        raise RosConversionError(f"invalid orientation: {exc}") from None
 
 
 def covariance_3x3_to_6x6(covariance: np.ndarray) -> np.ndarray:
@@ -184,7 +179,7 @@ def correction_to_ros(
             seq=correction.seq % 2**32, stamp=stamp, frame_id=frame_id)
     else:
         header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
-    qx, qy, qz, qw = yaw_to_quaternion_xyzw(correction.theta)
+    qx, qy, qz, qw = yaw_to_quaternion(correction.theta)
     pose = t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=correction.x, y=correction.y, z=0.0),
         orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
@@ -235,12 +230,11 @@ def odometry_from_ros(msg: Any) -> OdometrySample:
     stamp_ns = ros_to_stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
     if stamp_ns < 0:
         raise RosConversionError("negative stamp")
-    o = p.orientation
     return OdometrySample(
         stamp_ns=stamp_ns,
         x=_finite("position.x", p.position.x),
         y=_finite("position.y", p.position.y),
-        theta=quaternion_xyzw_to_yaw(o.x, o.y, o.z, o.w),
+        theta=orientation_to_yaw(p.orientation),
         vx=_finite("twist.linear.x", tw.linear.x),
         vy=_finite("twist.linear.y", tw.linear.y),
         wz=_finite("twist.angular.z", tw.angular.z),
@@ -264,12 +258,11 @@ def localization_from_ros(msg: Any, ros_type: str) -> LocalizationPose:
         pose, cov = msg.pose, None
     else:
         raise RosConversionError(f"unsupported localization type {ros_type}")
-    o = pose.orientation
     return LocalizationPose(
         stamp_ns=ros_to_stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec),
         x=_finite("position.x", pose.position.x),
         y=_finite("position.y", pose.position.y),
-        theta=quaternion_xyzw_to_yaw(o.x, o.y, o.z, o.w),
+        theta=orientation_to_yaw(pose.orientation),
         covariance=cov,
         frame_id=ros_frame_to_id(msg.header.frame_id, "map"),
     )

@@ -10,6 +10,7 @@ import numpy as np
 
 from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
 from protocol.camera import CameraModel
+from protocol.geometry import angle_diff, invert_transform
 from protocol.site import Site, load_site, look_at_T_world_cam
 
 REPO = Path(__file__).resolve().parents[2]
@@ -64,14 +65,12 @@ def make_frame_set(site: Site, pose: PlanarPose, camera_ids: list[str] | tuple[s
 def pose_error(a: PlanarPose, b: PlanarPose) -> tuple[float, float]:
     """(position error m, |yaw error| rad)."""
     return (math.hypot(a.x - b.x, a.y - b.y),
-            abs(math.remainder(a.theta - b.theta, 2 * math.pi)))
+            abs(angle_diff(a.theta, b.theta)))
 
 
 def ring_camera(camera_id: str, position_m: list[float], target_m: list[float],
                 template: CameraModel) -> CameraModel:
     """A camera like ``template`` at ``position_m`` looking at ``target_m``."""
-    from protocol.camera import invert_transform
-
     T_world_cam = look_at_T_world_cam(np.array(position_m), np.array(target_m))
     return CameraModel(camera_id, template.width, template.height, template.K.copy(),
                        template.dist.copy(), invert_transform(T_world_cam))

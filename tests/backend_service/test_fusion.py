@@ -8,9 +8,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from backend_service.bench_fusion import make_synthetic_run, replay
 from backend_service.fusion import FusionConfig, PoseGraphFusion
 from protocol.messages import Odometry, PoseEstimate
+from smartedge.bench.fusion import make_synthetic_run, replay
 
 ROBOT = "hsr1"
 T0 = 1_700_000_000_000_000_000

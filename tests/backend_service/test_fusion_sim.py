@@ -16,8 +16,8 @@ from backend_service.frame_set import PlanarPose
 from backend_service.fusion import PoseGraphFusion
 from backend_service.multi_frame import MultiFrameAverager
 from backend_service.sync import FrameSetSynchronizer
+from protocol.geometry import se2_between, se2_compose
 from protocol.messages import Odometry, RobotDetections
-from simulation.robot import compose, relative_pose
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario
 
@@ -70,7 +70,7 @@ def test_fused_ate_is_3x_lower_than_odometry(runs) -> None:
         gt = sim.ground_truth_at(np.array(stamps))
         # odometry alone, aligned with the ground truth at its first sample
         first = odom[0][1]
-        odo_world = np.array([compose(gt[0], relative_pose(first, p)) for _, p in odom[::4]])
+        odo_world = np.array([se2_compose(gt[0], se2_between(first, p)) for _, p in odom[::4]])
         fused = []
         for s in stamps:
             p = fusion.pose_at(int(s))

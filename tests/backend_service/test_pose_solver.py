@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from backend_service.cramer_rao import cramer_rao_bound
 from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import PlanarPose
 from backend_service.pose_solver import DEFAULT_METHOD, get_problem, robust_weights
 from protocol.camera import CameraModel
+from protocol.geometry import wrap_angle
+from smartedge.evaluation.cramer_rao import cramer_rao_bound
 from tests.backend_service.pose_synth import (
     ROBOT,
     example_site,
@@ -96,7 +97,7 @@ def test_gauss_newton_reaches_the_ipopt_minimum(n_cams: int, loss: str) -> None:
         gn = problem.solve(q0, p, "gauss_newton")
         assert gn.success and ref.success
         dq = gn.q - ref.q
-        dq[2] = math.remainder(dq[2], 2 * math.pi)
+        dq[2] = wrap_angle(dq[2])
         assert np.abs(dq).max() < 1e-7, (ids, loss, dq)
         assert abs(gn.cost - ref.cost) <= 1e-9 * ref.cost + 1e-12, (gn.cost, ref.cost)
         assert gn.iterations < 30
@@ -170,7 +171,7 @@ def test_monte_carlo_attains_cramer_rao_bound(ids: tuple[str, ...]) -> None:
         res = estimate_pose(fs, SITE, truth)
         assert res.ok, res.reason
         e = res.pose.as_array() - truth.as_array()
-        e[2] = math.remainder(e[2], 2 * math.pi)
+        e[2] = wrap_angle(e[2])
         errors.append(e)
     E = np.array(errors)
     nees = float(np.mean(np.einsum("ni,ij,nj->n", E, crb_inv, E)))

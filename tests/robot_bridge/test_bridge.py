@@ -4,18 +4,19 @@ adapter interface) and camera / fused pose estimates of its true pose."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 
 import numpy as np
 import pytest
 
-from protocol.messages import Odometry, PoseEstimate, ServiceStatus
+from protocol.geometry import angle_diff, se2_compose, se2_inverse, wrap_angle
+from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample
 from robot_bridge.adapters.sim import SimRobotAdapter, SimulatedRobotPort
 from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
-from robot_bridge.policy import wrap_angle
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -69,29 +70,20 @@ class DriftingRobot:
         return out
 
     def localization_pose(self) -> np.ndarray:
-        return np.array(_compose(self.T_map_odom, self.odom))
+        return se2_compose(self.T_map_odom, self.odom)
 
     def apply_correction(self, pose, stamp_ns: int) -> bool:
         if self.v != (0.0, 0.0):
             self.refused += 1
             return False
-        x, y, theta = pose
         # choose T_map_odom so that T_map_odom ∘ odom == the corrected pose
-        ox, oy, oth = self.odom
-        mth = wrap_angle(theta - oth)
-        c, s = math.cos(mth), math.sin(mth)
-        self.T_map_odom = np.array([x - (c * ox - s * oy), y - (s * ox + c * oy), mth])
+        self.T_map_odom = se2_compose(np.asarray(pose, dtype=float), se2_inverse(self.odom))
         return True
 
     def localization_error(self) -> tuple[float, float]:
         x, y, th = self.localization_pose()
         return (math.hypot(x - self.true[0], y - self.true[1]),
-                abs(wrap_angle(th - self.true[2])))
-
-
-def _compose(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+                abs(angle_diff(th, self.true[2])))
 
 
 def camera_estimate(robot: DriftingRobot, rng, sigma_m=0.01, sigma_deg=0.5, source="cameras",
@@ -136,12 +128,12 @@ class Harness:
             self._collect(out, pushed=True)
 
     def _collect(self, out: Outbox, pushed: bool) -> None:
+        if not pushed:  # decided on an estimate: push like the service loop does
+            out = self.bridge.apply(self.adapter, out)
         self.odometry.extend(out.odometry)
         for c in out.corrections:
             self.corrections.append(c)
             self.motion_at_correction.append(self.robot.v)
-            if not pushed:  # decided on an estimate: push like the service loop does
-                self.bridge.on_correction_result(c, self.adapter.apply_correction(c))
 
 
 def test_no_correction_while_moving() -> None:
@@ -170,6 +162,107 @@ def test_one_correction_per_static_stop_when_needed() -> None:
     assert h.robot.refused == 0
     c = h.bridge.counters
     assert c["corrections_sent"] == stops and c["corrections_accepted"] == stops
+
+
+def test_each_correction_is_applied_and_logged_once(caplog: pytest.LogCaptureFixture) -> None:
+    """Whether decided in a pump or on an incoming estimate, a correction reaches the robot
+    through RobotBridge.apply and gives exactly one info line."""
+    h = Harness(DriftingRobot())
+    with caplog.at_level(logging.DEBUG):
+        for _ in range(2):
+            h.run(6.0, vx=0.5)
+            h.run(4.0)
+    assert len(h.corrections) == 2
+    lines = [r for r in caplog.records if r.levelno >= logging.INFO and "applied to" in
+             r.getMessage()]
+    assert [r.getMessage().split()[:2] for r in lines] == [
+        ["correction", str(c.seq)] for c in h.corrections
+    ]
+    assert all(r.levelno == logging.INFO for r in lines)
+    assert h.bridge.counters["corrections_accepted"] == 2
+    assert not [r for r in caplog.records if r.levelno >= logging.INFO and r not in lines]
+
+
+def test_apply_counts_a_refusal_and_an_adapter_error(caplog: pytest.LogCaptureFixture) -> None:
+    robot = DriftingRobot()
+    adapter = SimRobotAdapter(robot)
+    bridge = RobotBridge(BridgeConfig(robot_id="hsr"))
+    cov = np.eye(3) * 1e-4
+    correction = PoseCorrection("hsr", T0, 0, 1.0, 0.0, 0.0, cov, "correction", 0.2, 0.0)
+    robot.v = (0.5, 0.0)  # moving: the robot refuses
+    with caplog.at_level(logging.INFO):
+        out = bridge.apply(adapter, Outbox(corrections=(correction,)))
+    assert out.corrections == (correction,)
+    assert [r.levelno for r in caplog.records] == [logging.WARNING]
+    assert "refused by hsr" in caplog.records[0].getMessage()
+
+    class Broken(SimRobotAdapter):
+        def apply_correction(self, correction):
+            raise RuntimeError("driver crashed")
+
+    bridge.apply(Broken(robot), Outbox(corrections=(correction,)))
+    c = bridge.counters
+    assert c["corrections_refused"] == 2 and c["adapter_error"] == 1
+
+
+def test_service_node_applies_each_correction_once(
+    example_site, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The service node: a correction decided in its pump (estimates already there when the
+    dwell ends) and one decided on an incoming estimate (the backend speaks up late) each reach
+    the robot once, are published once and logged once."""
+    from protocol import keys
+    from robot_bridge.service import RobotBridgeNode
+
+    robot = DriftingRobot()
+    adapter = SimRobotAdapter(robot)
+    applied: list[int] = []
+    push = adapter.apply_correction
+
+    def counting_push(correction: PoseCorrection) -> bool:
+        applied.append(correction.seq)
+        return push(correction)
+
+    adapter.apply_correction = counting_push  # type: ignore[method-assign]
+    node = RobotBridgeNode(
+        example_site, "hsr", lambda session: adapter,
+        advance=lambda now_ns: adapter.advance_to(robot.t_s),
+    )
+    node.attach(None)
+    pose_key = keys.robot_key(node.site, "hsr", "pose")
+    rng = np.random.default_rng(2)
+    seq = 0
+    from_handle: list[int] = []
+    from_tick: list[int] = []
+
+    def run(seconds: float, vx: float, estimates_after_s: float = 0.0) -> None:
+        nonlocal seq
+        for k in range(round(seconds * 50)):
+            robot.step(vx, 0.0)
+            if k % 5 == 0 and k / 50 >= estimates_after_s:
+                est = camera_estimate(robot, rng, seq=seq, source="fused")
+                seq += 1
+                from_handle.extend(
+                    o.message.seq for o in node.handle(pose_key, est, robot.t_ns)
+                    if o.key.endswith("/correction")
+                )
+            from_tick.extend(
+                o.message.seq for o in node.tick(robot.t_ns) if o.key.endswith("/correction")
+            )
+
+    with caplog.at_level(logging.INFO):
+        run(6.0, vx=0.5)
+        run(4.0, vx=0.0)  # estimates all along: decided when the dwell ends, in the pump
+        run(6.0, vx=0.5)
+        run(4.0, vx=0.0, estimates_after_s=2.0)  # decided on the first estimate
+    assert from_tick == [0] and from_handle == [1]
+    assert applied == [0, 1]
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO]
+    assert [m.split()[:3] for m in lines] == [["correction", "0", "applied"],
+                                              ["correction", "1", "applied"]]
+    assert node.counters()["corrections_correction"] == 2
+    assert node.counters()["bridge.corrections_accepted"] == 2
+    assert robot.localization_error()[0] < 0.03
 
 
 def test_no_correction_when_the_offset_is_small() -> None:
@@ -365,9 +458,7 @@ def _run_simulated(feedback: bool, localized: bool = True):
                 float(gt[1] + rng.normal(0, 0.01)),
                 float(wrap_angle(gt[2] + math.radians(rng.normal(0, 0.5)))),
                 np.diag([1e-4, 1e-4, math.radians(0.5) ** 2]), "cameras", ("cam_a", "cam_b"))
-            out = bridge.on_pose_estimate(est, now)
-            for c in out.corrections:
-                bridge.on_correction_result(c, adapter.apply_correction(c))
+            out = bridge.apply(adapter, bridge.on_pose_estimate(est, now))
             corrections.extend(out.corrections)
         corrections.extend(bridge.pump(adapter, now).corrections)
         if adapter.localized:

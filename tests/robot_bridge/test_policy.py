@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol.geometry import MotionState, StaticDetector, wrap_angle
 from protocol.messages import PoseEstimate
 from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose
@@ -23,11 +24,8 @@ from robot_bridge.policy import (
     UNCERTAIN,
     UNFIT_FOR_INIT,
     CorrectionPolicy,
-    MotionState,
-    StaticDetector,
     pose_offset,
     position_std_m,
-    wrap_angle,
 )
 
 TH = Thresholds()
@@ -49,8 +47,9 @@ def loc(x=1.0, y=2.0, theta=0.3, lost=False) -> LocalizationPose:
 
 
 def test_angle_and_offset_helpers() -> None:
-    assert wrap_angle(3 * math.pi) == pytest.approx(math.pi)
-    assert wrap_angle(-math.pi) == pytest.approx(math.pi)
+    # one convention, [-pi, pi): pi itself is -pi
+    assert wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
+    assert wrap_angle(-math.pi) == -math.pi
     assert wrap_angle(2 * math.pi + 0.1) == pytest.approx(0.1)
     d, a = pose_offset(0, 0, math.pi - 0.01, 3, 4, -math.pi + 0.01)
     assert d == pytest.approx(5.0) and a == pytest.approx(0.02)
@@ -60,7 +59,7 @@ def test_angle_and_offset_helpers() -> None:
 
 
 def test_static_detection_needs_the_dwell_time_and_counts_stops() -> None:
-    det = StaticDetector(TH)
+    det = StaticDetector.from_thresholds(TH)
     dt = S // 50
     t = T0
     for _ in range(50):  # moving
@@ -150,7 +149,7 @@ def test_one_pose_per_stop_and_rate_limit() -> None:
     )
 )
 def test_property_no_pose_is_ever_decided_while_moving(steps) -> None:
-    det = StaticDetector(TH)
+    det = StaticDetector.from_thresholds(TH)
     pol = CorrectionPolicy(TH)
     t = T0
     for speed, yaw_rate, dt_ms, offset, localized in steps:

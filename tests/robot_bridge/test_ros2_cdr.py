@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol.geometry import angle_diff
 from protocol.messages import PoseCorrection
 from robot_bridge.adapters import ros2
 from robot_bridge.adapters.base import OdometrySample
-from robot_bridge.policy import wrap_angle
 
 pytest.importorskip("rosbags")
 
@@ -191,7 +191,7 @@ def test_property_correction_round_trip(x, y, theta, sx, sy, rho, stamp_ns, ros1
     c = PoseCorrection("hsr", stamp_ns, seq, x, y, theta, cov, "correction")
     loc = ros2.deserialize_localization(ros2.serialize_correction(c, ros1=ros1), PWCS, ros1=ros1)
     assert (loc.x, loc.y, loc.stamp_ns) == (x, y, stamp_ns)
-    assert abs(wrap_angle(loc.theta - theta)) < 1e-9
+    assert abs(angle_diff(loc.theta, theta)) < 1e-9
     np.testing.assert_allclose(loc.covariance, cov, rtol=1e-12, atol=1e-15)
 
 

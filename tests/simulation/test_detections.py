@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from protocol.codec import decode, encode
+from protocol.geometry import se3_from_planar
 from protocol.messages import RobotDetections
-from simulation.detections import DetectionSimulator, planar_T, true_cameras
+from simulation.detections import DetectionSimulator, true_cameras
 from simulation.scenario import load_scenario
 
 
@@ -34,7 +35,8 @@ def test_noise_free_keypoints_are_true_projections(scenario) -> None:
     assert len(msg.detections) == 1
     d = msg.detections[0]
     model = sc.site.robot_model("hsr")
-    kps_w = (np.column_stack([model.keypoints_base_m, np.ones(12)]) @ planar_T(pose).T)[:, :3]
+    T_world_robot = se3_from_planar(*pose)
+    kps_w = model.keypoints_base_m @ T_world_robot[:3, :3].T + T_world_robot[:3, 3]
     uv, _ = det.cameras["cam1"].project(kps_w)
     used = d.keypoint_scores > 0.3
     np.testing.assert_allclose(d.keypoints_px[used], uv[used], atol=1e-9)

@@ -131,7 +131,9 @@ def test_backend_survives_garbage_on_every_key(tmp_path) -> None:
 
 def test_robot_bridge_survives_garbage_on_every_key() -> None:
     from robot_bridge.service import build_node, build_parser
+    from smartedge.plugins import register_simulation
 
+    register_simulation()
     args = build_parser().parse_args(["--adapter", "sim", "--sim-epoch-ns", str(time.time_ns())])
     node = build_node(args)
     runner, thread, endpoint = _run(node)

@@ -17,10 +17,18 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from protocol.errors import SmartedgeError
+from protocol.geometry import (
+    quaternion_to_rotation,
+    wrap_angle_array,
+    yaw_from_rotation,
+    yaw_to_quaternion_array,
+)
+
 log = logging.getLogger(__name__)
 
 
-class MetricsError(ValueError):
+class MetricsError(SmartedgeError, ValueError):
     """Inputs that cannot be evaluated (too few poses, degenerate geometry, no matches)."""
 
 
@@ -56,7 +64,7 @@ class Alignment:
     @property
     def yaw_rad(self) -> float:
         """Rotation about z of the alignment (planar part), radians."""
-        return math.atan2(self.R[1, 0], self.R[0, 0])
+        return yaw_from_rotation(self.R)
 
     def matrix(self) -> np.ndarray:
         """(d+1, d+1) homogeneous similarity matrix."""
@@ -102,19 +110,6 @@ def umeyama_alignment(
     return Alignment(R=R, t=t, scale=scale)
 
 
-def yaw_to_rotations(theta_rad: np.ndarray) -> np.ndarray:
-    """(N,) headings → (N, 2, 2) planar rotation matrices."""
-    th = np.asarray(theta_rad, dtype=np.float64)
-    c, s = np.cos(th), np.sin(th)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-def wrap_angle(angle_rad: np.ndarray | float) -> np.ndarray:
-    """Wrap angles to (-pi, pi]."""
-    a = np.asarray(angle_rad, dtype=np.float64)
-    return np.pi - np.mod(np.pi - a, 2 * np.pi)
-
-
 def align_planar(
     est_xytheta: np.ndarray, ref_xytheta: np.ndarray, with_scale: bool = False
 ) -> tuple[np.ndarray, Alignment]:
@@ -127,7 +122,7 @@ def align_planar(
     al = umeyama_alignment(est[:, :2], ref[:, :2], with_scale=with_scale)
     out = np.empty_like(est)
     out[:, :2] = al.apply_points(est[:, :2])
-    out[:, 2] = wrap_angle(est[:, 2] + al.yaw_rad)
+    out[:, 2] = wrap_angle_array(est[:, 2] + al.yaw_rad)
     return out, al
 
 
@@ -180,7 +175,8 @@ def translation_errors(ref_points: np.ndarray, est_points: np.ndarray) -> np.nda
 
 def heading_errors(ref_theta_rad: np.ndarray, est_theta_rad: np.ndarray) -> np.ndarray:
     """(N,) absolute planar heading differences in radians, in [0, pi]."""
-    return np.abs(wrap_angle(np.asarray(est_theta_rad, float) - np.asarray(ref_theta_rad, float)))
+    diff = np.asarray(est_theta_rad, float) - np.asarray(ref_theta_rad, float)
+    return np.abs(wrap_angle_array(diff))
 
 
 def rotation_angle_errors(ref_R: np.ndarray, est_R: np.ndarray) -> np.ndarray:
@@ -228,38 +224,23 @@ class Trajectory:
     def from_planar(cls, stamps_s: np.ndarray, xytheta: np.ndarray) -> Trajectory:
         """Planar poses (N, 3) (x, y, theta) at z = 0 → a 3D trajectory."""
         p = np.asarray(xytheta, dtype=np.float64).reshape(-1, 3)
-        half = p[:, 2] / 2.0
-        q = np.stack([np.zeros(len(p)), np.zeros(len(p)), np.sin(half), np.cos(half)], axis=1)
         pos = np.column_stack([p[:, :2], np.zeros(len(p))])
-        return cls(np.asarray(stamps_s, dtype=np.float64).reshape(-1), pos, q)
+        return cls(np.asarray(stamps_s, dtype=np.float64).reshape(-1), pos,
+                   yaw_to_quaternion_array(p[:, 2]))
 
     def rotations(self) -> np.ndarray:
         """(N, 3, 3) body → world rotation matrices."""
-        return quat_xyzw_to_rotations(self.quat_xyzw)
+        return quaternion_to_rotation(self.quat_xyzw)
 
     def planar(self) -> np.ndarray:
         """(N, 3) (x, y, yaw) of the poses (yaw of the rotation's x axis in the xy plane)."""
         R = self.rotations()
-        return np.column_stack([self.positions_m[:, :2], np.arctan2(R[:, 1, 0], R[:, 0, 0])])
+        yaw = wrap_angle_array(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
+        return np.column_stack([self.positions_m[:, :2], yaw])
 
     def subset(self, idx: np.ndarray | Sequence[int]) -> Trajectory:
         i = np.asarray(idx, dtype=np.int64)
         return Trajectory(self.stamps_s[i], self.positions_m[i], self.quat_xyzw[i])
-
-
-def quat_xyzw_to_rotations(q: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions (x, y, z, w) → (N, 3, 3) rotation matrices (normalised first)."""
-    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def match_stamps(

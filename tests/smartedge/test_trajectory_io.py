@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend_service.metrics import Trajectory
-from backend_service.trajectory_io import TrajectoryFileError, read_tum, write_tum
+from smartedge.evaluation.metrics import Trajectory
+from smartedge.evaluation.trajectory_io import TrajectoryFileError, read_tum, write_tum
 
 
 def test_round_trip(tmp_path: Path) -> None:

@@ -26,6 +26,7 @@ from typing import Any, Final
 import numpy as np
 import rerun as rr
 
+from protocol.errors import UsageError
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.site import Site
 
@@ -55,13 +56,13 @@ class RerunTarget:
         kind, _, arg = spec.partition(":")
         if kind == "save":
             if not arg:
-                raise ValueError("--rerun save:PATH.rrd needs a path")
+                raise UsageError("--rerun save:PATH.rrd needs a path")
             return cls("save", arg)
         if kind == "connect":
             return cls("connect", arg)
         if kind in ("spawn", "serve", "none") and not arg:
             return cls(kind)
-        raise ValueError(
+        raise UsageError(
             f"--rerun {spec!r}: expected save:PATH.rrd, spawn, connect[:URL], serve or none"
         )
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from backend_service.cramer_rao import (
+from backend_service.frame_set import PlanarPose
+from backend_service.pose_solver import StackedCameras, numeric_jacobian
+from smartedge.evaluation.cramer_rao import (
     cramer_rao_bound,
     greedy_camera_selection,
     placement_report,
 )
-from backend_service.frame_set import PlanarPose
-from backend_service.pose_solver import StackedCameras, numeric_jacobian
 from tests.backend_service.pose_synth import ROBOT, example_site, project_pose
 
 SITE = example_site()

@@ -11,12 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.metrics import Trajectory
+from protocol.errors import SmartedgeError
+from smartedge.evaluation.metrics import Trajectory
 
 log = logging.getLogger(__name__)
 
 
-class TrajectoryFileError(ValueError):
+class TrajectoryFileError(SmartedgeError, ValueError):
     """A trajectory file is missing, unreadable or malformed; the message names file and line."""
 
     def __init__(self, path: str, line: int | None, reason: str) -> None:

@@ -29,10 +29,11 @@ from backend_service.pose_solver import (
     numeric_jacobian,
     weighted_residuals,
 )
-from protocol.camera import CameraModel, invert_transform
+from protocol.camera import CameraModel
+from protocol.geometry import invert_transform, wrap_angle_array
 from protocol.site import load_site, look_at_T_world_cam
 
-SITE_FILE: Final = Path(__file__).resolve().parents[1] / "deploy" / "site.example.yaml"
+SITE_FILE: Final = Path(__file__).resolve().parents[2] / "deploy" / "site.example.yaml"
 CAMERA_COUNTS: Final = (1, 2, 4, 16)
 METHODS: Final = ("ipopt", "sqpmethod", "lm", "gauss_newton", "pyceres", "scipy")
 
@@ -148,7 +149,7 @@ def run(repeats: int, seed: int = 0) -> list[dict[str, float | int | str]]:
             ref = np.array(results[ref_name])
             for row in rows[-len(METHODS):]:
                 diff = np.array(results[str(row["method"])]) - ref
-                diff[:, 2] = np.remainder(diff[:, 2] + math.pi, 2 * math.pi) - math.pi
+                diff[:, 2] = wrap_angle_array(diff[:, 2])
                 row[key] = float(np.abs(diff).max())
     return rows
 

@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 
 from protocol import decode, encode, keys
+from protocol.geometry import rotation_z
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.session import loopback_config
 from protocol.site import Site, load_site
@@ -83,9 +84,7 @@ def _robot_pose(t_s: float) -> np.ndarray:
 def _detections(site: Site, pose: np.ndarray, stamp_ns: int, seq: int,
                 rng: np.random.Generator) -> list[tuple[str, bytes]]:
     model = site.robot_model()
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    pts = model.keypoints_base_m @ R.T + [pose[0], pose[1], 0.0]
+    pts = model.keypoints_base_m @ rotation_z(pose[2]).T + [pose[0], pose[1], 0.0]
     out = []
     for cam in site.cameras.values():
         uv, _ = cam.project(pts)
@@ -107,7 +106,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     backend = subprocess.Popen(
         [sys.executable, "-m", "smartedge", "--log-level", "WARNING", "backend", "--site",
-         str(site_path), "--rerun", "none", "--connect", endpoint, "--listen",
+         str(site_path), "--connect", endpoint, "--listen",
          "tcp/127.0.0.1:0"],
         stdout=subprocess.DEVNULL, stderr=(workdir / f"backend_{n_cameras}.log").open("w"),
         env={**os.environ, "PYTHONUNBUFFERED": "1"})

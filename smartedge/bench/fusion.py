@@ -24,6 +24,14 @@ from typing import Final
 import numpy as np
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
+from protocol.geometry import (
+    angle_diff,
+    rotation_z,
+    se2_compose,
+    se2_inverse,
+    wrap_angle,
+    wrap_angle_array,
+)
 from protocol.messages import Odometry, PoseEstimate
 
 _NS_PER_S: Final = 1_000_000_000
@@ -39,10 +47,6 @@ DEFAULT_WAYPOINTS: Final[tuple[tuple[float, float, float], ...]] = (
     (0.8, 3.0, -math.pi / 2),
 )
 DEFAULT_POOR_WAYPOINTS: Final = (0, 3)
-
-
-def _wrap(angle_rad: float) -> float:
-    return math.atan2(math.sin(angle_rad), math.cos(angle_rad))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +74,7 @@ class CameraShot:
             seq=seq,
             x=float(self.pose[0]),
             y=float(self.pose[1]),
-            theta=_wrap(float(self.pose[2])),
+            theta=wrap_angle(float(self.pose[2])),
             covariance=np.diag([self.sigma_m**2, self.sigma_m**2, self.sigma_rad**2]),
             source="cameras",
             camera_ids=("cam1",) if self.poorly_observed else ("cam1", "cam2", "cam3"),
@@ -99,20 +103,16 @@ class SyntheticRun:
             seq=i,
             x=float(self.odom[i, 0]),
             y=float(self.odom[i, 1]),
-            theta=_wrap(float(self.odom[i, 2])),
+            theta=wrap_angle(float(self.odom[i, 2])),
         )
 
     def odometry_in_world(self) -> np.ndarray:
         """(N, 3) odometry aligned to the world by its first pose (the "odometry alone")."""
-        x0, y0, t0 = self.truth[0]
-        o0 = self.odom[0]
-        rot = t0 - o0[2]
-        c, s = math.cos(rot), math.sin(rot)
-        dx, dy = self.odom[:, 0] - o0[0], self.odom[:, 1] - o0[1]
+        T_world_odom = se2_compose(self.truth[0], se2_inverse(self.odom[0]))
+        R = rotation_z(T_world_odom[2])[:2, :2]
         out = np.empty_like(self.odom)
-        out[:, 0] = x0 + c * dx - s * dy
-        out[:, 1] = y0 + s * dx + c * dy
-        out[:, 2] = np.arctan2(np.sin(self.odom[:, 2] + rot), np.cos(self.odom[:, 2] + rot))
+        out[:, :2] = self.odom[:, :2] @ R.T + T_world_odom[:2]
+        out[:, 2] = wrap_angle_array(self.odom[:, 2] + T_world_odom[2])
         return out
 
 
@@ -180,7 +180,7 @@ def make_synthetic_run(
                 emit(n, dist / (n * dt), 0.0, -1)
                 pose = np.array([gx, gy, bearing])
                 continue
-            d_th = _wrap(target - pose[2])
+            d_th = angle_diff(target, pose[2])
             n = max(1, math.ceil(abs(d_th) / (turn_rate_rad_s * dt)))
             emit(n, 0.0, d_th / (n * dt), -1)
             pose[2] = target

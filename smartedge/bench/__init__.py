@@ -11,11 +11,11 @@ from typing import Final
 
 #: benchmark → (module, function taking argv and returning an exit code, one-line help)
 BENCHES: Final[dict[str, tuple[str, str, str]]] = {
-    "codec": ("protocol.bench", "main", "encode+decode throughput of detections and clouds"),
-    "pose": ("backend_service.bench_pose", "main", "pose solve latency vs pyceres and scipy"),
-    "sim": ("simulation.bench", "main", "simulated seconds per wall second"),
-    "fusion": ("backend_service.bench_fusion", "main", "ISAM2 latency and memory over 1 h"),
-    "backend": ("backend_service.bench_backend", "main", "throughput/latency over real Zenoh"),
+    "codec": ("smartedge.bench.codec", "main", "encode+decode throughput of detections and clouds"),
+    "pose": ("smartedge.bench.pose", "main", "pose solve latency vs pyceres and scipy"),
+    "sim": ("smartedge.bench.sim", "main", "simulated seconds per wall second"),
+    "fusion": ("smartedge.bench.fusion", "main", "ISAM2 latency and memory over 1 h"),
+    "backend": ("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
 }
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
 
-rr_view = pytest.importorskip("backend_service.rerun_view")
+rr_view = pytest.importorskip("smartedge.viewer.rerun_view")
 
 
 @pytest.mark.parametrize(

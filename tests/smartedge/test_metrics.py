@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import copy
-import math
 
 import numpy as np
 import pytest
 
-from backend_service.metrics import (
+from protocol.geometry import rotation_z, wrap_angle_array
+from smartedge.evaluation.metrics import (
     MetricsError,
     Trajectory,
     align_planar,
@@ -18,7 +18,6 @@ from backend_service.metrics import (
     match_stamps,
     travelled_distance,
     umeyama_alignment,
-    wrap_angle,
 )
 
 
@@ -50,14 +49,13 @@ def test_se2_planar_alignment_recovers_yaw_and_headings() -> None:
     est = np.column_stack([rng.uniform(0, 10, 40), rng.uniform(0, 6, 40),
                            rng.uniform(-3, 3, 40)])
     yaw, t = 0.7, np.array([2.0, -1.0])
-    c, s = math.cos(yaw), math.sin(yaw)
     ref = est.copy()
-    ref[:, :2] = est[:, :2] @ np.array([[c, -s], [s, c]]).T + t
-    ref[:, 2] = wrap_angle(est[:, 2] + yaw)
+    ref[:, :2] = est[:, :2] @ rotation_z(yaw)[:2, :2].T + t
+    ref[:, 2] = wrap_angle_array(est[:, 2] + yaw)
     aligned, al = align_planar(est, ref)
     assert al.yaw_rad == pytest.approx(yaw, abs=1e-12)
     np.testing.assert_allclose(aligned[:, :2], ref[:, :2], atol=1e-10)
-    np.testing.assert_allclose(wrap_angle(aligned[:, 2] - ref[:, 2]), 0, atol=1e-10)
+    np.testing.assert_allclose(wrap_angle_array(aligned[:, 2] - ref[:, 2]), 0, atol=1e-10)
 
 
 def test_reflection_is_not_returned() -> None:

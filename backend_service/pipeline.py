@@ -1,0 +1,418 @@
+"""The per-robot backend pipeline: messages in, estimates out. Transport-free, one object.
+
+Everything that turns detections and odometry into poses happens here, in one place, driven the
+same way by the backend service (:mod:`backend_service.service`), the paper's experiments
+(``smartedge evaluate paper``), ``smartedge bench backend`` and replays:
+
+1. **sync**: :class:`~backend_service.sync.FrameSetSynchronizer` groups per-camera detections
+   into frame-sets;
+2. **prior**: one rule (:meth:`RobotTrack.prior`) picks the pose a solve starts from
+   (``PipelineConfig.prior``): the fused pose, or the robot's own localization, falling back
+   to a recent camera estimate; none means PnP initialization (kidnapped robot);
+3. **solve**: :func:`~backend_service.estimate.estimate_pose` (CasADi; the single-camera
+   heuristic inside it);
+4. **averaging while static**: the one static detector of :mod:`protocol.geometry`, fed with the
+   robot's odometry, decides when the robot stands still; then ``multi_frame.count``
+   consecutive agreeing estimates are averaged (:class:`~backend_service.multi_frame.
+   MultiFrameAverager`) and the average is flagged ``multi_frame``;
+5. **pose graph**: camera estimates (single frames while moving when ``fuse_while_moving``,
+   averages while static) and odometry go into :class:`~backend_service.fusion.
+   PoseGraphFusion`; each odometry sample yields the fused pose at its stamp.
+
+Inputs are the wire messages in arrival order (:meth:`BackendPipeline.feed`) plus the clock
+(:meth:`BackendPipeline.poll`); outputs are :class:`PipelineOutput` records: the camera
+estimates and fused poses exactly as they are published (``seq`` and ``frame_id`` set), and one
+:class:`SolveRecord` per frame-set for whoever wants to look inside (viewer, experiments, tests).
+Time comes from message stamps and the ``now_ns`` the caller passes; nothing here reads the
+wall clock for a decision (the solve latency is measured for the status only).
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Mapping
+from typing import Final, Protocol
+
+from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
+from backend_service.frame_set import FrameSet, PlanarPose
+from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
+from backend_service.sync import FrameSetSynchronizer
+from protocol.geometry import MotionState, StaticDetector
+from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
+from protocol.site import Site
+
+log = logging.getLogger(__name__)
+
+#: Where a solve's prior comes from first (the other sources are the fallbacks, in order).
+PRIOR_SOURCES: Final = ("fused", "localization")
+#: How many of the robot's own localization messages are kept for the prior lookup.
+LOCALIZATION_BUFFER: Final = 64
+
+
+class Fusion(Protocol):
+    """What the pipeline needs from a pose graph (:class:`~backend_service.fusion.
+    PoseGraphFusion`)."""
+
+    @property
+    def anchored(self) -> bool: ...
+
+    def add_odometry(self, msg: Odometry) -> PoseEstimate | None: ...
+
+    def add_camera_estimate(self, est: PoseEstimate) -> PoseEstimate | None: ...
+
+    def pose_at(self, stamp_ns: int) -> PoseEstimate | None: ...
+
+    def latest(self) -> PoseEstimate | None: ...
+
+
+#: robot id → a fresh pose graph for that robot (``None``: no fusion, camera estimates only)
+FusionFactory = Callable[[str], Fusion]
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """How the pipeline runs (the site file's ``pose``/``fusion`` sections fill it).
+
+    ``solver``: the pose solve. ``multi_frame``: averaging while static. ``prior``: where a
+    solve's prior comes from first: ``"fused"`` (the pose graph at the frame-set's stamp, the
+    service default) or ``"localization"`` (the robot's own localization nearest the stamp, the
+    paper's protocol); without it, the newest camera estimate at most ``prior_max_age_s`` old,
+    then the other source. ``fuse_while_moving``: also fuse single-frame estimates while the
+    robot moves (the paper fuses only the averages at static waypoints). Static detection:
+    ``static_max_speed_mps``, ``static_max_yaw_rate_radps`` for ``static_dwell_s``.
+    """
+
+    solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
+    multi_frame: MultiFrameConfig = dataclasses.field(default_factory=MultiFrameConfig)
+    prior: str = "fused"
+    prior_max_age_s: float = 1.0
+    fuse_while_moving: bool = True
+    static_max_speed_mps: float = 0.01
+    static_max_yaw_rate_radps: float = 0.02
+    static_dwell_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.prior not in PRIOR_SOURCES:
+            raise ValueError(f"PipelineConfig.prior {self.prior!r} not in {PRIOR_SOURCES}")
+        if not self.prior_max_age_s >= 0:
+            raise ValueError("PipelineConfig.prior_max_age_s must be >= 0")
+
+    @classmethod
+    def from_site(cls, site: Site, **overrides: object) -> PipelineConfig:
+        """The site file's ``pose`` section (this class's scalar fields and
+        :class:`SolverConfig`'s, in one flat mapping) and ``multi_frame`` section
+        (:class:`MultiFrameConfig`), with the static-detection thresholds of ``thresholds``;
+        ``overrides`` (e.g. from command-line flags) win. Errors name the file and key."""
+        th = site.thresholds
+        reader = site.section_reader()
+        pose = site.section("pose")
+        own = {"prior", "prior_max_age_s", "fuse_while_moving"}
+        solver_fields = {f.name for f in dataclasses.fields(SolverConfig)}
+        reader.no_unknown("pose", pose, own | solver_fields)
+        solver = reader.section("pose", {k: v for k, v in pose.items() if k in solver_fields},
+                                SolverConfig, int_lo=1)
+        multi_frame = reader.section("multi_frame", site.section("multi_frame"),
+                                     MultiFrameConfig, int_lo=1,
+                                     base=MultiFrameConfig(count=th.multi_frame_count))
+        base = reader.section(
+            "pose", {k: v for k, v in pose.items() if k in own}, cls,
+            base=cls(solver=solver, multi_frame=multi_frame,
+                     static_max_speed_mps=th.static_max_speed_mps,
+                     static_max_yaw_rate_radps=th.static_max_yaw_rate_radps,
+                     static_dwell_s=th.static_dwell_s))
+        return dataclasses.replace(base, **overrides)  # type: ignore[arg-type]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SolveRecord:
+    """One frame-set's trip through the pipeline.
+
+    ``prior``: the pose the solve started from (``None``: PnP) and ``prior_source`` which one
+    (``fused``, ``localization``, ``camera`` or ``none``); ``result``: the solver's outcome;
+    ``static``: the robot stood still at the frame-set's stamp; ``averaged``: the multi-frame
+    average this solve completed (or ``None``); ``solve_s``: wall time of the solve.
+    """
+
+    robot_id: str
+    frame_set: FrameSet
+    prior: PlanarPose | None
+    prior_source: str
+    result: PoseResult
+    static: bool
+    averaged: PoseEstimate | None
+    solve_s: float
+
+
+@dataclasses.dataclass
+class PipelineOutput:
+    """What one input produced, in order: ``camera`` estimates (single frames and averages,
+    for ``.../camera_pose``), ``fused`` poses (for ``.../pose``), ``solves`` (one per
+    frame-set). Outputs of several calls add up with ``+=``."""
+
+    camera: list[PoseEstimate] = dataclasses.field(default_factory=list)
+    fused: list[PoseEstimate] = dataclasses.field(default_factory=list)
+    solves: list[SolveRecord] = dataclasses.field(default_factory=list)
+
+    def __iadd__(self, other: PipelineOutput) -> PipelineOutput:
+        self.camera.extend(other.camera)
+        self.fused.extend(other.fused)
+        self.solves.extend(other.solves)
+        return self
+
+    def __bool__(self) -> bool:
+        return bool(self.camera or self.fused or self.solves)
+
+
+class RobotTrack:
+    """The pipeline's state for one robot: static detector, averager, pose graph, prior
+    sources, and the sequence numbers of what it publishes."""
+
+    def __init__(self, robot_id: str, config: PipelineConfig, fusion: Fusion | None,
+                 world_frame: str) -> None:
+        self.robot_id = robot_id
+        self.config = config
+        self.fusion = fusion
+        self.world_frame = world_frame
+        self.static = StaticDetector(config.static_max_speed_mps,
+                                     config.static_max_yaw_rate_radps, config.static_dwell_s)
+        self.averager = MultiFrameAverager.from_config(config.multi_frame)
+        self.last_camera: PoseEstimate | None = None
+        self.last_odometry: Odometry | None = None
+        #: the stop (its still-since stamp) that already has its average
+        self.averaged_stop_ns: int | None = None
+        self.seq_camera = 0
+        self.seq_fused = 0
+        self._dwell_ns = round(config.static_dwell_s * 1e9)
+        self._max_age_ns = round(config.prior_max_age_s * 1e9)
+        self._localization: collections.deque[PoseEstimate] = collections.deque(
+            maxlen=LOCALIZATION_BUFFER)
+
+    @property
+    def motion(self) -> MotionState:
+        return self.static.state
+
+    @property
+    def anchored(self) -> bool:
+        return self.fusion is not None and self.fusion.anchored
+
+    def static_at(self, stamp_ns: int) -> bool:
+        """The robot had stood still for the dwell time at ``stamp_ns``."""
+        since = self.static.state.still_since_ns
+        return since is not None and stamp_ns - since >= self._dwell_ns
+
+    def add_localization(self, est: PoseEstimate) -> None:
+        buf = self._localization
+        if buf and est.stamp_ns <= buf[-1].stamp_ns:
+            if any(e.stamp_ns == est.stamp_ns for e in buf):
+                return
+            items = sorted([*buf, est], key=lambda e: e.stamp_ns)
+            buf.clear()
+            buf.extend(items[-LOCALIZATION_BUFFER:])
+            return
+        buf.append(est)
+
+    def _localization_at(self, stamp_ns: int) -> PoseEstimate | None:
+        buf = self._localization
+        if not buf:
+            return None
+        stamps = [e.stamp_ns for e in buf]
+        i = bisect.bisect_right(stamps, stamp_ns)
+        near = [buf[j] for j in (i - 1, i) if 0 <= j < len(buf)]
+        best = min(near, key=lambda e: abs(e.stamp_ns - stamp_ns))
+        return best if abs(best.stamp_ns - stamp_ns) <= self._max_age_ns else None
+
+    def _fused_at(self, stamp_ns: int) -> PoseEstimate | None:
+        if self.fusion is None or not self.fusion.anchored:
+            return None
+        return self.fusion.pose_at(stamp_ns) or self.fusion.latest()
+
+    def prior(self, stamp_ns: int) -> tuple[PlanarPose | None, str]:
+        """The pose a solve at ``stamp_ns`` starts from and its source (the one prior rule)."""
+        lookups = {"fused": self._fused_at, "localization": self._localization_at,
+                   "camera": self._camera_at}
+        other = next(s for s in PRIOR_SOURCES if s != self.config.prior)
+        for source in (self.config.prior, "camera", other):
+            est = lookups[source](stamp_ns)
+            if est is not None:
+                return PlanarPose(est.x, est.y, est.theta), source
+        return None, "none"
+
+    def _camera_at(self, stamp_ns: int) -> PoseEstimate | None:
+        last = self.last_camera
+        if last is not None and abs(stamp_ns - last.stamp_ns) <= self._max_age_ns:
+            return last
+        return None
+
+
+class BackendPipeline:
+    """Sync → prior → solve → averaging while static → pose graph, for every robot of a site.
+
+    ``fusion_factory``: builds one pose graph per robot (default: GTSAM's
+    :class:`~backend_service.fusion.PoseGraphFusion` with ``fusion_config``); pass ``None``
+    explicitly through ``with_fusion=False`` for camera estimates only. Not thread-safe: one
+    worker loop drives it.
+    """
+
+    def __init__(self, site: Site, config: PipelineConfig | None = None, *,
+                 fusion_config: object = None,
+                 fusion_factory: FusionFactory | None = None,
+                 with_fusion: bool = True) -> None:
+        self.site = site
+        self.config = config or PipelineConfig.from_site(site)
+        if with_fusion and fusion_factory is None:
+            from backend_service.fusion import FusionConfig, PoseGraphFusion
+
+            fcfg = fusion_config if isinstance(fusion_config, FusionConfig) else FusionConfig()
+
+            def fusion_factory(robot_id: str) -> Fusion:
+                return PoseGraphFusion(robot_id, fcfg)
+
+        self.sync = FrameSetSynchronizer(site)
+        self.tracks: dict[str, RobotTrack] = {
+            rid: RobotTrack(rid, self.config,
+                            fusion_factory(rid) if with_fusion and fusion_factory else None,
+                            site.world_frame)
+            for rid in site.robots
+        }
+        self.counters: collections.Counter[str] = collections.Counter()
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    def feed(self, message: Message, arrival_ns: int) -> PipelineOutput:
+        """One wire message as it arrived (``arrival_ns`` on the backend's clock). Detections,
+        odometry and the robot's own localization (``PoseEstimate`` with source ``robot``) are
+        used; anything else is ignored (counted ``ignored``)."""
+        if isinstance(message, RobotDetections):
+            return self.on_detections(message, arrival_ns)
+        if isinstance(message, Odometry):
+            return self.on_odometry(message)
+        if isinstance(message, PoseEstimate) and message.source == "robot":
+            self.on_localization(message)
+            return PipelineOutput()
+        self.counters["ignored"] += 1
+        return PipelineOutput()
+
+    def step(self, message: Message, arrival_ns: int) -> PipelineOutput:
+        """What the service does when ``message`` arrives at ``arrival_ns``: its clock tick
+        first (:meth:`poll`), then the message (:meth:`feed`). Replays and experiments drive
+        the pipeline with this, message by message in arrival order."""
+        out = self.poll(arrival_ns)
+        out += self.feed(message, arrival_ns)
+        return out
+
+    def on_detections(self, msg: RobotDetections, arrival_ns: int) -> PipelineOutput:
+        return self._solve_all(self.sync.push(msg, arrival_ns), arrival_ns)
+
+    def poll(self, now_ns: int) -> PipelineOutput:
+        """Emit the frame-sets whose wait is over at ``now_ns`` and solve them."""
+        return self._solve_all(self.sync.poll(now_ns), now_ns)
+
+    def flush(self) -> PipelineOutput:
+        """Emit and solve every open frame-set (end of a recording)."""
+        return self._solve_all(self.sync.flush(), None)
+
+    def on_odometry(self, odom: Odometry) -> PipelineOutput:
+        track = self._track(odom.robot_id)
+        if track is None:
+            return PipelineOutput()
+        motion = track.static.update(odom.stamp_ns, odom.vx, odom.vy, odom.wz)
+        if motion.still_since_ns is None:
+            track.averager.reset()
+        track.last_odometry = odom
+        out = PipelineOutput()
+        if track.fusion is not None:
+            fused = track.fusion.add_odometry(odom)
+            if fused is not None:
+                out.fused.append(self._stamp_fused(track, fused))
+        return out
+
+    def on_localization(self, est: PoseEstimate) -> None:
+        """The robot's own localization (a prior source)."""
+        track = self._track(est.robot_id)
+        if track is not None:
+            track.add_localization(est)
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _track(self, robot_id: str) -> RobotTrack | None:
+        track = self.tracks.get(robot_id)
+        if track is None:
+            self.counters["unknown_robot"] += 1
+        return track
+
+    def _solve_all(self, frame_sets: list[FrameSet], now_ns: int | None) -> PipelineOutput:
+        out = PipelineOutput()
+        for fs in frame_sets:
+            out += self._solve(fs)
+        return out
+
+    def _solve(self, fs: FrameSet) -> PipelineOutput:
+        out = PipelineOutput()
+        # an unnamed frame-set can only come from a one-robot site (the synchronizer's rule)
+        track = self._track(fs.robot_id) if fs.robot_id else next(iter(self.tracks.values()))
+        if track is None:
+            return out
+        prior, source = track.prior(fs.stamp_ns)
+        t0 = time.perf_counter()
+        result = estimate_pose(fs, self.site, prior, self.config.solver)
+        solve_s = time.perf_counter() - t0
+        static = track.static_at(fs.stamp_ns)
+        averaged: PoseEstimate | None = None
+        if not result.ok or result.estimate is None:
+            self.counters["no_estimate"] += 1
+            self.counters[f"no_estimate.{result.reason.split(':')[0][:40]}"] += 1
+        else:
+            self.counters["estimates"] += 1
+            out.camera.append(self._stamp_camera(track, result.estimate))
+            stop = track.motion.still_since_ns
+            done = self.config.multi_frame.once_per_stop and track.averaged_stop_ns == stop
+            if static:
+                # standing still: single frames are not fused, their average is (once)
+                avg = None if done else track.averager.add(result)
+                if avg is not None and avg.estimate is not None:
+                    averaged = self._stamp_camera(track, avg.estimate)
+                    out.camera.append(averaged)
+                    out.fused.extend(self._fuse(track, averaged))
+                    track.averager.reset()
+                    track.averaged_stop_ns = stop
+                    self.counters["averaged"] += 1
+            else:
+                track.averager.reset()
+                if self.config.fuse_while_moving:
+                    out.fused.extend(self._fuse(track, out.camera[-1]))
+        out.solves.append(SolveRecord(track.robot_id, fs, prior, source, result, static,
+                                      averaged, solve_s))
+        return out
+
+    def _fuse(self, track: RobotTrack, est: PoseEstimate) -> list[PoseEstimate]:
+        if track.fusion is None:
+            return []
+        fused = track.fusion.add_camera_estimate(est)
+        return [] if fused is None else [self._stamp_fused(track, fused)]
+
+    def _stamp_camera(self, track: RobotTrack, est: PoseEstimate) -> PoseEstimate:
+        est = dataclasses.replace(est, seq=track.seq_camera, frame_id=track.world_frame)
+        track.seq_camera += 1
+        track.last_camera = est
+        return est
+
+    def _stamp_fused(self, track: RobotTrack, fused: PoseEstimate) -> PoseEstimate:
+        fused = dataclasses.replace(fused, seq=track.seq_fused, frame_id=track.world_frame)
+        track.seq_fused += 1
+        return fused
+
+    # -- status --------------------------------------------------------------------------------
+
+    def counter_snapshot(self) -> Mapping[str, int]:
+        """Pipeline, synchronizer and pose-graph counters (flat, dotted names)."""
+        out: dict[str, int] = dict(self.counters)
+        out.update({f"sync.{k}": int(v) for k, v in self.sync.counters.items()})
+        for rid, t in self.tracks.items():
+            counters = getattr(t.fusion, "counters", None)
+            if counters:
+                out.update({f"fusion.{rid}.{k}": int(v) for k, v in counters.items()})
+        return out

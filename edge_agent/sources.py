@@ -1,0 +1,124 @@
+"""Frame sources of the edge agent and the registry the ``--source`` option is built from.
+
+A source plug-in is registered under a name (:func:`register_source`); the edge agent's parser
+offers every registered name as a ``--source`` choice, lets each plug-in add its own argument
+group, and builds the chosen source with ``plugin.build(args, site)``.
+
+The edge agent registers only what it ships (``camera``). Anything else, such as the simulated
+site, is registered from the top floor (:mod:`smartedge.plugins`): this package never imports
+the code that provides it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+from typing import Protocol
+
+from protocol.messages import RobotDetections
+from protocol.site import Site
+
+log = logging.getLogger(__name__)
+
+
+class FrameSource(Protocol):
+    """Produces the detections of one camera that are due at ``now_ns``.
+
+    ``label`` names the source in the status (``sim``, ``camera``...). A source that brings its
+    own site (the simulated one) may also have a ``site`` attribute: the edge agent uses it when
+    no ``--site`` was given.
+    """
+
+    label: str
+
+    def poll(self, now_ns: int) -> list[RobotDetections]: ...
+
+
+class SourcePlugin(Protocol):
+    """A kind of frame source, as registered under a ``--source`` name.
+
+    ``add_arguments(parser)`` adds the plug-in's own argument group (it is called once per
+    parser for every registered plug-in, whichever source is chosen). ``build(args, site)``
+    returns the source for the parsed ``args``; ``site`` is the site file given with
+    ``--site`` (``None`` when there was none). Bad options raise ``ValueError`` or
+    ``KeyError`` with a message for the user.
+
+    A plug-in may have an ``unavailable`` attribute: a non-empty string saying why it cannot
+    run in this installation; the edge agent then prints it and exits with code 2.
+    """
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None: ...
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource: ...
+
+
+_lock = threading.Lock()
+_sources: dict[str, SourcePlugin] = {}
+
+
+def register_source(name: str, plugin: SourcePlugin) -> None:
+    """Offer ``plugin`` as ``--source name``. Registering the same plug-in again is a no-op;
+    another plug-in under a taken name is a ``ValueError``."""
+    if not name or not name.replace("-", "").replace("_", "").isalnum():
+        raise ValueError(f"bad frame source name {name!r}")
+    with _lock:
+        existing = _sources.get(name)
+        if existing is plugin:
+            return
+        if existing is not None:
+            raise ValueError(f"frame source {name!r} is already registered ({existing!r})")
+        _sources[name] = plugin
+    log.debug("frame source %r registered", name)
+
+
+def source_names() -> tuple[str, ...]:
+    """The registered ``--source`` names, sorted."""
+    with _lock:
+        return tuple(sorted(_sources))
+
+
+def get_source(name: str) -> SourcePlugin:
+    """The plug-in registered as ``name`` (``KeyError`` naming the known ones otherwise)."""
+    with _lock:
+        try:
+            return _sources[name]
+        except KeyError:
+            raise KeyError(
+                f"unknown frame source {name!r}; registered: {', '.join(sorted(_sources))}"
+            ) from None
+
+
+def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--source`` with the registered names as choices, then every plug-in's own group."""
+    names = source_names()
+    parser.add_argument(
+        "--source",
+        choices=names,
+        default=default,
+        help=f"frame source (default: {default})",
+    )
+    seen: set[int] = set()
+    for name in names:
+        plugin = get_source(name)
+        if id(plugin) not in seen:  # one plug-in may serve several names
+            seen.add(id(plugin))
+            plugin.add_arguments(parser)
+
+
+class CameraSourcePlugin:
+    """A real camera through the ONNX keypoint detector. This version ships no keypoint model,
+    so the source says so instead of running."""
+
+    unavailable = (
+        "the camera source needs the robot keypoint model (ONNX), which this version does not ship"
+    )
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        pass
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource:
+        raise ValueError(self.unavailable)
+
+
+register_source("camera", CameraSourcePlugin())

@@ -1,0 +1,148 @@
+"""Robot adapter plug-ins and the registry the bridge's ``--adapter`` option is built from.
+
+A plug-in is registered under a name (:func:`register_adapter`); the bridge's parser offers
+every registered name as an ``--adapter`` choice, lets each plug-in add its own argument group,
+and calls ``plugin.build(args, site)`` for the chosen one, which returns an
+:class:`AdapterSetup`: the adapter factory and, for a robot the bridge's process steps itself
+(a simulated one), an ``advance(now_ns)`` hook.
+
+The robot bridge registers the adapters it ships (``ros2``, ``ros1``). Anything else, such as
+the simulated robot, is registered from the top floor (:mod:`smartedge.plugins`): this package
+never imports the code that provides it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from protocol.site import Site
+from robot_bridge.adapters.base import RobotAdapter
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class AdapterSetup:
+    """What an adapter plug-in builds for one bridge.
+
+    ``factory(session)`` builds the adapter once the Zenoh session is open (the ROS adapters
+    are Zenoh clients themselves). ``advance(now_ns)``: called before every pump with the wall
+    clock (ns), for a robot simulated in the bridge's process; ``None`` for a real robot.
+    ``site`` and ``robot_id``: what the adapter brings along (the simulated site and its
+    robot), used when ``--site`` / ``--robot`` are not given.
+    """
+
+    factory: Callable[[Any], RobotAdapter]
+    advance: Callable[[int], None] | None = None
+    site: Site | None = None
+    robot_id: str | None = None
+
+
+class AdapterPlugin(Protocol):
+    """A kind of robot adapter, as registered under an ``--adapter`` name.
+
+    ``add_arguments(parser)`` adds the plug-in's own argument group (called once per parser
+    for every registered plug-in, whichever adapter is chosen; a plug-in registered under
+    several names is asked once). ``build(args, site)`` returns the :class:`AdapterSetup` for
+    the parsed ``args``; ``site`` is the site file given with ``--site`` (``None`` when there
+    was none). Bad options raise ``ValueError`` or ``KeyError`` with a message for the user.
+    """
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None: ...
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup: ...
+
+
+_lock = threading.Lock()
+_adapters: dict[str, AdapterPlugin] = {}
+
+
+def register_adapter(name: str, plugin: AdapterPlugin) -> None:
+    """Offer ``plugin`` as ``--adapter name``. Registering the same plug-in again is a no-op;
+    another plug-in under a taken name is a ``ValueError``."""
+    if not name or not name.replace("-", "").replace("_", "").isalnum():
+        raise ValueError(f"bad robot adapter name {name!r}")
+    with _lock:
+        existing = _adapters.get(name)
+        if existing is plugin:
+            return
+        if existing is not None:
+            raise ValueError(f"robot adapter {name!r} is already registered ({existing!r})")
+        _adapters[name] = plugin
+    log.debug("robot adapter %r registered", name)
+
+
+def adapter_names() -> tuple[str, ...]:
+    """The registered ``--adapter`` names, sorted."""
+    with _lock:
+        return tuple(sorted(_adapters))
+
+
+def get_adapter(name: str) -> AdapterPlugin:
+    """The plug-in registered as ``name`` (``KeyError`` naming the known ones otherwise)."""
+    with _lock:
+        try:
+            return _adapters[name]
+        except KeyError:
+            raise KeyError(
+                f"unknown robot adapter {name!r}; registered: {', '.join(sorted(_adapters))}"
+            ) from None
+
+
+def add_adapter_arguments(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--adapter`` with the registered names as choices, then every plug-in's own group."""
+    names = adapter_names()
+    parser.add_argument(
+        "--adapter", choices=names, default=default, help=f"robot adapter (default: {default})"
+    )
+    seen: set[int] = set()
+    for name in names:
+        plugin = get_adapter(name)
+        if id(plugin) not in seen:
+            seen.add(id(plugin))
+            plugin.add_arguments(parser)
+
+
+class RosAdapterPlugin:
+    """ROS 2 (zenoh-bridge-ros2dds) and ROS 1 (zenoh-plugin-ros1) robots through
+    :class:`robot_bridge.adapters.ros2.RosZenohAdapter`; one plug-in for both names, the
+    ``--adapter`` value says which."""
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        group = parser.add_argument_group("ROS adapters (ros2, ros1)")
+        group.add_argument(
+            "--robot-profile",
+            choices=("hsr", "nav2"),
+            default="hsr",
+            help="ROS topic set: HSR (laser_2d_correct_pose) or Nav2 (initialpose)",
+        )
+        group.add_argument("--ros-namespace", default="", help="zenoh-bridge namespace")
+        group.add_argument("--correction-topic", help="override the correction topic")
+        group.add_argument("--odom-topic", help="override the odometry topic")
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup:
+        # rosbags (the CDR codec) is an extra: imported only when a ROS adapter is chosen
+        from robot_bridge.adapters.ros2 import RosTopics, RosZenohAdapter
+
+        if site is None:
+            raise ValueError(f"--site is required with --adapter {args.adapter}")
+        ros1 = args.adapter == "ros1"
+        if args.robot_profile == "hsr":
+            topics = RosTopics.hsr(ros1=ros1, namespace=args.ros_namespace)
+        else:
+            topics = dataclasses.replace(RosTopics.nav2(namespace=args.ros_namespace), ros1=ros1)
+        if args.correction_topic:
+            topics = dataclasses.replace(topics, correction_topic=args.correction_topic)
+        if args.odom_topic:
+            topics = dataclasses.replace(topics, odometry_topic=args.odom_topic)
+        return AdapterSetup(lambda session: RosZenohAdapter(session, topics))
+
+
+ROS_ADAPTERS = RosAdapterPlugin()
+register_adapter("ros2", ROS_ADAPTERS)
+register_adapter("ros1", ROS_ADAPTERS)

@@ -1,0 +1,158 @@
+"""Plug-in assembly: which frame sources and robot adapters the services offer.
+
+The services know only their own registries (:mod:`edge_agent.sources`,
+:mod:`robot_bridge.adapters.registry`) and never import the simulation; the simulation knows
+only :mod:`protocol`. This module, on the top floor, knows both and registers the simulated site
+into the services:
+
+- ``--source sim`` of the edge agent: one camera of :class:`simulation.live.LiveSimulation`
+  (:class:`simulation.live.CameraFeed`);
+- ``--adapter sim`` of the robot bridge: the simulated robot of the same live simulation,
+  through :class:`robot_bridge.adapters.sim.SimRobotAdapter`, stepped by the bridge's loop.
+
+``smartedge edge-agent`` and ``smartedge robot-bridge`` run :func:`edge_agent_main` and
+:func:`robot_bridge_main`, which register the plug-ins before the service parses its options.
+The service registries are imported only when something is registered into them, so the edge
+agent's command never loads the robot bridge.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from protocol.messages import RobotDetections
+from protocol.site import Site
+
+if TYPE_CHECKING:
+    from robot_bridge.adapters.registry import AdapterSetup
+
+log = logging.getLogger(__name__)
+
+_lock = threading.Lock()
+_registered: set[str] = set()
+
+
+class SimulatedCameraSource:
+    """The detections of one camera of the simulated site; the site comes with it."""
+
+    label = "sim"
+
+    def __init__(self, feed: Any, site: Site) -> None:
+        self._feed = feed
+        self.site = site
+
+    def poll(self, now_ns: int) -> list[RobotDetections]:
+        return self._feed.poll(now_ns)
+
+
+class SimSourcePlugin:
+    """``--source sim``: the edge agent of one camera of a live simulation."""
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from simulation.live import add_sim_arguments
+
+        add_sim_arguments(parser)
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> SimulatedCameraSource:
+        from simulation.live import CameraFeed, LiveSimulation, spec_from_args
+
+        live = LiveSimulation(spec_from_args(args))
+        feed = CameraFeed(live, args.camera)
+        log.info(
+            "edge agent %s: SIMULATED source (scenario %s, trajectory %s, t0 in %.1f s)",
+            args.camera,
+            live.scenario.name,
+            live.spec.trajectory,
+            (live.spec.epoch_ns - time.time_ns()) * 1e-9,
+        )
+        return SimulatedCameraSource(feed, live.site)
+
+
+class SimAdapterPlugin:
+    """``--adapter sim``: the simulated robot of a live simulation, stepped by the bridge."""
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        from simulation.live import add_sim_arguments
+
+        group = add_sim_arguments(parser)
+        group.add_argument(
+            "--kidnapped",
+            action="store_true",
+            help="sim adapter: the robot starts without localization",
+        )
+
+    def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup:
+        from robot_bridge.adapters.registry import AdapterSetup
+        from robot_bridge.adapters.sim import SimRobotAdapter
+        from simulation.live import LiveSimulation, spec_from_args
+
+        live = LiveSimulation(spec_from_args(args))
+        adapter = SimRobotAdapter(live.run.robot, localized=not args.kidnapped)
+
+        def advance(now_ns: int) -> None:
+            adapter.advance_to(live.t_s(now_ns))
+
+        log.info(
+            "robot bridge %s: SIMULATED robot (scenario %s, trajectory %s, t0 in %.1f s)",
+            live.robot_id,
+            live.scenario.name,
+            live.spec.trajectory,
+            (live.spec.epoch_ns - time.time_ns()) * 1e-9,
+        )
+        return AdapterSetup(
+            factory=lambda session: adapter, advance=advance, site=live.site,
+            robot_id=live.robot_id,
+        )
+
+
+SIM_SOURCE = SimSourcePlugin()
+SIM_ADAPTER = SimAdapterPlugin()
+
+
+def register_sim_source() -> None:
+    """Offer ``--source sim`` in the edge agent (idempotent)."""
+    with _lock:
+        if "source" in _registered:
+            return
+        from edge_agent.sources import register_source
+
+        register_source("sim", SIM_SOURCE)
+        _registered.add("source")
+
+
+def register_sim_adapter() -> None:
+    """Offer ``--adapter sim`` in the robot bridge (idempotent)."""
+    with _lock:
+        if "adapter" in _registered:
+            return
+        from robot_bridge.adapters.registry import register_adapter
+
+        register_adapter("sim", SIM_ADAPTER)
+        _registered.add("adapter")
+
+
+def register_simulation() -> None:
+    """Register the simulated site into every service registry (idempotent)."""
+    register_sim_source()
+    register_sim_adapter()
+
+
+def edge_agent_main(argv: Sequence[str]) -> int:
+    """``smartedge edge-agent``: the edge agent with the simulated source offered."""
+    register_sim_source()
+    from edge_agent.service import main
+
+    return main(argv)
+
+
+def robot_bridge_main(argv: Sequence[str]) -> int:
+    """``smartedge robot-bridge``: the robot bridge with the simulated robot offered."""
+    register_sim_adapter()
+    from robot_bridge.service import main
+
+    return main(argv)
