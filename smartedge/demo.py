@@ -1,8 +1,9 @@
 """``smartedge demo``: the whole system on the simulated paper site, over Zenoh on loopback.
 
 Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph), the viewer
-(Rerun recording, with the simulator's ground truth) and the robot bridge (simulated HSR with drifting localization that accepts
-corrections while static) talk over real Zenoh sessions on 127.0.0.1 (no router, no multicast).
+(Rerun recording, with the simulator's ground truth) and the robot bridge (simulated HSR with
+drifting localization that accepts corrections while static) talk over real Zenoh sessions on
+127.0.0.1 (no router, no multicast).
 By default they run as threads of this process, each with its own Zenoh session; with
 ``--processes`` each is its own OS process started with the same command a deployment uses.
 A monitor session listens to everything, prints progress, and at the end prints the accuracy

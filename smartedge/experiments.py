@@ -709,7 +709,8 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
     (``pipeline_config``, default :func:`paper_pipeline_config`), as in :func:`run_once`. With
     feedback, the real :class:`robot_bridge.bridge.RobotBridge` (the site's thresholds) gets the
     robot's odometry and localization through a :class:`SimRobotAdapter` and the fused poses the
-    pipeline publishes, as the bridge service does; the corrections it decides on are pushed to
+    pipeline publishes (camera-only estimates without fusion), as the bridge service does; the
+    corrections it decides on are pushed to
     the simulated robot, which takes them only while static. ``failure``: end the run at the
     first failure (experiment 3).
     """
@@ -733,14 +734,13 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
     arrived: set[int] = set()
     state: dict[str, object] = {"outcome": SUCCESS, "wp": None, "dist": math.nan}
 
-    def push(out: Outbox) -> None:
-        # corrections decided on an estimate: pushed to the robot like RobotBridge.pump does
+    def push(box: Outbox) -> None:
+        """Corrections decided on an estimate go to the robot the one way the bridge has."""
         assert bridge is not None and adapter is not None
-        for corr in out.corrections:
-            t_now = robot.t_s
-            accepted = adapter.apply_correction(corr)
-            bridge.on_correction_result(corr, accepted)
-            record(corr, accepted, t_now)
+        before, t_now = robot.corrections_applied, robot.t_s
+        bridge.apply(adapter, box)
+        for k, corr in enumerate(box.corrections):
+            record(corr, k < robot.corrections_applied - before, t_now)
 
     def record(corr: object, accepted: bool, t_now: float) -> None:
         stamp = int(corr.stamp_ns)  # type: ignore[attr-defined]
@@ -779,8 +779,10 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
             box = bridge.pump(adapter, tm.arrival_ns)
             for k, corr in enumerate(box.corrections):
                 record(corr, k < robot.corrections_applied - before, t_now)
-        for fused_pose in out.fused:
-            push(bridge.on_pose_estimate(fused_pose, tm.arrival_ns))
+        # what the bridge service subscribes to: the fused pose, or without a pose graph the
+        # camera-only estimates (--correction-source cameras)
+        for est in out.fused if fusion_factory is not None else out.camera:
+            push(bridge.on_pose_estimate(est, tm.arrival_ns))
 
     fusion = pipeline.tracks[scenario.robot_id].fusion
     stamps, gt, loc = sim.log.arrays()

@@ -34,7 +34,7 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     )
     seen = result.seen
     # every service ran as a process and stopped cleanly on SIGTERM
-    assert result.exit_codes == [0] * 6, result.exit_codes
+    assert result.exit_codes == [0] * 7, result.exit_codes  # 4 edge agents, backend, bridge, viewer
     assert {"backend/main", "robot-bridge/hsr"} <= set(seen.status)
     assert sum(k.startswith("edge-agent/") for k in seen.status) == 4
     # poses came out, accurate against ground truth, and the bridge corrected the robot
@@ -63,7 +63,7 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
         "/world/trajectories/hsr/odometry",
         "/world/trajectories/hsr/camera",
         "/metrics/hsr/error_cm/fused",
-        "/metrics/latency_ms/stamp_to_pose",
+        "/metrics/latency_ms/stamp_to_view",
         "/status/backend/main",
     ):
         assert expected in entities, f"{expected} missing from the recording"

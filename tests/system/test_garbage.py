@@ -89,8 +89,7 @@ def test_backend_survives_garbage_on_every_key(tmp_path) -> None:
     args = argparse.Namespace(
         site=scenario.site.source_path,
         id="main",
-        rerun="none",
-        solver="default",
+        solver=None,
         robust_loss="huber",
     )
     node = build_node(args)
