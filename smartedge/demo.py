@@ -30,6 +30,7 @@ from typing import Any, Final
 import numpy as np
 
 from protocol import decode, keys
+from protocol.geometry import wrap_angle_array
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
 
@@ -105,7 +106,7 @@ def _errors(estimates: list[PoseEstimate], live: Any) -> tuple[np.ndarray, np.nd
     est = np.array([[e.x, e.y, e.theta] for e in estimates])
     truth = np.array([live.ground_truth(e.stamp_ns) for e in estimates])
     dt = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    dth = np.abs((est[:, 2] - truth[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+    dth = np.abs(wrap_angle_array(est[:, 2] - truth[:, 2]))
     return dt, dth
 
 

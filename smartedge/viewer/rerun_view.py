@@ -27,6 +27,11 @@ import numpy as np
 import rerun as rr
 
 from protocol.errors import UsageError
+from protocol.geometry import (
+    rotation_z,
+    yaw_from_rotation,
+    yaw_to_quaternion,
+)
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.site import Site
 
@@ -65,20 +70,6 @@ class RerunTarget:
         raise UsageError(
             f"--rerun {spec!r}: expected save:PATH.rrd, spawn, connect[:URL], serve or none"
         )
-
-
-def _quat_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix."""
-    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
-    q = np.array([x, y, z, w])
-    return q / np.linalg.norm(q)
-
-
-def _yaw_quat(theta: float) -> list[float]:
-    return [0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)]
 
 
 class RerunView:
@@ -221,9 +212,7 @@ class RerunView:
         self._pose_entity(est.robot_id, kind, est.x, est.y, est.theta)
         if kind == "camera":
             model = self.site.robot_model(est.robot_id)
-            c, s = math.cos(est.theta), math.sin(est.theta)
-            R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-            pts = model.keypoints_base_m @ R.T + [est.x, est.y, 0.0]
+            pts = model.keypoints_base_m @ rotation_z(est.theta).T + [est.x, est.y, 0.0]
             self.rec.log(
                 f"world/robots/{est.robot_id}/camera_keypoints",
                 rr.Points3D(pts, keypoint_ids=np.arange(len(pts)), class_ids=0, radii=0.015),
@@ -248,7 +237,7 @@ class RerunView:
     def _pose_entity(self, robot_id: str, kind: str, x: float, y: float, theta: float) -> None:
         self.rec.log(
             f"world/robots/{robot_id}/{kind}",
-            rr.Transform3D(translation=[x, y, 0.0], quaternion=_yaw_quat(theta)),
+            rr.Transform3D(translation=[x, y, 0.0], quaternion=list(yaw_to_quaternion(theta))),
         )
         self.rec.log(
             f"world/robots/{robot_id}/{kind}/marker",
@@ -274,7 +263,7 @@ class RerunView:
         if T_world_odom is None:
             return
         p = T_world_odom @ np.array([msg.x, msg.y, 1.0])
-        theta = msg.theta + math.atan2(T_world_odom[1, 0], T_world_odom[0, 0])
+        theta = msg.theta + yaw_from_rotation(T_world_odom)
         self.odometry_pose(msg.robot_id, msg.stamp_ns, float(p[0]), float(p[1]), theta)
 
     def error(self, robot_id: str, stamp_ns: int, kind: str, error_m: float) -> None:
