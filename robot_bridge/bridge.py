@@ -26,7 +26,7 @@ from typing import Any, Final
 from protocol.errors import ProtocolError
 from protocol.geometry import MotionState, StaticDetector, wrap_angle
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
-from protocol.site import Thresholds
+from protocol.site import Site, Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 from robot_bridge.policy import (
     NS_PER_S,
@@ -57,6 +57,16 @@ class BridgeConfig:
     backend_timeout_s: float = 3.0
     robot_timeout_s: float = 1.0
     world_frame: str = "map"
+
+    @classmethod
+    def from_site(cls, site: Site, robot_id: str) -> BridgeConfig:
+        """The bridge of ``robot_id``: the site's thresholds and world frame, and its
+        ``bridge`` section (``backend_timeout_s``, ``robot_timeout_s``); errors name the file
+        and the key."""
+        return site.section_reader().section(
+            "bridge", site.section("bridge"), cls,
+            fields={"backend_timeout_s", "robot_timeout_s"},
+            base=cls(robot_id, site.thresholds, world_frame=site.world_frame))
 
 
 @dataclasses.dataclass(frozen=True)

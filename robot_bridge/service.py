@@ -63,7 +63,7 @@ class RobotBridgeNode(ServiceNode):
         site.robot_model(robot_id)  # clear KeyError for an unknown robot
         self.robot_id = robot_id
         self.bridge = RobotBridge(
-            BridgeConfig(robot_id, site.thresholds, world_frame=site.world_frame)
+            BridgeConfig.from_site(site, robot_id)
         )
         self._adapter_factory = adapter_factory
         self.adapter: RobotAdapter | None = None

@@ -726,8 +726,7 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
     pipeline = BackendPipeline(site, pipeline_config or paper_pipeline_config(site),
                                fusion_factory=fusion_factory,
                                with_fusion=fusion_factory is not None)
-    bridge = RobotBridge(BridgeConfig(scenario.robot_id, thresholds=site.thresholds,
-                                      world_frame=site.world_frame)) if feedback else None
+    bridge = RobotBridge(BridgeConfig.from_site(site, scenario.robot_id)) if feedback else None
     adapter = SimRobotAdapter(robot) if feedback else None
     start_ns = scenario.start_stamp_ns
     corrections: list[AppliedCorrection] = []

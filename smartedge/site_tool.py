@@ -25,6 +25,12 @@ def check_sections(site: object) -> None:
         return
     PipelineConfig.from_site(site)  # type: ignore[arg-type]
     fusion_config_from_site(site)  # type: ignore[arg-type]
+    try:
+        from robot_bridge.bridge import BridgeConfig
+    except ImportError:
+        return
+    for robot_id in site.robots:  # type: ignore[attr-defined]
+        BridgeConfig.from_site(site, robot_id)  # type: ignore[arg-type]
 
 
 def main(argv: Sequence[str]) -> int:

@@ -74,3 +74,15 @@ def test_bad_values_name_file_and_key(tmp_path: Path, sections: dict, key: str) 
 def test_unknown_section_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(SiteConfigError, match="fuson"):
         _site_with(tmp_path, fuson={"window_s": 1.0})
+
+
+def test_bridge_section(tmp_path: Path) -> None:
+    from robot_bridge.bridge import BridgeConfig
+
+    site = _site_with(tmp_path, bridge={"backend_timeout_s": 7.5})
+    config = BridgeConfig.from_site(site, "hsr")
+    assert config.backend_timeout_s == 7.5 and config.world_frame == site.world_frame
+    assert config.thresholds == site.thresholds
+    bad = _site_with(tmp_path, bridge={"robot_id": "x"})
+    with pytest.raises(SiteConfigError, match="bridge.robot_id: unknown key"):
+        BridgeConfig.from_site(bad, "hsr")
