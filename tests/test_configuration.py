@@ -84,5 +84,5 @@ def test_bridge_section(tmp_path: Path) -> None:
     assert config.backend_timeout_s == 7.5 and config.world_frame == site.world_frame
     assert config.thresholds == site.thresholds
     bad = _site_with(tmp_path, bridge={"robot_id": "x"})
-    with pytest.raises(SiteConfigError, match="bridge.robot_id: unknown key"):
+    with pytest.raises(SiteConfigError, match=r"bridge\.robot_id: unknown key"):
         BridgeConfig.from_site(bad, "hsr")
