@@ -22,6 +22,7 @@ from collections.abc import Iterable, Sequence
 
 from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
+from protocol.errors import UsageError
 from protocol.runtime import Outgoing, ServiceNode, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
@@ -81,7 +82,7 @@ def build_node(args: argparse.Namespace) -> EdgeAgentNode:
     source = get_source(args.source).build(args, site)
     site = site or getattr(source, "site", None)
     if site is None:
-        raise ValueError(f"--site is required with --source {args.source}")
+        raise UsageError(f"--site is required with --source {args.source}")
     return EdgeAgentNode(site, args.camera, source)
 
 

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import threading
 from typing import Protocol
 
+from protocol.errors import UsageError
 from protocol.messages import RobotDetections
+from protocol.plugins import PluginRegistry
 from protocol.site import Site
 
 log = logging.getLogger(__name__)
@@ -53,57 +54,28 @@ class SourcePlugin(Protocol):
     def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource: ...
 
 
-_lock = threading.Lock()
-_sources: dict[str, SourcePlugin] = {}
+#: the ``--source`` plug-ins (the service registers its own; the top floor adds more)
+SOURCES: PluginRegistry[SourcePlugin] = PluginRegistry("--source", "frame source")
 
 
 def register_source(name: str, plugin: SourcePlugin) -> None:
-    """Offer ``plugin`` as ``--source name``. Registering the same plug-in again is a no-op;
-    another plug-in under a taken name is a ``ValueError``."""
-    if not name or not name.replace("-", "").replace("_", "").isalnum():
-        raise ValueError(f"bad frame source name {name!r}")
-    with _lock:
-        existing = _sources.get(name)
-        if existing is plugin:
-            return
-        if existing is not None:
-            raise ValueError(f"frame source {name!r} is already registered ({existing!r})")
-        _sources[name] = plugin
-    log.debug("frame source %r registered", name)
+    """Offer ``plugin`` as ``--source name`` (see :meth:`PluginRegistry.register`)."""
+    SOURCES.register(name, plugin)
 
 
 def source_names() -> tuple[str, ...]:
     """The registered ``--source`` names, sorted."""
-    with _lock:
-        return tuple(sorted(_sources))
+    return SOURCES.names()
 
 
 def get_source(name: str) -> SourcePlugin:
     """The plug-in registered as ``name`` (``KeyError`` naming the known ones otherwise)."""
-    with _lock:
-        try:
-            return _sources[name]
-        except KeyError:
-            raise KeyError(
-                f"unknown frame source {name!r}; registered: {', '.join(sorted(_sources))}"
-            ) from None
+    return SOURCES.get(name)
 
 
 def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     """``--source`` with the registered names as choices, then every plug-in's own group."""
-    names = source_names()
-    parser.add_argument(
-        "--source",
-        choices=names,
-        default=default,
-        help=f"frame source (default: {default})",
-    )
-    seen: set[int] = set()
-    for name in names:
-        plugin = get_source(name)
-        if id(plugin) not in seen:  # one plug-in may serve several names
-            seen.add(id(plugin))
-            plugin.add_arguments(parser)
+    SOURCES.add_arguments(parser, default)
 
 
 class CameraSourcePlugin:
@@ -118,7 +90,7 @@ class CameraSourcePlugin:
         pass
 
     def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource:
-        raise ValueError(self.unavailable)
+        raise UsageError(self.unavailable)
 
 
 register_source("camera", CameraSourcePlugin())

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from protocol import keys
+from protocol.errors import UsageError
 from protocol.messages import Message, PoseEstimate
 from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
 from protocol.session import add_session_arguments
@@ -220,7 +221,7 @@ def build_node(args: argparse.Namespace) -> RobotBridgeNode:
     setup = get_adapter(args.adapter).build(args, site)
     site = site or setup.site
     if site is None:
-        raise ValueError(f"--site is required with --adapter {args.adapter}")
+        raise UsageError(f"--site is required with --adapter {args.adapter}")
     robot_id = args.robot or setup.robot_id or next(iter(site.robots))
     factory = setup.factory
     if args.no_feedback:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.errors import UnknownIdError
 from protocol.messages import RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
@@ -134,7 +135,7 @@ class CameraFeed:
 
     def __init__(self, live: LiveSimulation, camera_id: str) -> None:
         if camera_id not in live.site.cameras:
-            raise KeyError(
+            raise UnknownIdError(
                 f"camera {camera_id!r} is not in the simulated site; known: "
                 f"{sorted(live.site.cameras)}"
             )

@@ -16,10 +16,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from protocol.errors import UsageError
+from protocol.plugins import PluginRegistry
 from protocol.site import Site
 from robot_bridge.adapters.base import RobotAdapter
 
@@ -58,54 +59,28 @@ class AdapterPlugin(Protocol):
     def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup: ...
 
 
-_lock = threading.Lock()
-_adapters: dict[str, AdapterPlugin] = {}
+#: the ``--adapter`` plug-ins (the service registers its own; the top floor adds more)
+ADAPTERS: PluginRegistry[AdapterPlugin] = PluginRegistry("--adapter", "robot adapter")
 
 
 def register_adapter(name: str, plugin: AdapterPlugin) -> None:
-    """Offer ``plugin`` as ``--adapter name``. Registering the same plug-in again is a no-op;
-    another plug-in under a taken name is a ``ValueError``."""
-    if not name or not name.replace("-", "").replace("_", "").isalnum():
-        raise ValueError(f"bad robot adapter name {name!r}")
-    with _lock:
-        existing = _adapters.get(name)
-        if existing is plugin:
-            return
-        if existing is not None:
-            raise ValueError(f"robot adapter {name!r} is already registered ({existing!r})")
-        _adapters[name] = plugin
-    log.debug("robot adapter %r registered", name)
+    """Offer ``plugin`` as ``--adapter name`` (see :meth:`PluginRegistry.register`)."""
+    ADAPTERS.register(name, plugin)
 
 
 def adapter_names() -> tuple[str, ...]:
     """The registered ``--adapter`` names, sorted."""
-    with _lock:
-        return tuple(sorted(_adapters))
+    return ADAPTERS.names()
 
 
 def get_adapter(name: str) -> AdapterPlugin:
     """The plug-in registered as ``name`` (``KeyError`` naming the known ones otherwise)."""
-    with _lock:
-        try:
-            return _adapters[name]
-        except KeyError:
-            raise KeyError(
-                f"unknown robot adapter {name!r}; registered: {', '.join(sorted(_adapters))}"
-            ) from None
+    return ADAPTERS.get(name)
 
 
 def add_adapter_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     """``--adapter`` with the registered names as choices, then every plug-in's own group."""
-    names = adapter_names()
-    parser.add_argument(
-        "--adapter", choices=names, default=default, help=f"robot adapter (default: {default})"
-    )
-    seen: set[int] = set()
-    for name in names:
-        plugin = get_adapter(name)
-        if id(plugin) not in seen:
-            seen.add(id(plugin))
-            plugin.add_arguments(parser)
+    ADAPTERS.add_arguments(parser, default)
 
 
 class RosAdapterPlugin:
@@ -130,7 +105,7 @@ class RosAdapterPlugin:
         from robot_bridge.adapters.ros2 import RosTopics, RosZenohAdapter
 
         if site is None:
-            raise ValueError(f"--site is required with --adapter {args.adapter}")
+            raise UsageError(f"--site is required with --adapter {args.adapter}")
         ros1 = args.adapter == "ros1"
         if args.robot_profile == "hsr":
             topics = RosTopics.hsr(ros1=ros1, namespace=args.ros_namespace)
