@@ -18,7 +18,6 @@ import numpy as np
 
 from protocol.geometry import angle_diff, se2_between, se2_compose, wrap_angle, wrap_angle_array
 from protocol.messages import Odometry
-from protocol.site import RobotModel
 from simulation.scenario import MotionConfig, Scenario, Waypoint
 
 STOP, TURN, DRIVE = 0, 1, 2
@@ -342,44 +341,3 @@ class SimulatedRobot:
                               angle_diff(p[2], self._gt[2])])
         self.corrections_applied += 1
         return True
-
-
-def robot_mesh(model: RobotModel, segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """A simple HSR-like mesh in the base frame for rendering: a cylinder base (footprint
-    radius, 0.35 m high), a narrower torso up to ``height_m`` and a head box offset forward.
-
-    Returns (vertices (V, 3) metres, faces (F, 3) vertex indices, counter-clockwise outward).
-    """
-    verts: list[np.ndarray] = []
-    faces: list[np.ndarray] = []
-
-    def cylinder(radius: float, z0: float, z1: float, cx: float = 0.0) -> None:
-        base = sum(len(v) for v in verts)
-        ang = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-        ring = np.column_stack([cx + radius * np.cos(ang), radius * np.sin(ang)])
-        v = np.vstack([np.column_stack([ring, np.full(segments, z0)]),
-                       np.column_stack([ring, np.full(segments, z1)]),
-                       [[cx, 0.0, z0], [cx, 0.0, z1]]])
-        verts.append(v)
-        f = []
-        for i in range(segments):
-            j = (i + 1) % segments
-            f += [[i, j, segments + j], [i, segments + j, segments + i],
-                  [2 * segments, j, i], [2 * segments + 1, segments + i, segments + j]]
-        faces.append(np.array(f) + base)
-
-    def box(center: tuple[float, float, float], size: tuple[float, float, float]) -> None:
-        base = sum(len(v) for v in verts)
-        c, s = np.array(center), np.array(size) / 2
-        corners = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)]) * s + c
-        verts.append(corners)
-        quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2),
-                 (1, 3, 7, 5)]
-        faces.append(np.array([t for q in quads for t in ((q[0], q[1], q[2]),
-                                                          (q[0], q[2], q[3]))]) + base)
-
-    r = model.footprint_radius_m
-    cylinder(r, 0.0, 0.35)
-    cylinder(0.6 * r, 0.35, max(model.height_m - 0.15, 0.5), cx=-0.2 * r)
-    box((0.1 * r, 0.0, model.height_m - 0.075), (0.2, 0.25, 0.15))
-    return np.vstack(verts), np.vstack(faces).astype(np.int64)

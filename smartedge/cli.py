@@ -25,6 +25,7 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "viewer": ("smartedge.viewer", "main", "watch a running system in Rerun (a sink of the keys)"),
     "evaluate": ("smartedge.evaluate", "main", "trajectory metrics and the paper's experiments"),
     "bench": ("smartedge.bench", "main", "benchmarks: codec, pose, sim, fusion, backend"),
+    "render": ("smartedge.render_cmd", "main", "rendered camera images with exact labels"),
     "site": ("smartedge.site_tool", "main", "check a site file or a camera calibration file"),
 }
 

@@ -16,6 +16,7 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "sim": ("smartedge.bench.sim", "main", "simulated seconds per wall second"),
     "fusion": ("smartedge.bench.fusion", "main", "ISAM2 latency and memory over 1 h"),
     "backend": ("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
+    "render": ("smartedge.bench.render", "main", "rendered images/s with exact labels"),
 }
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from simulation.robot import MotionPlan, SimulatedRobot, robot_mesh
+from simulation.robot import MotionPlan, SimulatedRobot
 from simulation.scenario import load_scenario
 
 
@@ -79,10 +79,3 @@ def test_corrections_only_when_static(scenario) -> None:
     np.testing.assert_allclose(robot.localization_pose(), gt, atol=1e-12)
     # a correction stamped while the robot was still moving is refused too
     assert not robot.apply_correction(gt, robot.stamp_ns(plan.stops[1].t0_s - 1.0))
-
-
-def test_mesh_is_closed_triangles(scenario) -> None:
-    v, f = robot_mesh(scenario.site.robot_model("hsr"))
-    assert v.shape[1] == 3 and f.shape[1] == 3
-    assert f.min() >= 0 and f.max() < len(v)
-    assert np.hypot(v[:, 0], v[:, 1]).max() <= 0.215 + 1e-9

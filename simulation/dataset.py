@@ -1,0 +1,335 @@
+"""Rendered, exactly labelled samples: a deterministic generator and a dataset writer.
+
+:class:`SampleGenerator` turns an index into a :class:`Sample` (image, depth, class and instance
+images, per-robot labels). The same (seed, index) always gives the same sample, whichever
+process renders it, so datasets are reproducible and several processes can share the work.
+
+Modes:
+- ``site``: a view of the simulated site from one of its own cameras (intrinsics, distortion,
+  pose as the site file says), the robot at a random free pose in the room, sometimes people
+  standing around;
+- ``randomized``: :func:`simulation.scenes.randomized_view` plus image-space augmentation
+  (colour jitter, blur, sensor noise, JPEG compression).
+
+:func:`write_dataset` writes ``images/``, ``depth/`` (uint16 millimetres, 0 = nothing),
+``class/`` (uint8 class ids, legend in ``dataset.json``), ``instance/`` (uint16),
+``labels.jsonl`` (one JSON object per image) and ``dataset.json``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import logging
+import multiprocessing
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from protocol.camera import CameraModel
+from protocol.errors import SmartedgeError
+from simulation.mesh import CLASS_ID, CLASSES, Mesh, SceneObject
+from simulation.scenes import (
+    FIRST_OTHER_INSTANCE,
+    ROBOT_INSTANCE,
+    RandomizationConfig,
+    person_mesh,
+    randomized_view,
+    robot_keypoints_world,
+    site_geometry,
+    site_scene,
+)
+
+log = logging.getLogger(__name__)
+
+MODES: Final = ("site", "randomized")
+
+
+class DatasetError(SmartedgeError):
+    """A dataset cannot be generated or written (bad mode, size, output folder...)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RobotLabel:
+    """One robot in one image. ``bbox_xyxy`` (4,) of its visible pixels (``None``: not
+    visible); ``keypoints_px`` (K, 2) raw distorted pixels (``cv2.projectPoints``);
+    ``visible`` (K,) inside the image and not occluded; ``in_image`` (K,); ``depth_m`` (K,)
+    camera z of each keypoint."""
+
+    robot_id: str
+    instance_id: int
+    bbox_xyxy: np.ndarray | None
+    keypoints_px: np.ndarray
+    visible: np.ndarray
+    in_image: np.ndarray
+    depth_m: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "robot_id": self.robot_id,
+            "instance_id": self.instance_id,
+            "bbox_xyxy": None if self.bbox_xyxy is None else [float(v) for v in self.bbox_xyxy],
+            "keypoints_px": np.round(self.keypoints_px, 3).tolist(),
+            "visible": [bool(v) for v in self.visible],
+            "in_image": [bool(v) for v in self.in_image],
+            "depth_m": np.round(self.depth_m, 4).tolist(),
+        }
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sample:
+    """A rendered image and its labels. ``image_rgb`` (H, W, 3) uint8 (augmented in
+    randomized mode), ``depth_m`` (H, W) float32 (inf: nothing), ``class_id`` / ``instance_id``
+    (H, W) int32; ``robot_pose`` (3,) x, y, theta in the scene's world frame."""
+
+    index: int
+    seed: int
+    mode: str
+    camera: CameraModel
+    image_rgb: np.ndarray
+    depth_m: np.ndarray
+    class_id: np.ndarray
+    instance_id: np.ndarray
+    robots: tuple[RobotLabel, ...]
+    robot_pose: np.ndarray
+
+    def labels_json(self) -> dict[str, Any]:
+        cam = self.camera
+        return {
+            "index": self.index, "seed": self.seed, "mode": self.mode,
+            "camera": {"camera_id": cam.camera_id, "width": cam.width, "height": cam.height,
+                       "K": cam.K.tolist(), "dist": cam.dist.tolist(),
+                       "T_cam_world": np.round(cam.T_cam_world, 9).tolist()},
+            "robot_pose": [float(v) for v in self.robot_pose],
+            "robots": [r.to_json() for r in self.robots],
+        }
+
+
+def scaled_camera(camera: CameraModel, width: int, height: int) -> CameraModel:
+    """``camera`` at another resolution (intrinsics scaled; same lens and pose)."""
+    if (width, height) == (camera.width, camera.height):
+        return camera
+    sx, sy = width / camera.width, height / camera.height
+    K = camera.K.copy()
+    K[0, 0] *= sx
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 1] *= sy
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return dataclasses.replace(camera, width=width, height=height, K=K)
+
+
+def augment(image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Colour jitter, blur, sensor noise and JPEG compression (labels are unaffected)."""
+    import cv2
+
+    img = image_rgb.astype(np.float32)
+    img = img * rng.uniform(0.6, 1.4) + rng.uniform(-30, 30)  # contrast, brightness
+    gray = img.mean(axis=2, keepdims=True)
+    img = gray + (img - gray) * rng.uniform(0.5, 1.5)  # saturation
+    img *= rng.uniform(0.85, 1.15, 3)  # white balance
+    if rng.uniform() < 0.3:
+        k = int(rng.choice([3, 5]))
+        img = cv2.GaussianBlur(img, (k, k), 0)
+    img += rng.normal(0, rng.uniform(0, 8), img.shape)
+    out = np.clip(img, 0, 255).astype(np.uint8)
+    if rng.uniform() < 0.6:
+        ok, buf = cv2.imencode(".jpg", out[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY,
+                                                         int(rng.integers(40, 96))])
+        if ok:
+            out = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+    return np.ascontiguousarray(out)
+
+
+class SampleGenerator:
+    """Index → :class:`Sample`, deterministic per (``seed``, index).
+
+    ``scenario``: a :class:`simulation.scenario.Scenario` (site, room, obstacles);
+    ``mode``: ``site`` or ``randomized``; ``width``/``height``: image size (default: each
+    site camera's own in site mode, 848x480 randomized); ``robot_mesh``: the robot's mesh
+    (default: the built-in HSR-like mesh of the scenario's robot model). The GL renderer is
+    created on first use, in the process that renders.
+    """
+
+    def __init__(self, scenario: Any, mode: str = "site", *, seed: int = 0,
+                 width: int | None = None, height: int | None = None,
+                 robot_mesh: Mesh | None = None,
+                 randomization: RandomizationConfig | None = None) -> None:
+        if mode not in MODES:
+            raise DatasetError(f"mode {mode!r}: expected one of {MODES}")
+        if (width is None) != (height is None) or (width is not None and min(width, height) < 8):  # type: ignore[operator]
+            raise DatasetError(f"image size {width}x{height}: give both, at least 8 px")
+        self.scenario = scenario
+        self.mode = mode
+        self.seed = int(seed)
+        self.width, self.height = width, height
+        self.robot_id = scenario.robot_id
+        self.model = scenario.site.robot_model(self.robot_id)
+        if robot_mesh is None:
+            from simulation.robot_mesh import hsr_like_mesh
+
+            robot_mesh = hsr_like_mesh(self.model)
+        self.robot_mesh = robot_mesh
+        self.randomization = randomization or RandomizationConfig()
+        self.camera_ids = tuple(sorted(scenario.site.cameras))
+        self._geometry = site_geometry(scenario, seed=self.seed) if mode == "site" else None
+        self._renderers: dict[tuple[int, int], Any] = {}
+
+    def _renderer(self, width: int, height: int) -> Any:
+        key = (width, height)
+        if key not in self._renderers:
+            from simulation.render_gl import Renderer
+
+            self._renderers[key] = Renderer(width, height)
+        return self._renderers[key]
+
+    def rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence([self.seed, int(index), 7919]))
+
+    def __call__(self, index: int) -> Sample:
+        rng = self.rng(index)
+        if self.mode == "site":
+            scene, camera, pose = self._site_view(rng)
+        else:
+            w, h = self.width or 848, self.height or 480
+            scene, camera, pose = randomized_view(rng, self.robot_mesh, self.model, w, h,
+                                                  self.randomization)
+        out = self._renderer(camera.width, camera.height).render(scene, camera)
+        label = self._label(out, camera, pose)
+        image = augment(out.color_rgb, rng) if self.mode == "randomized" else out.color_rgb
+        return Sample(index, self.seed, self.mode, camera, image, out.depth_m, out.class_id,
+                      out.instance_id, (label,), pose)
+
+    def stream(self, start: int = 0) -> Iterator[Sample]:
+        """Samples ``start``, ``start + 1``, ... (for a training loop)."""
+        index = start
+        while True:
+            yield self(index)
+            index += 1
+
+    def _site_view(self, rng: np.random.Generator) -> tuple[Any, CameraModel, np.ndarray]:
+        from simulation.world import World
+
+        sc = self.scenario
+        cam = sc.site.cameras[self.camera_ids[int(rng.integers(len(self.camera_ids)))]]
+        if self.width is not None:
+            cam = scaled_camera(cam, self.width, self.height)  # type: ignore[arg-type]
+        world = World(sc)
+        lo = np.asarray(sc.room_min_xy_m) + self.model.footprint_radius_m
+        hi = np.asarray(sc.room_max_xy_m) - self.model.footprint_radius_m
+        pose = np.zeros(3)
+        for _ in range(100):  # a free pose: not inside an obstacle
+            pose = np.array([*rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi)])
+            if not world.footprint_collides(pose[:2], self.model.footprint_radius_m):
+                break
+        occluders: list[SceneObject] = []
+        for k in range(int(rng.integers(0, 3))):  # people standing around
+            p = rng.uniform(lo, hi)
+            if np.hypot(*(p - pose[:2])) < self.model.footprint_radius_m + 0.35:
+                continue
+            mesh = person_mesh(float(rng.uniform(1.5, 1.9)), rng.uniform(0.1, 0.9, 3))
+            T = np.eye(4)
+            T[:2, 3] = p
+            occluders.append(SceneObject(mesh, T, FIRST_OTHER_INSTANCE + k, CLASS_ID["person"]))
+        assert self._geometry is not None
+        return site_scene(self._geometry, self.robot_mesh, pose, occluders), cam, pose
+
+    def _label(self, out: Any, camera: CameraModel, pose: np.ndarray) -> RobotLabel:
+        from simulation.labels import instance_bbox, keypoint_labels
+
+        kp = keypoint_labels(out, camera, robot_keypoints_world(self.model, pose))
+        return RobotLabel(self.robot_id, ROBOT_INSTANCE, instance_bbox(out, ROBOT_INSTANCE),
+                          kp.pixels_px, kp.visible, kp.in_image, kp.depth_m)
+
+
+# --------------------------------------------------------------------------------------------
+# writing a dataset
+# --------------------------------------------------------------------------------------------
+
+
+def _write_sample(sample: Sample, out: Path) -> dict[str, Any]:
+    import cv2
+
+    name = f"{sample.index:06d}.png"
+    cv2.imwrite(str(out / "images" / name), sample.image_rgb[..., ::-1])
+    depth = sample.depth_m
+    mm = np.where(np.isfinite(depth), np.clip(depth * 1000.0, 0, 65535), 0).astype(np.uint16)
+    cv2.imwrite(str(out / "depth" / name), mm)
+    cv2.imwrite(str(out / "class" / name), sample.class_id.astype(np.uint8))
+    cv2.imwrite(str(out / "instance" / name),
+                np.clip(sample.instance_id, 0, 65535).astype(np.uint16))
+    doc = sample.labels_json()
+    doc["image"] = f"images/{name}"
+    return doc
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(kwargs: dict[str, Any]) -> None:
+    from simulation.scenario import load_scenario
+
+    kw = dict(kwargs)
+    scenario = load_scenario(kw.pop("scenario_path"))
+    _WORKER["gen"] = SampleGenerator(scenario, **kw)
+
+
+def _worker_render(index: int, out: str) -> dict[str, Any]:
+    return _write_sample(_WORKER["gen"](index), Path(out))
+
+
+def write_dataset(generator: SampleGenerator, out_dir: str | Path, count: int, *,
+                  workers: int = 1, progress: Callable[[str], None] | None = None) -> Path:
+    """Render samples ``0 .. count-1`` of ``generator`` into ``out_dir`` (see the module
+    docstring); ``workers`` processes share the work (each with its own GL context); the
+    result does not depend on ``workers``. Returns the labels file."""
+    if count < 1:
+        raise DatasetError(f"count {count}: at least 1")
+    out = Path(out_dir)
+    try:
+        for sub in ("images", "depth", "class", "instance"):
+            (out / sub).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DatasetError(f"{out}: cannot create the output folder: {exc}") from None
+    say = progress or (lambda line: log.info("%s", line))
+    t0 = time.perf_counter()
+    docs: list[dict[str, Any]] = [{}] * count
+    step = max(1, count // 20)
+
+    def report(done: int) -> None:
+        if done % step == 0 or done == count:
+            rate = done / max(time.perf_counter() - t0, 1e-9)
+            say(f"  {done}/{count} images ({rate:.1f} images/s)")
+
+    if workers <= 1:
+        for i in range(count):
+            docs[i] = _write_sample(generator(i), out)
+            report(i + 1)
+    else:
+        kwargs = {"scenario_path": generator.scenario.source_path, "mode": generator.mode,
+                  "seed": generator.seed, "width": generator.width, "height": generator.height,
+                  "robot_mesh": generator.robot_mesh,
+                  "randomization": generator.randomization}
+        ctx = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx,
+                                                    initializer=_worker_init,
+                                                    initargs=(kwargs,)) as pool:
+            futures = {pool.submit(_worker_render, i, str(out)): i for i in range(count)}
+            for done, fut in enumerate(concurrent.futures.as_completed(futures), start=1):
+                docs[futures[fut]] = fut.result()
+                report(done)
+    labels = out / "labels.jsonl"
+    with labels.open("w", encoding="utf-8") as fh:
+        for doc in docs:
+            fh.write(json.dumps(doc) + "\n")
+    meta = {
+        "mode": generator.mode, "seed": generator.seed, "count": count,
+        "robot_id": generator.robot_id, "keypoint_names": list(generator.model.keypoint_names),
+        "classes": list(CLASSES), "scenario": generator.scenario.source_path,
+        "depth_png": "uint16 millimetres, 0 = nothing rendered",
+    }
+    (out / "dataset.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
+    return labels

@@ -1,0 +1,144 @@
+"""Triangle meshes and scenes for rendering (numpy only; the GL code is in :mod:`.render_gl`).
+
+A :class:`Mesh` lives in its own frame (metres, z up); a :class:`SceneObject` places it in the
+world (``T_world_object``) with an instance id (0: no instance; robots and other counted things
+get 1, 2, ...) and a semantic class (:data:`CLASSES`). A :class:`Scene` is what one render pass
+draws: objects, a light and a background colour.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Final
+
+import numpy as np
+
+#: Semantic classes of the per-pixel class image, in id order (0 = nothing rendered). The
+#: semantic-mapping legend (a reduced ADE20K-like indoor set) uses the same ids.
+CLASSES: Final = (
+    "unlabeled", "floor", "wall", "ceiling", "door", "table", "chair", "shelf", "cabinet",
+    "box", "obstacle", "person", "robot", "distractor",
+)
+CLASS_ID: Final = {name: i for i, name in enumerate(CLASSES)}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Mesh:
+    """A triangle mesh in its own frame.
+
+    ``vertices`` (N, 3) float32 metres; ``faces`` (M, 3) uint32 vertex indices, counter-clockwise
+    seen from outside; ``colors`` (N, 3) float32 albedo in [0, 1]; ``normals`` (N, 3) float32 unit
+    vertex normals (computed from the faces when not given); optional ``uv`` (N, 2) float32 with a
+    ``texture`` (H, W, 3) uint8 image that multiplies the albedo.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    texture: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        v = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        f = np.ascontiguousarray(self.faces, dtype=np.uint32)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+            raise ValueError(f"mesh: vertices {v.shape} / faces {f.shape}, expected (N,3)/(M,3)")
+        if len(f) and int(f.max()) >= len(v):
+            raise ValueError(f"mesh: face index {int(f.max())} >= {len(v)} vertices")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("mesh: non-finite vertex coordinates")
+        c = np.asarray(self.colors, dtype=np.float32)
+        if c.shape == (3,):
+            c = np.tile(c, (len(v), 1))
+        if c.shape != v.shape:
+            raise ValueError(f"mesh: colors {c.shape}, expected {v.shape} or (3,)")
+        n = vertex_normals(v, f) if self.normals is None else np.asarray(self.normals, np.float32)
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "faces", f)
+        object.__setattr__(self, "colors", np.ascontiguousarray(c))
+        object.__setattr__(self, "normals", np.ascontiguousarray(n, dtype=np.float32))
+        if (self.uv is None) != (self.texture is None):
+            raise ValueError("mesh: uv and texture go together")
+        if self.uv is not None:
+            object.__setattr__(self, "uv", np.ascontiguousarray(self.uv, dtype=np.float32))
+            object.__setattr__(self, "texture", np.ascontiguousarray(self.texture, np.uint8))
+
+    @property
+    def num_triangles(self) -> int:
+        return len(self.faces)
+
+    def transformed(self, T: np.ndarray) -> Mesh:
+        """This mesh moved by the (4, 4) transform ``T`` (normals rotated)."""
+        T = np.asarray(T, dtype=np.float64)
+        v = self.vertices @ T[:3, :3].T + T[:3, 3]
+        n = self.normals @ T[:3, :3].T  # type: ignore[operator]
+        return dataclasses.replace(self, vertices=v, normals=n)
+
+    def recolored(self, color: Sequence[float] | np.ndarray) -> Mesh:
+        return dataclasses.replace(self, colors=np.asarray(color, dtype=np.float32))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min (3,), max (3,)) of the vertices."""
+        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) area-weighted unit vertex normals of a triangle mesh."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n = np.zeros_like(v)
+    if len(f):
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        for k in range(3):
+            np.add.at(n, f[:, k], fn)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return (n / np.where(norm > 0, norm, 1.0)).astype(np.float32)
+
+
+def concatenate(meshes: Sequence[Mesh]) -> Mesh:
+    """One mesh of several (textures are dropped: only untextured meshes may be merged)."""
+    if not meshes:
+        raise ValueError("concatenate: no meshes")
+    if any(m.texture is not None for m in meshes):
+        raise ValueError("concatenate: textured meshes cannot be merged")
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return Mesh(
+        np.vstack([m.vertices for m in meshes]),
+        np.vstack([m.faces + o for m, o in zip(meshes, offsets, strict=True)]),
+        np.vstack([m.colors for m in meshes]),
+        np.vstack([m.normals for m in meshes]),  # type: ignore[misc]
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SceneObject:
+    """A mesh placed in the world: ``T_world_object`` (4, 4), ``instance_id`` (0: none),
+    ``class_id`` (index into :data:`CLASSES`)."""
+
+    mesh: Mesh
+    T_world_object: np.ndarray
+    instance_id: int = 0
+    class_id: int = 0
+
+    def __post_init__(self) -> None:
+        T = np.asarray(self.T_world_object, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"scene object: T_world_object must be a finite (4, 4), got {T.shape}")
+        object.__setattr__(self, "T_world_object", T)
+        if not 0 <= self.class_id < len(CLASSES):
+            raise ValueError(f"scene object: class_id {self.class_id} not in 0..{len(CLASSES) - 1}")
+        if not 0 <= self.instance_id < 2**24:
+            raise ValueError(f"scene object: instance_id {self.instance_id} out of range")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """What one render draws. ``light_dir_world`` (3,): direction the light comes *from*;
+    ``ambient`` in [0, 1]; ``background_rgb`` (3,) in [0, 1] where nothing is drawn."""
+
+    objects: tuple[SceneObject, ...]
+    light_dir_world: tuple[float, float, float] = (0.3, 0.2, 1.0)
+    ambient: float = 0.45
+    background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)

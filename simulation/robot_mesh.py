@@ -1,0 +1,859 @@
+"""Robot meshes for rendering: procedural primitives, the built-in HSR-like robot, and loaders
+for a user's own robot (a mesh file, or a URDF plus a keypoint file).
+
+Every mesh here is a :class:`simulation.mesh.Mesh` in the robot's **base frame**: metres,
+x forward, y left, z up, origin on the floor at the rotation centre (the frame of
+``protocol.site.RobotModel.keypoints_base_m``). Colours are albedo in [0, 1]; the "textures" of
+the built-in robot are vertex colours on cells with their own vertices, so merged meshes keep
+them (:func:`simulation.mesh.concatenate` drops image textures).
+
+numpy only, except the file loaders, which import ``trimesh`` (the ``sim`` extra) lazily.
+Every error raised on purpose is a :class:`RobotMeshError` naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import yaml
+
+from protocol.config_file import ConfigReader, join_key
+from protocol.errors import ConfigFileError
+from protocol.geometry import rotation_from_rpy
+from protocol.site import RobotModel
+from simulation.mesh import Mesh, concatenate
+
+logger = logging.getLogger(__name__)
+
+Color = Sequence[float] | np.ndarray
+
+#: Default albedo of parts that have no colour of their own (loaded meshes, URDF visuals).
+DEFAULT_COLOR: Final = (0.6, 0.6, 0.6)
+
+# Palette of the HSR-like robot (albedo).
+_WHITE: Final = (0.92, 0.92, 0.90)
+_LIGHT_GREY: Final = (0.74, 0.75, 0.76)
+_DARK_GREY: Final = (0.20, 0.20, 0.22)
+_BLACK: Final = (0.06, 0.06, 0.07)
+_BUMPER_BLUE: Final = (0.10, 0.32, 0.78)
+_LED_CYAN: Final = (0.15, 0.85, 0.90)
+_LENS: Final = (0.25, 0.38, 0.50)
+_FINGER_ORANGE: Final = (0.95, 0.45, 0.10)
+
+#: Reference footprint radius (m) of the HSR that the built-in robot's horizontal sizes are
+#: designed for; other radii scale them.
+HSR_FOOTPRINT_RADIUS_M: Final = 0.215
+
+
+class RobotMeshError(ConfigFileError, ValueError):
+    """A robot mesh, URDF or keypoint file is missing, unreadable or invalid; the message names
+    the file, the key or element (``link[wheel].visual[0]``, ``keypoints[2].link``) and why."""
+
+
+# --------------------------------------------------------------------------------------------
+# primitives
+# --------------------------------------------------------------------------------------------
+
+
+def _rgb(color: Color) -> np.ndarray:
+    c = np.asarray(color, dtype=np.float64).reshape(3)
+    if not np.all((c >= 0.0) & (c <= 1.0)):
+        raise ValueError(f"colour {c.tolist()} outside [0, 1]")
+    return c
+
+
+def translation(xyz: Sequence[float] | np.ndarray) -> np.ndarray:
+    """(4, 4) transform that translates by ``xyz`` (3,)."""
+    T = np.eye(4)
+    T[:3, 3] = np.asarray(xyz, dtype=np.float64).reshape(3)
+    return T
+
+
+def transform(rotation: np.ndarray | None = None,
+              xyz: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """(4, 4) transform from a (3, 3) rotation (identity if None) and a translation (3,)."""
+    T = translation(xyz)
+    if rotation is not None:
+        T[:3, :3] = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    return T
+
+
+def _rotation_z_to(direction: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking +z onto the unit vector along ``direction`` (3,)."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    z = np.array([0.0, 0.0, 1.0])
+    c = float(z @ d)
+    if c > 1.0 - 1e-12:
+        return np.eye(3)
+    if c < -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    v = np.cross(z, d)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def lathe(profile_rz: np.ndarray, colors: Color | np.ndarray, segments: int = 48,
+          angle0_rad: float = 0.0, angle1_rad: float = 2.0 * math.pi) -> Mesh:
+    """A surface of revolution about +z.
+
+    ``profile_rz`` (K, 2): (radius, z) points in metres, traced bottom cap outwards, up the
+    outside, top cap inwards (a solid cylinder is ``(0, z0), (r, z0), (r, z0), (r, z1),
+    (r, z1), (0, z1)``), so that faces are counter-clockwise seen from outside.
+    Repeating a point makes a sharp edge there (the zero-length step adds no triangles and the
+    two copies keep their own normals) and lets the colour change there. ``colors``: (3,) or
+    (K, 3), one per profile point. A partial revolution (``angle1_rad - angle0_rad < 2 pi``) is
+    closed at both ends with fans of the profile (the profile must then be a closed convex loop).
+    """
+    prof = np.asarray(profile_rz, dtype=np.float64).reshape(-1, 2)
+    K = len(prof)
+    if K < 2 or segments < 3 or np.any(prof[:, 0] < 0.0):
+        raise ValueError("lathe: need >= 2 profile points with radius >= 0 and >= 3 segments")
+    cols = np.asarray(colors, dtype=np.float64)
+    cols = np.tile(_rgb(cols), (K, 1)) if cols.shape == (3,) else cols.reshape(K, 3)
+    full = angle1_rad - angle0_rad >= 2.0 * math.pi - 1e-9
+    n_ang = segments if full else segments + 1
+    ang = angle0_rad + (angle1_rad - angle0_rad) * np.arange(n_ang) / segments
+    ca, sa = np.cos(ang), np.sin(ang)
+    # vertices[k * n_ang + j]: profile point k at angle j
+    verts = np.stack([prof[:, :1] * ca[None, :], prof[:, :1] * sa[None, :],
+                      np.repeat(prof[:, 1:2], n_ang, axis=1)], axis=-1).reshape(-1, 3)
+    vcols = np.repeat(cols, n_ang, axis=0)
+    faces: list[np.ndarray] = []
+    j = np.arange(segments)
+    j1 = (j + 1) % n_ang
+    for k in range(K - 1):
+        if np.allclose(prof[k], prof[k + 1]):
+            continue  # sharp edge / colour change: no triangles between the copies
+        a, b = k * n_ang + j, k * n_ang + j1
+        c, d = (k + 1) * n_ang + j1, (k + 1) * n_ang + j
+        if prof[k, 0] > 0.0:
+            faces.append(np.stack([a, b, c], axis=1))
+        if prof[k + 1, 0] > 0.0:
+            faces.append(np.stack([a, c, d], axis=1))
+    normals = None
+    if not full:
+        # end caps: fans of the profile at both ends, with their own (flat) vertices
+        keep = np.r_[True, np.any(np.abs(np.diff(prof, axis=0)) > 1e-12, axis=1)]
+        loop = prof[keep]  # without the repeated points of sharp edges
+        if len(loop) > 1 and np.allclose(loop[0], loop[-1]):
+            loop = loop[:-1]
+        caps_v, caps_f, caps_c, caps_n = [], [], [], []
+        base = len(verts)
+        for angle, sign in ((angle0_rad, -1.0), (angle1_rad, 1.0)):
+            c0, s0 = math.cos(angle), math.sin(angle)
+            pts = np.column_stack([loop[:, 0] * c0, loop[:, 0] * s0, loop[:, 1]])
+            fan = np.array([[0, i, i + 1] for i in range(1, len(pts) - 1)])
+            outward = sign * np.array([-s0, c0, 0.0])
+            fn = np.cross(pts[fan[:, 1]] - pts[0], pts[fan[:, 2]] - pts[0]).sum(axis=0)
+            if fn @ outward < 0.0:
+                fan = fan[:, ::-1]
+            caps_v.append(pts)
+            caps_f.append(fan + base)
+            caps_c.append(np.tile(cols[0], (len(pts), 1)))
+            caps_n.append(np.tile(outward, (len(pts), 1)))
+            base += len(pts)
+        side = Mesh(verts, np.vstack(faces), vcols)
+        verts = np.vstack([verts, *caps_v])
+        faces = [np.vstack(faces), *caps_f]
+        vcols = np.vstack([vcols, *caps_c])
+        normals = np.vstack([side.normals, *caps_n])
+    return Mesh(verts, np.vstack(faces), vcols, normals)
+
+
+def cylinder(radius_m: float, z0_m: float, z1_m: float, color: Color = DEFAULT_COLOR,
+             segments: int = 48, caps: bool = True) -> Mesh:
+    """A cylinder about +z from ``z0_m`` to ``z1_m`` (flat caps unless ``caps`` is False);
+    2 * ``segments`` side triangles + ``segments`` per cap."""
+    r = float(radius_m)
+    prof = [(r, z0_m), (r, z1_m)]
+    if caps:
+        prof = [(0.0, z0_m), (r, z0_m), *prof, (r, z1_m), (0.0, z1_m)]
+    return lathe(np.array(prof), color, segments)
+
+
+def box(size_m: Sequence[float], center_m: Sequence[float] = (0.0, 0.0, 0.0),
+        color: Color = DEFAULT_COLOR,
+        face_colors: Mapping[str, Color] | None = None) -> Mesh:
+    """An axis-aligned box of extent ``size_m`` (3,) centred at ``center_m`` (3,): 12 triangles,
+    flat normals. ``face_colors`` overrides the colour of faces named ``+x -x +y -y +z -z``."""
+    h = np.asarray(size_m, dtype=np.float64).reshape(3) / 2.0
+    c = np.asarray(center_m, dtype=np.float64).reshape(3)
+    face_colors = dict(face_colors or {})
+    unknown = set(face_colors) - {"+x", "-x", "+y", "-y", "+z", "-z"}
+    if unknown:
+        raise ValueError(f"box: unknown faces {sorted(unknown)}")
+    verts, cols, norms = [], [], []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for sign in (1.0, -1.0):
+            n = np.zeros(3)
+            n[axis] = sign
+            quad = np.zeros((4, 3))
+            quad[:, axis] = sign * h[axis]
+            # corners counter-clockwise seen from outside: (u, v) = (-,-), (+,-), (+,+), (-,+)
+            su = np.array([-1.0, 1.0, 1.0, -1.0]) * sign
+            sv = np.array([-1.0, -1.0, 1.0, 1.0])
+            quad[:, u] = su * h[u]
+            quad[:, v] = sv * h[v]
+            verts.append(quad + c)
+            name = ("+" if sign > 0 else "-") + "xyz"[axis]
+            cols.append(np.tile(_rgb(face_colors.get(name, color)), (4, 1)))
+            norms.append(np.tile(n, (4, 1)))
+    faces = np.array([[q * 4, q * 4 + 1, q * 4 + 2] for q in range(6)]
+                     + [[q * 4, q * 4 + 2, q * 4 + 3] for q in range(6)])
+    return Mesh(np.vstack(verts), faces, np.vstack(cols), np.vstack(norms))
+
+
+def sphere(radius_m: float, center_m: Sequence[float] = (0.0, 0.0, 0.0),
+           color: Color = DEFAULT_COLOR, segments: int = 32, rings: int = 16) -> Mesh:
+    """A UV sphere (``rings`` latitude steps) centred at ``center_m``."""
+    t = np.linspace(-math.pi / 2.0, math.pi / 2.0, rings + 1)
+    prof = np.column_stack([radius_m * np.cos(t), radius_m * np.sin(t)])
+    prof[[0, -1], 0] = 0.0
+    return lathe(prof, color, segments).transformed(translation(center_m))
+
+
+def capsule(p0_m: Sequence[float], p1_m: Sequence[float], radius_m: float,
+            color: Color = DEFAULT_COLOR, segments: int = 24, rings: int = 6) -> Mesh:
+    """A capsule (cylinder with hemispherical ends) of ``radius_m`` around the segment from
+    ``p0_m`` (3,) to ``p1_m`` (3,)."""
+    p0 = np.asarray(p0_m, dtype=np.float64)
+    p1 = np.asarray(p1_m, dtype=np.float64)
+    length = float(np.linalg.norm(p1 - p0))
+    if length <= 0.0:
+        return sphere(radius_m, p0, color, segments, 2 * rings)
+    t = np.linspace(0.0, math.pi / 2.0, rings + 1)
+    bottom = np.column_stack([radius_m * np.sin(t), -radius_m * np.cos(t)])
+    top = np.column_stack([radius_m * np.cos(t), length + radius_m * np.sin(t)])
+    prof = np.vstack([bottom, top])
+    prof[[0, -1], 0] = 0.0
+    return lathe(prof, color, segments).transformed(transform(_rotation_z_to(p1 - p0), p0))
+
+
+def grid_panel(cell_colors: np.ndarray, width_m: float, height_m: float) -> Mesh:
+    """A flat rectangular panel in the y-z plane facing +x, centred at the origin, painted cell
+    by cell: ``cell_colors`` (rows, cols, 3), row 0 at the top, column 0 on the left as seen from
+    the front (at -y). Each cell has its own 4 vertices, so colours are sharp (a "texture" that
+    survives :func:`concatenate`)."""
+    cc = np.asarray(cell_colors, dtype=np.float64)
+    if cc.ndim != 3 or cc.shape[2] != 3:
+        raise ValueError(f"grid_panel: cell_colors {cc.shape}, expected (rows, cols, 3)")
+    rows, ncols = cc.shape[:2]
+    y = np.linspace(-width_m / 2.0, width_m / 2.0, ncols + 1)
+    z = np.linspace(height_m / 2.0, -height_m / 2.0, rows + 1)
+    r, c = np.meshgrid(np.arange(rows), np.arange(ncols), indexing="ij")
+    r, c = r.ravel(), c.ravel()
+    # corners counter-clockwise seen from +x: bottom-left(-y), bottom-right, top-right, top-left
+    ys = np.stack([y[c], y[c + 1], y[c + 1], y[c]], axis=1)
+    zs = np.stack([z[r + 1], z[r + 1], z[r], z[r]], axis=1)
+    verts = np.stack([np.zeros_like(ys), ys, zs], axis=-1).reshape(-1, 3)
+    q = np.arange(len(r)) * 4
+    faces = np.vstack([np.stack([q, q + 1, q + 2], 1), np.stack([q, q + 2, q + 3], 1)])
+    cols = np.repeat(cc.reshape(-1, 3), 4, axis=0)
+    normals = np.tile([1.0, 0.0, 0.0], (len(verts), 1))
+    return Mesh(verts, faces, cols, normals)
+
+
+# 3x5 bitmap glyphs of the logo on the HSR-like robot's back.
+_GLYPHS: Final = {
+    "H": ("#.#", "#.#", "###", "#.#", "#.#"),
+    "S": ("###", "#..", "###", "..#", "###"),
+    "R": ("##.", "#.#", "##.", "#.#", "#.#"),
+}
+
+
+def text_cells(text: str, ink: Color, paper: Color, margin: int = 1) -> np.ndarray:
+    """(rows, cols, 3) cell colours spelling ``text`` (letters of ``H S R``) in a 3x5 bitmap
+    font with one blank column between letters, for :func:`grid_panel`."""
+    glyphs = [_GLYPHS[ch] for ch in text]
+    width = 4 * len(glyphs) - 1 + 2 * margin
+    mask = np.zeros((5 + 2 * margin, width), dtype=bool)
+    for i, g in enumerate(glyphs):
+        for row, line in enumerate(g):
+            for col, ch in enumerate(line):
+                mask[margin + row, margin + 4 * i + col] = ch == "#"
+    return np.where(mask[..., None], _rgb(ink), _rgb(paper))
+
+
+# --------------------------------------------------------------------------------------------
+# the built-in HSR-like robot
+# --------------------------------------------------------------------------------------------
+
+
+def _base_top_z(model: RobotModel) -> float:
+    """Height (m) of the base's top plate: the highest keypoint on the base's rim (within 20 %
+    of the footprint radius from it), 0.345 m (the HSR's) when there is none."""
+    kp = np.asarray(model.keypoints_base_m, dtype=np.float64).reshape(-1, 3)
+    rim = kp[np.hypot(kp[:, 0], kp[:, 1]) >= 0.8 * model.footprint_radius_m]
+    z = float(rim[:, 2].max()) if len(rim) else 0.345
+    return float(np.clip(z, 0.12, max(0.12, 0.6 * model.height_m)))
+
+
+def hsr_like_parts(model: RobotModel, segments: int = 64) -> dict[str, Mesh]:
+    """The parts of an HSR-like robot in the base frame, by name (for per-part use); see
+    :func:`hsr_like_mesh` for the shape."""
+    r = float(model.footprint_radius_m)
+    s = r / HSR_FOOTPRINT_RADIUS_M  # horizontal scale
+    H = float(model.height_m)
+    z_top = _base_top_z(model)
+    r_rim = r + 0.01 * s  # top plate rim and front bumper stand out 1 cm
+    lid = 0.015  # thickness of the top plate
+    parts: dict[str, Mesh] = {}
+
+    # Base: dark lower band, white body, light-grey top plate with an overhanging rim.
+    z_band = min(0.09, 0.3 * z_top)
+    prof = [(0.0, 0.01), (r, 0.01), (r, 0.01), (r, z_band), (r, z_band), (r, z_top - lid),
+            (r, z_top - lid), (r_rim, z_top - lid), (r_rim, z_top - lid), (r_rim, z_top),
+            (r_rim, z_top), (0.0, z_top)]
+    cols = [_DARK_GREY] * 4 + [_WHITE] * 2 + [_LIGHT_GREY] * 6
+    parts["base"] = lathe(np.array(prof), np.array(cols), segments)
+    # Front bumper (+-55 deg about +x) and a status LED strip over the front half only.
+    a = math.radians(55.0)
+    shell = [(r - 0.002, 0.02), (r_rim, 0.02), (r_rim, 0.02), (r_rim, z_band + 0.01),
+             (r_rim, z_band + 0.01), (r - 0.002, z_band + 0.01), (r - 0.002, z_band + 0.01),
+             (r - 0.002, 0.02)]
+    parts["bumper"] = lathe(np.array(shell), _BUMPER_BLUE, segments // 2, -a, a)
+    z_led = z_top - lid - 0.035
+    led = [(r - 0.002, z_led), (r + 0.003, z_led), (r + 0.003, z_led),
+           (r + 0.003, z_led + 0.012), (r + 0.003, z_led + 0.012), (r - 0.002, z_led + 0.012),
+           (r - 0.002, z_led + 0.012), (r - 0.002, z_led)]
+    parts["led_strip"] = lathe(np.array(led), _LED_CYAN, segments // 2, -math.pi / 2,
+                               math.pi / 2)
+
+    # Torso column set back from the centre: dark telescopic lower cover, white upper body.
+    tx, tdx, tdy = -0.085 * s, 0.16 * s, 0.20 * s
+    head_h, sensor_h = 0.13, 0.03  # head box and the depth-sensor bar on it reach height_m
+    z_torso = max(z_top + 0.25, H - head_h - sensor_h - 0.04)
+    z_split = z_top + 0.3 * (z_torso - z_top)
+    parts["torso_lower"] = box((tdx, tdy, z_split - z_top), (tx, 0.0, (z_top + z_split) / 2),
+                               _DARK_GREY)
+    parts["torso_upper"] = box((tdx, tdy, z_torso - z_split), (tx, 0.0, (z_split + z_torso) / 2),
+                               _WHITE)
+    # "HSR" logo on the back of the torso (reads correctly from behind).
+    cells = text_cells("HSR", _BLACK, _LIGHT_GREY)
+    logo_w = 0.8 * tdy
+    logo_h = logo_w * cells.shape[0] / cells.shape[1]
+    T_logo = transform(np.diag([-1.0, -1.0, 1.0]),
+                       (tx - tdx / 2 - 0.002, 0.0, z_split + 0.6 * (z_torso - z_split)))
+    parts["logo"] = grid_panel(cells, logo_w, logo_h).transformed(T_logo)
+
+    # Neck and head: white head with a dark face panel, two stereo lenses and a depth-sensor
+    # bar on the front.
+    hx, hdx, hdy = -0.045 * s, 0.15 * s, 0.24 * s
+    z_head = max(H - head_h - sensor_h, z_torso + 0.02)
+    parts["neck"] = cylinder(0.035 * s, z_torso, z_head, _DARK_GREY, segments // 2,
+                             caps=False).transformed(translation((hx - 0.01 * s, 0.0, 0.0)))
+    parts["head"] = box((hdx, hdy, head_h), (hx, 0.0, z_head + head_h / 2), _WHITE)
+    x_face = hx + hdx / 2
+    parts["face"] = box((0.006, 0.9 * hdy, 0.6 * head_h), (x_face + 0.003, 0.0,
+                                                            z_head + 0.45 * head_h), _BLACK)
+    lens_T = transform(_rotation_z_to(np.array([1.0, 0.0, 0.0])))
+    for side, y in (("left", 0.06 * s), ("right", -0.06 * s)):
+        lens = cylinder(0.016 * s, 0.0, 0.01, _LENS, segments // 2).transformed(lens_T)
+        parts[f"lens_{side}"] = lens.transformed(
+            translation((x_face + 0.006, y, z_head + 0.5 * head_h)))
+    parts["depth_sensor"] = box((0.04 * s, 0.17 * s, sensor_h),
+                                (x_face - 0.02 * s, 0.0, z_head + head_h + sensor_h / 2),
+                                _DARK_GREY)
+
+    # Folded arm on the front right: shoulder on the torso front, upper arm down to an elbow
+    # above the base, forearm forward to the wrist, hand with two fingers pointing forward.
+    y_arm = -0.10 * s
+    x_torso_front = tx + tdx / 2
+    z_shoulder = z_split + 0.5 * (z_torso - z_split)
+    z_elbow = z_top + 0.075
+    parts["shoulder"] = box((0.06 * s, 0.08 * s, 0.11),
+                            (x_torso_front + 0.03 * s, -0.08 * s, z_shoulder), _DARK_GREY)
+    elbow = (x_torso_front + 0.05 * s, y_arm, z_elbow)
+    parts["upper_arm"] = capsule((x_torso_front + 0.05 * s, y_arm, z_shoulder), elbow,
+                                 0.035 * s, _WHITE, segments // 2)
+    wrist = (0.075 * s, y_arm, z_elbow)
+    parts["forearm"] = capsule(elbow, wrist, 0.03 * s, _WHITE, segments // 2)
+    parts["hand"] = box((0.05 * s, 0.06 * s, 0.06), (0.1 * s, y_arm, z_elbow), _DARK_GREY)
+    for side, dy in (("left", 0.02 * s), ("right", -0.02 * s)):
+        parts[f"finger_{side}"] = box(
+            (0.04 * s, 0.012 * s, 0.03), (0.145 * s, y_arm + dy, z_elbow), _DARK_GREY,
+            face_colors={"+x": _FINGER_ORANGE, "+z": _FINGER_ORANGE})
+    return parts
+
+
+def hsr_like_mesh(model: RobotModel, segments: int = 64) -> Mesh:
+    """An HSR-like robot in the base frame (one untextured mesh, vertex colours), sized by
+    ``model`` (footprint radius; ``height_m`` is the top of the head).
+
+    Shape: a round base of the footprint radius with a dark lower band, a light-grey top plate
+    whose rim stands out 1 cm, a blue front bumper (+-55 deg) and a cyan LED strip on the front
+    half; a torso column set back from the centre (dark lower cover, white upper part, an "HSR"
+    logo on its back); a white head with a black face panel, two stereo lenses and a depth-sensor
+    bar on the front; a folded arm on the front right (y < 0) with an orange-tipped hand. Front,
+    back, left and right all look different.
+
+    The base's top plate is at the highest keypoint on the base's rim, so rim keypoints lie on
+    the top plate's edge; with the default site's HSR keypoints every keypoint is within 1 mm
+    of the surface (``front_top`` / ``front_bottom`` lie on the rim edge / the bumper, the
+    others on the base's edge and side).
+    """
+    return concatenate(list(hsr_like_parts(model, segments).values()))
+
+
+def surface_distance(mesh: Mesh, points_m: np.ndarray) -> np.ndarray:
+    """(M,) Euclidean distance (m) from each of ``points_m`` (M, 3) (mesh frame) to the closest
+    point of ``mesh``'s triangles."""
+    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    tri = mesh.vertices.astype(np.float64)[mesh.faces.astype(np.int64)]
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac, bc = b - a, c - a, c - b
+    out = np.empty(len(pts))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i, p in enumerate(pts):
+            out[i] = np.sqrt(_closest_sq_dist(p, a, b, c, ab, ac, bc).min())
+    return out
+
+
+def _closest_sq_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                     ab: np.ndarray, ac: np.ndarray, bc: np.ndarray) -> np.ndarray:
+    """Squared distances from point ``p`` (3,) to triangles (a, b, c) (each (F, 3)): the
+    Voronoi-region test of Ericson, Real-Time Collision Detection, 5.1.5, vectorized."""
+
+    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", u, v)
+
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    # interior (face region) by default
+    v = vb / denom
+    w = vc / denom
+    q = a + ab * v[:, None] + ac * w[:, None]
+    # edges and vertices, in reverse order of precedence
+    m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    q = np.where(m[:, None], b + bc * t[:, None], q)
+    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    t = d2 / (d2 - d6)
+    q = np.where(m[:, None], a + ac * t[:, None], q)
+    q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
+    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    t = d1 / (d1 - d3)
+    q = np.where(m[:, None], a + ab * t[:, None], q)
+    q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
+    q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
+    dist2 = np.sum((q - p) ** 2, axis=1)
+    # degenerate (zero-area) triangles: fall back to their vertices
+    bad = ~np.isfinite(dist2)
+    if np.any(bad):
+        dist2[bad] = np.min(np.stack([np.sum((x[bad] - p) ** 2, axis=1) for x in (a, b, c)]),
+                            axis=0)
+    return dist2
+
+
+def robot_model_from_mesh(name: str, mesh: Mesh, keypoint_names: Sequence[str],
+                          keypoints_base_m: np.ndarray) -> RobotModel:
+    """A :class:`RobotModel` for a loaded robot: the keypoints (M, 3) in the base frame, the
+    footprint radius as the largest horizontal distance of a vertex from the base origin and
+    the height as the highest vertex (m)."""
+    kp = np.array(keypoints_base_m, dtype=np.float64).reshape(-1, 3)
+    if len(kp) != len(keypoint_names):
+        raise ValueError(f"{len(keypoint_names)} keypoint names for {len(kp)} keypoints")
+    kp.setflags(write=False)
+    v = mesh.vertices.astype(np.float64)
+    radius = float(np.hypot(v[:, 0], v[:, 1]).max())
+    return RobotModel(name, tuple(keypoint_names), kp, radius, float(v[:, 2].max()))
+
+
+# --------------------------------------------------------------------------------------------
+# loading a user's robot
+# --------------------------------------------------------------------------------------------
+
+
+def _existing_file(path: str | Path, what: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise RobotMeshError(str(p), "", f"{what} not found" if not p.exists()
+                             else f"{what} is not a regular file")
+    return p
+
+
+def _trimesh_to_mesh(geom: Any, T: np.ndarray, default_color: Color, keep_texture: bool,
+                     where: str) -> tuple[Mesh, bool]:
+    """One trimesh.Trimesh moved by ``T`` (4, 4) → (:class:`Mesh`, whether the file gave it
+    colours): smooth-shaded with edges sharper than 30 degrees kept; the file's colours, else
+    ``default_color``."""
+    import trimesh
+
+    geom = trimesh.graph.smooth_shade(geom, angle=math.radians(30.0))
+    visual = geom.visual
+    uv = texture = None
+    own_colors = visual.kind is not None
+    if visual.kind == "texture":
+        mat = visual.material
+        if hasattr(mat, "to_simple"):
+            mat = mat.to_simple()
+        image = getattr(mat, "image", None)
+        if keep_texture and image is not None and visual.uv is not None:
+            uv = np.asarray(visual.uv, dtype=np.float32)
+            texture = np.asarray(image.convert("RGB"), dtype=np.uint8)
+            diffuse = np.asarray(getattr(mat, "diffuse", (255, 255, 255, 255)), dtype=np.float64)
+            colors = np.tile(diffuse[:3] / 255.0, (len(geom.vertices), 1))
+        else:
+            colors = np.asarray(visual.to_color().vertex_colors, dtype=np.float64)[:, :3] / 255.0
+    elif visual.kind in ("vertex", "face"):
+        colors = np.asarray(visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+    else:
+        colors = np.tile(_rgb(default_color), (len(geom.vertices), 1))
+    try:
+        mesh = Mesh(np.asarray(geom.vertices), np.asarray(geom.faces), colors,
+                    np.asarray(geom.vertex_normals), uv, texture)
+    except ValueError as exc:
+        raise RobotMeshError(where, "", f"invalid mesh: {exc}") from None
+    return mesh.transformed(T), own_colors
+
+
+def _load_parts(path: Path, scale: Sequence[float] | float, default_color: Color,
+                keep_texture: bool) -> list[tuple[Mesh, bool]]:
+    """The triangle meshes of a mesh file, each moved by its scene-graph transform and scaled
+    by ``scale`` (one number or (3,) per axis), with whether the file gave it colours."""
+    try:
+        import trimesh
+    except ImportError:  # pragma: no cover - trimesh is part of the sim extra
+        raise RobotMeshError(str(path), "",
+                             "loading mesh files needs trimesh (pip install 'trimesh>=4.0')"
+                             ) from None
+    try:
+        scene = trimesh.load(str(path), force="scene")
+    except Exception as exc:  # trimesh raises anything from its many parsers
+        raise RobotMeshError(str(path), "", f"cannot read mesh: {type(exc).__name__}: {exc}"
+                             ) from None
+    S = np.diag([*np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)), 1.0])
+    parts: list[tuple[Mesh, bool]] = []
+    for node in scene.graph.nodes_geometry:
+        T_file_node, geom_name = scene.graph[node]
+        geom = scene.geometry.get(geom_name)
+        if geom is None or not hasattr(geom, "faces") or len(geom.faces) == 0:
+            continue  # point clouds, paths, empty meshes
+        parts.append(_trimesh_to_mesh(geom, S @ np.asarray(T_file_node), default_color,
+                                      keep_texture, str(path)))
+    if not parts:
+        raise RobotMeshError(str(path), "", "no triangles found (not a mesh file, empty, or "
+                             "corrupt)")
+    return parts
+
+
+def load_robot_mesh(path: str | Path, *, scale: float | Sequence[float] = 1.0,
+                    color: Color = DEFAULT_COLOR) -> Mesh:
+    """A robot's mesh from an OBJ, STL, PLY, GLB/glTF (or any format trimesh reads), in the
+    file's frame, which must be the robot base frame (x forward, y left, z up, origin on the
+    floor at the rotation centre). ``scale`` (one number or (3,)) converts the file's units to
+    metres (0.001 for millimetres).
+
+    A multi-object file is flattened with its scene-graph transforms and merged; colours are the
+    file's (vertex/face colours, or textures sampled at the vertices), ``color`` where it has
+    none. A file with a single textured object keeps its image as ``uv`` + ``texture``.
+    Raises :class:`RobotMeshError` for a missing, unreadable or empty file.
+    """
+    p = _existing_file(path, "mesh file")
+    parts = [m for m, _ in _load_parts(p, scale, color, keep_texture=True)]
+    mesh = parts[0] if len(parts) == 1 else concatenate(
+        [m if m.texture is None else _untextured(m) for m in parts])
+    logger.debug("loaded %s: %d triangles", p, mesh.num_triangles)
+    return mesh
+
+
+def _untextured(mesh: Mesh) -> Mesh:
+    """``mesh`` without its image texture: the texture sampled at each vertex's uv."""
+    tex = mesh.texture
+    assert tex is not None and mesh.uv is not None
+    h, w = tex.shape[:2]
+    u = np.clip((mesh.uv[:, 0] % 1.0) * (w - 1), 0, w - 1).round().astype(int)
+    v = np.clip((1.0 - mesh.uv[:, 1] % 1.0) * (h - 1), 0, h - 1).round().astype(int)
+    colors = mesh.colors * tex[v, u].astype(np.float32) / 255.0
+    return Mesh(mesh.vertices, mesh.faces, colors, mesh.normals)
+
+
+# ---- URDF
+
+
+_OPTENV_RE: Final = re.compile(r"\$\(optenv\s+\S+\s*([^)]*)\)")
+
+
+def _floats(text: str | None, n: int, default: Sequence[float] | None, where: str, key: str,
+            allow_one: bool = False) -> np.ndarray:
+    """``n`` numbers of a URDF attribute (``"0 0 0.1"``; ``default`` when it is absent, an
+    error if that is None); a leftover xacro ``$(optenv VAR default)`` takes its default, as
+    xacro does when the variable is not set."""
+    if text is None:
+        if default is None:
+            raise RobotMeshError(where, key, "required attribute is missing")
+        return np.asarray(default, dtype=np.float64)
+    vals = _OPTENV_RE.sub(lambda m: m.group(1), text).split()
+    try:
+        arr = np.array([float(x) for x in vals])
+    except ValueError:
+        raise RobotMeshError(where, key, f"expected {n} numbers, got {text!r}") from None
+    if allow_one and arr.shape == (1,):
+        arr = np.repeat(arr, n)
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise RobotMeshError(where, key, f"expected {n} finite numbers, got {text!r}")
+    return arr
+
+
+def _origin(elem: ET.Element, where: str, key: str) -> np.ndarray:
+    """(4, 4) transform of an element's ``<origin xyz rpy>`` (identity when absent)."""
+    o = elem.find("origin")
+    if o is None:
+        return np.eye(4)
+    xyz = _floats(o.get("xyz"), 3, (0.0, 0.0, 0.0), where, f"{key}.origin.xyz")
+    rpy = _floats(o.get("rpy"), 3, (0.0, 0.0, 0.0), where, f"{key}.origin.rpy")
+    return transform(rotation_from_rpy(*rpy), xyz)
+
+
+def _resolve_uri(uri: str, urdf: Path,
+                 package_dirs: Mapping[str, str | Path] | Sequence[str | Path]) -> tuple[
+                     Path | None, list[Path]]:
+    """(the file a URDF mesh ``filename`` names, or None; the candidates tried)."""
+    if uri.startswith("file://"):
+        cands = [Path(uri[len("file://"):])]
+    elif uri.startswith("package://"):
+        pkg, _, rel = uri[len("package://"):].partition("/")
+        cands = []
+        if isinstance(package_dirs, Mapping):
+            if pkg in package_dirs:
+                cands.append(Path(package_dirs[pkg]) / rel)
+        else:
+            for d in map(Path, package_dirs):
+                cands.append(d / pkg / rel)
+                if d.name == pkg:
+                    cands.append(d / rel)
+        # a URDF inside its package (pkg/urdf/robot.urdf) or next to it
+        for anc in [urdf.parent, *urdf.parent.parents]:
+            if anc.name == pkg:
+                cands.append(anc / rel)
+            cands.append(anc / pkg / rel)
+        cands.append(urdf.parent / rel)
+    else:
+        p = Path(uri)
+        cands = [p if p.is_absolute() else urdf.parent / p]
+    for c in cands:
+        if c.is_file():
+            return c, cands
+    return None, cands
+
+
+def load_urdf(path: str | Path,
+              package_dirs: Mapping[str, str | Path] | Sequence[str | Path] = (),
+              base_link: str | None = None) -> tuple[Mesh, dict[str, np.ndarray]]:
+    """The visual mesh of a URDF robot with every joint at position 0, in the base link's frame,
+    and ``{link name: (4, 4) T_base_link}`` for every link.
+
+    Visual geometry: ``<mesh filename scale>`` (any format :func:`load_robot_mesh` reads),
+    ``<box size>``, ``<cylinder radius length>`` (about z, centred), ``<sphere radius>``, each
+    placed by its ``<origin>``; colour from the visual's ``<material>`` (inline ``<color>`` or a
+    robot-level material of that name) unless the mesh file has colours of its own, else grey.
+    ``filename``: ``package://pkg/rel`` is looked up in ``package_dirs`` (a mapping package →
+    folder, or folders holding packages or being one), then in the URDF's folder and its
+    ancestors; ``file://`` and plain paths (relative to the URDF's folder) as they are.
+    ``base_link``: the frame of the result (default: the root of the link tree; for a mobile
+    robot that should be its floor-level base frame, e.g. ``base_footprint``).
+
+    Raises :class:`RobotMeshError` (file and element named) for a missing or malformed URDF, a
+    mesh file that is missing or unreadable, joints naming unknown links, or a link tree that
+    is not one tree.
+    """
+    p = _existing_file(path, "URDF file")
+    where = str(p)
+    try:
+        root = ET.parse(p).getroot()
+    except ET.ParseError as exc:
+        raise RobotMeshError(where, "", f"not valid XML: {exc}") from None
+    except OSError as exc:
+        raise RobotMeshError(where, "", f"cannot read URDF file: {exc.strerror}") from None
+    if root.tag != "robot":
+        raise RobotMeshError(where, "", f"root element is <{root.tag}>, expected <robot>")
+
+    materials: dict[str, np.ndarray] = {}
+    for m in root.findall("material"):
+        col = m.find("color")
+        if m.get("name") and col is not None:
+            materials[m.get("name", "")] = _floats(col.get("rgba"), 4, None, where,
+                                                   f"material[{m.get('name')}].color")[:3]
+    links: dict[str, ET.Element] = {}
+    for link in root.findall("link"):
+        name = link.get("name")
+        if not name:
+            raise RobotMeshError(where, "link", "a <link> without a name")
+        if name in links:
+            raise RobotMeshError(where, f"link[{name}]", "duplicate link name")
+        links[name] = link
+    if not links:
+        raise RobotMeshError(where, "", "no <link> elements")
+
+    children: dict[str, list[tuple[str, np.ndarray]]] = {n: [] for n in links}
+    parent_of: dict[str, str] = {}
+    for joint in root.findall("joint"):
+        jname = joint.get("name", "?")
+        key = f"joint[{jname}]"
+        pe, ce = joint.find("parent"), joint.find("child")
+        if pe is None or ce is None:
+            raise RobotMeshError(where, key, "needs <parent link> and <child link>")
+        parent, child = pe.get("link", ""), ce.get("link", "")
+        for role, name in (("parent", parent), ("child", child)):
+            if name not in links:
+                raise RobotMeshError(where, f"{key}.{role}", f"unknown link {name!r}")
+        if child in parent_of:
+            raise RobotMeshError(where, key, f"link {child!r} has two parent joints")
+        parent_of[child] = parent
+        children[parent].append((child, _origin(joint, where, key)))
+    roots = [n for n in links if n not in parent_of]
+    if len(roots) != 1:
+        raise RobotMeshError(where, "joint", f"the links form {len(roots)} trees, expected one "
+                             f"(roots: {roots[:10]})")
+
+    T_root: dict[str, np.ndarray] = {roots[0]: np.eye(4)}
+    stack = [roots[0]]
+    while stack:
+        name = stack.pop()
+        for child, T_parent_child in children[name]:
+            T_root[child] = T_root[name] @ T_parent_child
+            stack.append(child)
+    if len(T_root) != len(links):  # a cycle hangs off the tree
+        raise RobotMeshError(where, "joint", "the joints contain a cycle")
+    if base_link is not None and base_link not in links:
+        raise RobotMeshError(where, "", f"base link {base_link!r} is not a link; links: "
+                             f"{sorted(links)[:20]}")
+    base = base_link or roots[0]
+    T_base_root = np.linalg.inv(T_root[base])
+    T_base = {n: T_base_root @ T for n, T in T_root.items()}
+
+    cache: dict[tuple[Path, tuple[float, ...]], list[tuple[Mesh, bool]]] = {}
+    meshes: list[Mesh] = []
+    for name, link in links.items():
+        for i, vis in enumerate(link.findall("visual")):
+            key = f"link[{name}].visual[{i}]"
+            T = T_base[name] @ _origin(vis, where, key)
+            color = _material_color(vis, materials, where, key)
+            meshes.extend(m.transformed(T) for m in _visual_geometry(
+                vis, color, p, package_dirs, cache, where, key))
+    if not meshes:
+        raise RobotMeshError(where, "", "no visual geometry in any link")
+    mesh = concatenate(meshes)
+    logger.debug("loaded URDF %s: %d links, %d triangles", p, len(links), mesh.num_triangles)
+    return mesh, T_base
+
+
+def _material_color(vis: ET.Element, materials: Mapping[str, np.ndarray], where: str,
+                    key: str) -> np.ndarray | None:
+    mat = vis.find("material")
+    if mat is None:
+        return None
+    col = mat.find("color")
+    if col is not None:
+        return np.clip(_floats(col.get("rgba"), 4, None, where, f"{key}.material.color")[:3], 0, 1)
+    return materials.get(mat.get("name", ""))
+
+
+def _visual_geometry(vis: ET.Element, color: np.ndarray | None, urdf: Path,
+                     package_dirs: Mapping[str, str | Path] | Sequence[str | Path],
+                     cache: dict[tuple[Path, tuple[float, ...]], list[tuple[Mesh, bool]]],
+                     where: str,
+                     key: str) -> list[Mesh]:
+    """The meshes of one ``<visual>`` in its own frame (before its ``<origin>``)."""
+    geo = vis.find("geometry")
+    if geo is None or len(geo) == 0:
+        raise RobotMeshError(where, key, "<visual> without <geometry>")
+    g = geo[0]
+    gkey = f"{key}.geometry.{g.tag}"
+    c = DEFAULT_COLOR if color is None else color
+    if g.tag == "box":
+        return [box(_floats(g.get("size"), 3, None, where, f"{gkey}.size"), color=c)]
+    if g.tag == "cylinder":
+        r = _floats(g.get("radius"), 1, None, where, f"{gkey}.radius")[0]
+        length = _floats(g.get("length"), 1, None, where, f"{gkey}.length")[0]
+        return [cylinder(r, -length / 2, length / 2, c, 32)]
+    if g.tag == "sphere":
+        return [sphere(_floats(g.get("radius"), 1, None, where, f"{gkey}.radius")[0], color=c)]
+    if g.tag != "mesh":
+        raise RobotMeshError(where, gkey, "unsupported geometry; expected mesh, box, cylinder "
+                             "or sphere")
+    uri = g.get("filename")
+    if not uri:
+        raise RobotMeshError(where, f"{gkey}.filename", "missing")
+    scale = _floats(g.get("scale"), 3, (1.0, 1.0, 1.0), where, f"{gkey}.scale", allow_one=True)
+    file, tried = _resolve_uri(uri, urdf, package_dirs)
+    if file is None:
+        raise RobotMeshError(where, f"{gkey}.filename", f"mesh file {uri!r} not found; tried "
+                             + ", ".join(str(t) for t in tried[:6]))
+    ck = (file.resolve(), tuple(scale.tolist()))
+    if ck not in cache:
+        cache[ck] = _load_parts(file, scale, DEFAULT_COLOR, keep_texture=False)
+    # The URDF's colour is for files without colours of their own (as RViz does).
+    return [m if own or color is None else m.recolored(color) for m, own in cache[ck]]
+
+
+# ---- keypoint files
+
+
+def load_keypoint_file(path: str | Path,
+                       link_transforms: Mapping[str, np.ndarray] | None = None,
+                       ) -> tuple[tuple[str, ...], np.ndarray]:
+    """Keypoints of a robot from a YAML file, in the base frame.
+
+    Format::
+
+        keypoints:
+          - {name: front_bumper, link: front_bumper_link, xyz_m: [0.05, 0.0, 0.02]}
+          - {name: top_rear, xyz_m: [-0.3, 0.0, 0.4]}      # no link: the base frame
+
+    ``xyz_m`` is in the frame of ``link`` (metres), moved to the base frame with
+    ``link_transforms[link]`` ((4, 4) ``T_base_link``, as :func:`load_urdf` returns). At least 3
+    keypoints, unique names of ``[A-Za-z0-9_.-]``. Returns (names, (M, 3) positions).
+    Raises :class:`RobotMeshError` naming the file and key for a missing file, bad YAML, a
+    wrong or unknown key, or a link that is not in ``link_transforms``.
+    """
+    p = _existing_file(path, "keypoint file")
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RobotMeshError(str(p), "", f"cannot read keypoint file: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise RobotMeshError(str(p), "", f"not valid YAML: {exc}") from None
+    ctx = ConfigReader(str(p), RobotMeshError)
+    top = ctx.mapping("", doc)
+    ctx.no_unknown("", top, {"keypoints"})
+    kps = ctx.require("", top, "keypoints")
+    if not isinstance(kps, list) or len(kps) < 3:
+        raise ctx.fail("keypoints", "expected a list of at least 3 keypoints {name, link, xyz_m}")
+    names: list[str] = []
+    xyz: list[np.ndarray] = []
+    links = link_transforms or {}
+    for i, kp in enumerate(kps):
+        ik = f"keypoints[{i}]"
+        kp = ctx.mapping(ik, kp)
+        ctx.no_unknown(ik, kp, {"name", "link", "xyz_m"})
+        name = ctx.ident(join_key(ik, "name"), ctx.require(ik, kp, "name"))
+        if name in names:
+            raise ctx.fail(join_key(ik, "name"), f"duplicate keypoint name {name!r}")
+        pt = ctx.vector(join_key(ik, "xyz_m"), ctx.require(ik, kp, "xyz_m"), 3)
+        link = kp.get("link")
+        if link is not None:
+            if not isinstance(link, str) or link not in links:
+                known = sorted(links)
+                raise ctx.fail(join_key(ik, "link"), f"unknown link {link!r}; " + (
+                    f"links: {known[:20]}" if known else "no link transforms given (load the "
+                    "URDF and pass its link transforms)"))
+            T = np.asarray(links[link], dtype=np.float64)
+            pt = T[:3, :3] @ pt + T[:3, 3]
+        names.append(name)
+        xyz.append(pt)
+    return tuple(names), np.stack(xyz)
+

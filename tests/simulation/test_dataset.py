@@ -1,0 +1,137 @@
+"""Rendered samples of the simulated site and randomized scenes: labels agree with the render,
+generation is deterministic, the writer and the command produce what a user can inspect."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("moderngl")
+
+from simulation.dataset import DatasetError, SampleGenerator, write_dataset
+from simulation.mesh import CLASS_ID
+from simulation.runner import SimulationRun
+from simulation.scenario import load_scenario
+from simulation.scenes import ROBOT_INSTANCE, look_at_camera, site_geometry, site_scene
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return load_scenario()
+
+
+@pytest.fixture(scope="module")
+def site_gen(scenario):
+    return SampleGenerator(scenario, "site", seed=3, width=424, height=240)
+
+
+def _check_label_matches_render(sample) -> None:
+    (robot,) = sample.robots
+    assert robot.keypoints_px.shape == (len(robot.visible), 2)
+    mask = sample.instance_id == ROBOT_INSTANCE
+    if robot.visible.any():
+        assert robot.bbox_xyxy is not None and mask.any()
+        x0, y0, x1, y1 = robot.bbox_xyxy
+        uv = robot.keypoints_px[robot.visible]
+        # every visible keypoint lies inside the box of the robot's visible pixels (1 px slack)
+        assert np.all((uv[:, 0] >= x0 - 1) & (uv[:, 0] <= x1 + 1))
+        assert np.all((uv[:, 1] >= y0 - 1) & (uv[:, 1] <= y1 + 1))
+        # and on (or right next to) a robot pixel
+        for u, v in np.round(uv).astype(int):
+            patch = mask[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3]
+            assert patch.any()
+    assert np.all(sample.class_id[mask] == CLASS_ID["robot"])
+
+
+def test_site_samples_label_the_robot_where_it_is_rendered(site_gen) -> None:
+    seen = 0
+    for i in range(12):
+        sample = site_gen(i)
+        _check_label_matches_render(sample)
+        seen += bool(sample.robots[0].visible.any())
+    assert seen >= 3  # the site's cameras see the robot in a good part of the room
+
+
+def test_randomized_samples_label_the_robot(scenario) -> None:
+    gen = SampleGenerator(scenario, "randomized", seed=5, width=320, height=192)
+    visible = 0
+    for i in range(8):
+        sample = gen(i)
+        _check_label_matches_render(sample)
+        visible += int(sample.robots[0].visible.sum())
+    assert visible > 8 * 3
+
+
+def test_same_seed_same_images_other_seed_other_images(scenario, site_gen) -> None:
+    a, b = site_gen(4), SampleGenerator(scenario, "site", seed=3, width=424, height=240)(4)
+    assert np.array_equal(a.image_rgb, b.image_rgb)
+    assert np.array_equal(a.instance_id, b.instance_id)
+    assert np.array_equal(a.robots[0].keypoints_px, b.robots[0].keypoints_px)
+    c = SampleGenerator(scenario, "site", seed=4, width=424, height=240)(4)
+    assert not np.array_equal(a.image_rgb, c.image_rgb)
+
+
+def test_simulated_pose_seen_from_a_site_camera(scenario) -> None:
+    """The closed loop: the robot at the simulation's pose, seen by the site's camera."""
+    from simulation.render_gl import Renderer
+    from simulation.robot_mesh import hsr_like_mesh
+    from simulation.scenes import robot_keypoints_world
+
+    run = SimulationRun(scenario, "traj3", seed=0)
+    pose = run.plan.pose_at(3.0).reshape(-1, 3)[0]
+    model = scenario.site.robot_model(scenario.robot_id)
+    scene = site_scene(site_geometry(scenario), hsr_like_mesh(model), pose)
+    seeing = run.detector.cameras_seeing(pose)
+    assert seeing
+    from simulation.labels import instance_bbox, keypoint_labels
+
+    for cam_id in sorted(scenario.site.cameras):
+        cam = scenario.site.cameras[cam_id]
+        out = Renderer(cam.width, cam.height).render(scene, cam)
+        kp = keypoint_labels(out, cam, robot_keypoints_world(model, pose))
+        bbox = instance_bbox(out, ROBOT_INSTANCE)
+        if cam_id in seeing:
+            assert bbox is not None and kp.visible.sum() >= 3, cam_id
+        # a camera that cannot see the robot: nothing of it rendered
+        away = look_at_camera("away", cam.position_world, cam.position_world * 2 - [*pose[:2], 0],
+                              cam.width, cam.height, 60.0)
+        out_away = Renderer(cam.width, cam.height).render(scene, away)
+        assert instance_bbox(out_away, ROBOT_INSTANCE) is None
+        break
+
+
+def test_writer_output_is_independent_of_workers(tmp_path: Path, scenario) -> None:
+    gen = SampleGenerator(scenario, "randomized", seed=9, width=160, height=96)
+    one = write_dataset(gen, tmp_path / "one", 4, workers=1)
+    two = write_dataset(gen, tmp_path / "two", 4, workers=2)
+    assert one.read_text() == two.read_text()
+    for name in ("images", "depth", "class", "instance"):
+        assert sorted(p.name for p in (tmp_path / "two" / name).iterdir()) == [
+            f"{i:06d}.png" for i in range(4)]
+    doc = json.loads(one.read_text().splitlines()[0])
+    assert doc["image"] == "images/000000.png" and len(doc["robots"][0]["keypoints_px"]) == 12
+    meta = json.loads((tmp_path / "one" / "dataset.json").read_text())
+    assert meta["classes"][CLASS_ID["robot"]] == "robot"
+
+
+def test_bad_requests_are_clear_errors(tmp_path: Path, scenario) -> None:
+    with pytest.raises(DatasetError, match="mode"):
+        SampleGenerator(scenario, "movie")
+    with pytest.raises(DatasetError, match="size"):
+        SampleGenerator(scenario, "site", width=640)
+    with pytest.raises(DatasetError, match="count"):
+        write_dataset(SampleGenerator(scenario, "site"), tmp_path, 0)
+
+
+def test_render_command_writes_dataset_and_preview(tmp_path: Path) -> None:
+    from smartedge.cli import main
+
+    out = tmp_path / "r"
+    assert main(["render", "--out", str(out), "--count", "3", "--preview", "2",
+                 "--size", "212x120", "--randomize"]) == 0
+    assert len((out / "labels.jsonl").read_text().splitlines()) == 3
+    assert len(list((out / "preview").iterdir())) == 2
+    assert main(["render", "--out", str(out), "--size", "big"]) == 1
