@@ -8,28 +8,32 @@ top-left pixel; the same as :mod:`protocol.camera` and :mod:`simulation.render_g
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import TYPE_CHECKING, Final
 
 import cv2
 import numpy as np
 
 from protocol.camera import CameraModel
+from protocol.geometry import distort_normalized
 
 if TYPE_CHECKING:
     from simulation.render_gl import RenderOutput
 
-#: A keypoint counts as occluded only when everything rendered around its pixel is closer to the
-#: camera than the keypoint by more than this. Keypoints are defined on the model's surface but a
-#: mesh approximates it (faceted cylinders, chamfered edges) and puts some of them up to a few cm
-#: inside the rendered surface; 4 cm keeps those visible while any real occluder (a person, a
-#: box, furniture) is much further in front.
+#: A keypoint counts as occluded only when everything rendered in the 3 x 3 pixels around its
+#: pixel is closer to the camera (camera z) than the keypoint by more than this. Keypoints are
+#: defined on the model's surface, but a mesh only approximates it (faceted cylinders, chamfered
+#: edges, a keypoint on an edge seen at a grazing angle), which puts some of them a few cm behind
+#: the rendered surface along the line of sight; 4 cm keeps those visible while real occluders
+#: (people, boxes, furniture) stand well in front. Occluders closer than 4 cm in front of a
+#: keypoint are not seen as occluding.
 DEFAULT_DEPTH_TOLERANCE_M: Final = 0.04
 #: Keypoints closer to the camera plane than this are "behind" (not projectable).
 MIN_DEPTH_M: Final = 1e-6
-#: A keypoint whose pixel undistorts back to a ray further off than this (in pixels) lies where
-#: the lens polynomial folds back: projectPoints puts it in the image, the lens does not.
-_MAX_LENS_FOLD_ERROR_PX: Final = 0.5
-_UNDISTORT_CRITERIA: Final = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+#: Largest normalized radius (tan of the off-axis angle, ~87 deg) searched for a lens fold.
+_FOLD_SEARCH_MAX_RADIUS: Final = 20.0
+_FOLD_SEARCH_STEP: Final = 1e-3
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -39,7 +43,8 @@ class KeypointLabels:
     ``pixels_px`` (K, 2) float64 raw distorted pixels (``cv2.projectPoints``; NaN for keypoints
     behind the camera); ``depth_m`` (K,) z in the camera optical frame, metres; ``in_image``
     (K,) bool: in front of the camera, inside the image (``CameraModel.in_image``) and where the
-    lens really images it; ``visible`` (K,) bool: in the image and not occluded.
+    lens really images it (see :func:`lens_fold_radius`); ``visible`` (K,) bool: in the image
+    and not occluded.
     """
 
     pixels_px: np.ndarray
@@ -82,8 +87,10 @@ def keypoint_labels(output: RenderOutput, camera: CameraModel, keypoints_world: 
     front = depth > MIN_DEPTH_M
     uv[~front] = np.nan
     in_image = front & camera.in_image(uv)
-    if camera.dist.size and np.any(camera.dist) and in_image.any():
-        in_image[in_image] = _imaged_by_lens(camera, uv[in_image], kp[in_image])
+    if in_image.any():
+        pts_cam = camera.world_to_cam(kp[in_image])
+        r = np.hypot(pts_cam[:, 0], pts_cam[:, 1]) / pts_cam[:, 2]
+        in_image[in_image] = r < lens_fold_radius(camera.dist)
 
     visible = np.zeros(len(kp), bool)
     idx = np.flatnonzero(in_image)
@@ -99,15 +106,32 @@ def keypoint_labels(output: RenderOutput, camera: CameraModel, keypoints_world: 
     return KeypointLabels(uv, depth, in_image, visible)
 
 
-def _imaged_by_lens(camera: CameraModel, uv: np.ndarray, points_world: np.ndarray) -> np.ndarray:
-    """(N,) bool: undistorting the pixel gives back the point's own ray (False where the
-    distortion polynomial folded a point from outside the field of view into the image)."""
-    pts_cam = camera.world_to_cam(points_world)
-    xy_true = pts_cam[:, :2] / pts_cam[:, 2:]
-    xy = cv2.undistortPoints(np.ascontiguousarray(uv.reshape(-1, 1, 2)), camera.K, camera.dist,
-                             criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
-    err_px = np.linalg.norm(xy - xy_true, axis=1) * max(camera.K[0, 0], camera.K[1, 1])
-    return err_px < _MAX_LENS_FOLD_ERROR_PX
+def lens_fold_radius(dist: np.ndarray) -> float:
+    """Normalized undistorted radius (of x/z, y/z) where the lens model's radial distortion stops
+    growing with the radius; ``inf`` when it keeps growing (every physical lens).
+
+    Beyond it the polynomial folds back: ``cv2.projectPoints`` puts points from outside the
+    field of view into the image, where no real lens images them. The renderer leaves image
+    pixels without a preimage inside this radius empty; keypoints beyond it are not in the
+    image. Tangential terms (tiny for real lenses) are ignored. Cached per coefficient vector.
+    """
+    return _fold_radius(np.asarray(dist, np.float64).ravel()[:8].tobytes())
+
+
+@functools.lru_cache(maxsize=64)
+def _fold_radius(dist_bytes: bytes) -> float:
+    coeffs = np.frombuffer(dist_bytes, np.float64)
+    d = np.zeros(8)
+    d[: len(coeffs)] = coeffs
+    d[2:4] = 0.0  # radial part only
+    if not np.any(d):
+        return math.inf
+    r = np.arange(1, int(_FOLD_SEARCH_MAX_RADIUS / _FOLD_SEARCH_STEP) + 1) * _FOLD_SEARCH_STEP
+    with np.errstate(all="ignore"):
+        r_d = distort_normalized(np.column_stack([r, np.zeros_like(r)]), d)[:, 0]
+        growing = np.isfinite(r_d[1:]) & (np.diff(r_d) > 0)
+    stop = np.flatnonzero(~growing)
+    return float(r[stop[0]]) if len(stop) else math.inf
 
 
 def instance_bbox(output: RenderOutput, instance_id: int) -> np.ndarray | None:

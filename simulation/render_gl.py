@@ -1,15 +1,17 @@
 """Headless OpenGL rendering of a :class:`~simulation.mesh.Scene` through a calibrated camera.
 
 The only module of the project that imports moderngl (imported lazily, so importing this module
-never needs it). One draw pass with four render targets yields, for every pixel of the image
-*as the real, distorted lens sees it*:
+never needs it). One draw pass with three render targets (RGBA8 colour; R32UI
+``instance_id << 8 | class_id``, exact integers; R32F 1 / z, perspective-exact) yields, for
+every pixel of the image *as the real, distorted lens sees it*:
 
 - ``color_rgb`` (H, W, 3) uint8: albedo (× texture) × (ambient + (1 - ambient) · max(0, n·l)),
-  two-sided (a face seen from behind is lit with its normal flipped towards the camera);
+  lit per vertex and two-sided (a face seen from behind is lit with its normal flipped);
 - ``depth_m`` (H, W) float32: z of the surface point in the camera optical frame, metres,
   ``np.inf`` where nothing was drawn;
-- ``instance_id`` / ``class_id`` (H, W) int32: exact integer targets (no interpolation), 0 where
-  nothing (or an object with id 0) was drawn.
+- ``instance_id`` / ``class_id`` (H, W) int32: exact (never interpolated), 0 where nothing (or
+  an object with id 0) was drawn. :class:`~simulation.mesh.SceneObject` keeps instance ids
+  below 2**24 and class ids below 256, which the packing relies on.
 
 Camera model: the OpenGL projection is built from the intrinsics in the OpenCV convention (x
 right, y down, z forward; integer pixel coordinates are pixel *centres*), so a vertex lands
@@ -17,9 +19,14 @@ exactly where ``cv2.projectPoints`` puts it and a pixel is covered when its cent
 the projected triangle. The GL window's first row is the image's top row, so targets are read
 back without flipping. With lens distortion the scene is rendered undistorted through an internal
 pinhole camera whose field of view covers the undistorted footprint of every image pixel, then
-warped to the distorted image with a per-camera map (colour: bilinear; depth and ids: nearest).
-Pixels of a lens model that have no undistorted preimage (a polynomial that folds back, e.g. a
-strong negative k1 at a wide field of view) stay empty.
+warped to the distorted image with a per-camera map and ``cv2.remap`` (colour: bilinear; depth
+and ids: nearest, so label edges sit within half a pixel of the exact ones; exact near the
+image centre). Pixels of a lens model that have no undistorted preimage (a polynomial that folds
+back, e.g. a strong negative k1 at a wide field of view, see
+:func:`simulation.labels.lens_fold_radius`) stay empty.
+
+Closed, outward-oriented parts of meshes are drawn with back faces culled while the camera is
+outside their bounding box (same image, half the rasterization work on llvmpipe).
 
 Texture coordinates follow OpenGL/OBJ: (0, 0) is the *bottom*-left corner of the texture
 image, v grows upwards, and textures repeat outside [0, 1].
@@ -40,6 +47,7 @@ import numpy as np
 from protocol.camera import CameraModel
 from protocol.errors import SmartedgeError
 from protocol.geometry import distort_normalized
+from simulation.labels import lens_fold_radius
 from simulation.mesh import Mesh, Scene
 
 if TYPE_CHECKING:
@@ -61,6 +69,9 @@ _LENS_GRID_STEP_PX: Final = 8
 _LENS_PAD_PX: Final = 2
 #: A pixel whose undistortion does not re-distort to within this many pixels has no preimage.
 _LENS_MAX_RESIDUAL_PX: Final = 1e-3
+#: Image regions where the lens squeezes more undistorted pixels than this into one image pixel
+#: (only next to the fold of a lens polynomial that folds back) are left empty.
+_LENS_MAX_STRETCH: Final = 3.0
 #: Largest internal render relative to the image, per axis (caps degenerate lens models).
 _MAX_INTERNAL_SCALE: Final = 3.0
 _UNDISTORT_CRITERIA: Final = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -107,17 +118,15 @@ uniform sampler2D u_texture;
 in vec2 v_uv;
 #endif
 layout(location = 0) out vec4 out_color;
-layout(location = 1) out int out_instance_id;
-layout(location = 2) out int out_class_id;
-layout(location = 3) out float out_inv_depth;
+layout(location = 1) out uint out_ids;
+layout(location = 2) out float out_inv_depth;
 void main() {
 #ifdef TEXTURED
     out_color = vec4(v_color * texture(u_texture, v_uv).rgb, 1.0);
 #else
     out_color = vec4(v_color, 1.0);
 #endif
-    out_instance_id = u_instance_id;
-    out_class_id = u_class_id;
+    out_ids = (uint(u_instance_id) << 8) | uint(u_class_id);  // exact, 0 (cleared) = nothing
     out_inv_depth = gl_FragCoord.w;  // 1 / z_cam, perspective-exact; 0 (cleared) = nothing
 }
 """
@@ -178,7 +187,7 @@ def create_context() -> moderngl.Context:
             f"moderngl is not installed ({exc}); install it with pip install 'moderngl>=5.8'"
         ) from exc
     try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
+        ctx = moderngl.create_context(standalone=True, backend="egl")  # type: ignore[arg-type]
     except Exception as exc:  # glcontext raises bare Exception for every failure
         raise RendererUnavailable(_diagnose_egl_failure(str(exc))) from exc
     if ctx.version_code < 330:
@@ -219,8 +228,9 @@ def projection_matrix(K: np.ndarray, width: int, height: int, near_m: float = DE
     Takes camera optical-frame points (z forward) to clip space such that the GL window
     coordinate of a point is (u + 0.5, v + 0.5) for its OpenCV pixel (u, v): GL pixel centres
     sit at half-integers, OpenCV's at integers. Window row 0 is image row 0 (the top), so the
-    image is read back unflipped (and triangle winding on screen is mirrored: draw without
-    culling). Depth maps [near_m, far_m] to [-1, 1].
+    image is read back unflipped (and triangle winding on screen is mirrored: faces
+    counter-clockwise seen from outside are clockwise on screen). Depth maps [near_m, far_m] to
+    [-1, 1].
     """
     fx, s, cx = K[0]
     fy, cy = K[1, 1], K[1, 2]
@@ -238,21 +248,22 @@ class LensMap:
 
     ``K_render`` (3, 3) and ``render_size`` (width, height): the internal pinhole camera.
     ``color_maps``: OpenCV fixed-point maps (CV_16SC2 + CV_16UC1) for a bilinear ``cv2.remap``
-    of the colour, ``nearest_index`` (H * W,) intp: flat index into the internal image of each
-    output pixel's nearest sample, ``render_w * render_h`` (one past the end: the empty sample)
-    where the lens has no preimage. ``identity``: no distortion, the render is the image.
+    of the colour; ``nearest_map`` (H, W, 2) int16 (CV_16SC2): the internal pixel nearest to
+    each image pixel's preimage, for ``cv2.remap`` with ``INTER_NEAREST`` of the label images.
+    Pixels without preimage map outside the render (they get the border value: nothing).
+    ``identity``: no distortion, the render is the image.
     """
 
     K_render: np.ndarray
     render_size: tuple[int, int]
     identity: bool
     color_maps: tuple[np.ndarray, np.ndarray] | None = None
-    nearest_index: np.ndarray | None = None
+    nearest_map: np.ndarray | None = None
     num_without_preimage: int = 0
 
 
 def lens_map(camera: CameraModel) -> LensMap:
-    """The :class:`LensMap` of ``camera`` (numpy + OpenCV; a few ms at 848x480).
+    """The :class:`LensMap` of ``camera`` (numpy + OpenCV; 10-30 ms at 848x480).
 
     The exact undistortion (iterative, checked by re-distorting with
     :func:`protocol.geometry.distort_normalized`) is computed on a grid every
@@ -280,6 +291,16 @@ def lens_map(camera: CameraModel) -> LensMap:
     with np.errstate(invalid="ignore", over="ignore"):
         residual_px = np.linalg.norm(distort_normalized(xy_u, dist) - xy_d, axis=-1) * f_px
     bad = ~(residual_px < _LENS_MAX_RESIDUAL_PX)  # NaN counts as bad
+    bad |= np.hypot(xy_u[..., 0], xy_u[..., 1]) >= lens_fold_radius(dist)  # other branches
+    # Next to a fold the lens squeezes many undistorted pixels into one image pixel: bilinear
+    # interpolation is poor there and the footprint explodes, so such cells count as empty.
+    with np.errstate(invalid="ignore"):
+        sx = np.abs(np.diff(xy_u[..., 0], axis=1)) * (K[0, 0] / step) > _LENS_MAX_STRETCH
+        sy = np.abs(np.diff(xy_u[..., 1], axis=0)) * (K[1, 1] / step) > _LENS_MAX_STRETCH
+    bad[:, 1:] |= sx
+    bad[:, :-1] |= sx
+    bad[1:] |= sy
+    bad[:-1] |= sy
     xy_u[bad] = 0.0
 
     def upsample(a: np.ndarray) -> np.ndarray:
@@ -327,14 +348,9 @@ def lens_map(camera: CameraModel) -> LensMap:
         map_x[invalid] = -100.0  # outside: cv2.remap fills the border (background) colour
         map_y[invalid] = -100.0
     color_maps = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
-    # Valid samples lie >= pad pixels inside the render, so rounding stays in bounds.
-    nearest = np.rint(map_y).astype(np.intp)
-    nearest *= rw
-    nearest += np.rint(map_x).astype(np.intp)
-    if num_invalid:
-        nearest[invalid] = rw * rh
+    nearest_map, _ = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2, nninterpolation=True)
     return LensMap(K_render, (rw, rh), identity=False, color_maps=color_maps,
-                   nearest_index=nearest.ravel(), num_without_preimage=num_invalid)
+                   nearest_map=nearest_map, num_without_preimage=num_invalid)
 
 
 # --------------------------------------------------------------------------------------------
@@ -342,35 +358,67 @@ def lens_map(camera: CameraModel) -> LensMap:
 # --------------------------------------------------------------------------------------------
 
 
-def is_closed_outward(mesh: Mesh, weld_m: float = 1e-6) -> bool:
-    """Whether ``mesh`` is a closed surface with every face counter-clockwise seen from outside.
+def closed_outward_faces(mesh: Mesh, weld_m: float = 1e-6) -> np.ndarray:
+    """(M,) bool: the faces of ``mesh`` that belong to a closed surface whose faces are all
+    counter-clockwise seen from outside.
 
     Vertices closer than ``weld_m`` are merged first (flat-shaded meshes repeat them per face)
-    and faces that collapse are dropped; then every directed edge must occur exactly once and its reverse exactly once, and the
-    enclosed signed volume must be positive. Such a mesh seen from outside its bounding box
-    shows only front faces, so back faces may be culled without changing the image.
+    and faces that collapse are left out (False). Per connected part, every directed edge must
+    occur exactly once and its reverse exactly once, and the enclosed signed volume must be
+    positive. Seen from outside its bounding box, such a part shows only front faces, so its
+    back faces may be culled without changing the image; open parts (single-sided panels) and
+    inside-out parts are drawn two-sided.
     """
-    if len(mesh.faces) < 4:
-        return False
+    faces = mesh.faces.astype(np.int64)
+    result = np.zeros(len(faces), bool)
+    if len(faces) < 4:
+        return result
     keys = np.round(mesh.vertices.astype(np.float64) / weld_m).astype(np.int64)
     _, welded = np.unique(keys, axis=0, return_inverse=True)
-    f = welded.reshape(-1)[mesh.faces.astype(np.int64)]
-    # Faces collapsed by the weld (sphere poles) cover nothing: leave them out.
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    if len(f) < 4:
-        return False
+    f = welded.reshape(-1)[faces]
+    keep = np.flatnonzero((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
+    if len(keep) < 4:
+        return result
+    f = f[keep]
     n = int(f.max()) + 1
-    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    directed = edges[:, 0] * n + edges[:, 1]
-    reverse = edges[:, 1] * n + edges[:, 0]
-    directed.sort()
-    reverse.sort()
-    if np.any(directed[1:] == directed[:-1]) or not np.array_equal(directed, reverse):
-        return False
+    a, b = f.ravel(), f[:, [1, 2, 0]].ravel()  # directed edges, three per face in face order
+
+    # Connected parts: hook each root onto the smallest root it shares an edge with, then
+    # compress paths fully; a few rounds suffice.
+    parent = np.arange(n)
+    while True:
+        ra, rb = parent[a], parent[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        np.minimum.at(parent, np.maximum(ra, rb)[differ], np.minimum(ra, rb)[differ])
+        while True:
+            jumped = parent[parent]
+            if np.array_equal(jumped, parent):
+                break
+            parent = jumped
+    _, part = np.unique(parent[f[:, 0]], return_inverse=True)
+
+    # An edge is paired when it occurs once and its reverse occurs exactly once.
+    directed = a * n + b
+    order = np.argsort(directed)
+    ds = directed[order]
+    same_next = ds[1:] == ds[:-1]
+    repeated = np.zeros(len(ds), bool)
+    repeated[1:] |= same_next
+    repeated[:-1] |= same_next
+    pos = np.minimum(np.searchsorted(ds, b * n + a), len(ds) - 1)
+    paired = (ds[pos] == b * n + a) & ~repeated[pos]
+    paired[order] &= ~repeated
+    open_faces = ~paired.reshape(-1, 3).all(axis=1)
+    num_parts = int(part.max()) + 1
+    part_open = np.bincount(part, weights=open_faces, minlength=num_parts) > 0
     v = mesh.vertices.astype(np.float64)
-    signed_volume = np.einsum("ij,ij->i", v[mesh.faces[:, 0]],
-                              np.cross(v[mesh.faces[:, 1]], v[mesh.faces[:, 2]])).sum() / 6.0
-    return bool(signed_volume > 0.0)
+    fv = mesh.faces[keep]
+    volume6 = np.einsum("ij,ij->i", v[fv[:, 0]], np.cross(v[fv[:, 1]], v[fv[:, 2]]))
+    part_volume = np.bincount(part, weights=volume6, minlength=num_parts)
+    result[keep] = (~part_open & (part_volume > 0.0))[part]
+    return result
 
 
 class _Program:
@@ -381,14 +429,11 @@ class _Program:
         self.program = ctx.program(vertex_shader=_shader_variant(_VERTEX_SHADER, textured),
                                    fragment_shader=_shader_variant(_FRAGMENT_SHADER, textured))
         if textured:
-            self.program["u_texture"].value = 0
-        self.proj = self.program["u_proj"]
-        self.cam_obj = self.program["u_cam_obj"]
-        self.normal = self.program["u_normal_cam_obj"]
-        self.light = self.program["u_light_cam"]
-        self.ambient = self.program["u_ambient"]
-        self.instance_id = self.program["u_instance_id"]
-        self.class_id = self.program["u_class_id"]
+            self.program["u_texture"].value = 0  # type: ignore[union-attr]
+        u: Any = self.program  # moderngl types members as a union of uniform kinds
+        self.proj, self.cam_obj, self.normal = u["u_proj"], u["u_cam_obj"], u["u_normal_cam_obj"]
+        self.light, self.ambient = u["u_light_cam"], u["u_ambient"]
+        self.instance_id, self.class_id = u["u_instance_id"], u["u_class_id"]
         self.attributes = ("in_position", "in_normal", "in_color") + (("in_uv",) if textured
                                                                       else ())
 
@@ -404,8 +449,10 @@ class _GpuMesh:
     ibo: Any
     vao: Any
     texture: Any | None
-    #: closed and outward-oriented: back faces may be culled when seen from outside its box
-    cullable: bool
+    #: the first ``num_closed`` faces belong to closed, outward-oriented parts: their back faces
+    #: may be culled while the camera is outside their bounding box (``box_lo``, ``box_hi``)
+    num_closed: int
+    num_faces: int
     box_lo: np.ndarray
     box_hi: np.ndarray
 
@@ -418,33 +465,30 @@ class _GpuMesh:
 class _Targets:
     """The framebuffer of the internal render and its host-side read-back buffers."""
 
-    def __init__(self, ctx: moderngl.Context, width: int, height: int) -> None:
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, out_width: int,
+                 out_height: int) -> None:
         self.size = (width, height)
         self.color = ctx.renderbuffer(self.size, 4, dtype="f1")
-        self.instance = ctx.renderbuffer(self.size, 1, dtype="i4")
-        self.klass = ctx.renderbuffer(self.size, 1, dtype="i4")
+        self.ids = ctx.renderbuffer(self.size, 1, dtype="u4")
         self.inv_depth = ctx.renderbuffer(self.size, 1, dtype="f4")
         self.depth = ctx.depth_renderbuffer(self.size)
-        self.fbo = ctx.framebuffer([self.color, self.instance, self.klass, self.inv_depth],
-                                   self.depth)
+        self.fbo = ctx.framebuffer([self.color, self.ids, self.inv_depth], self.depth)
         # glClear writes one float value into every attachment (bit-cast for integer ones), so
         # the background colour and the zeroed labels are cleared through separate framebuffers.
         self.fbo_color = ctx.framebuffer([self.color])
-        self.fbo_labels = ctx.framebuffer([self.instance, self.klass, self.inv_depth],
-                                          self.depth)
-        n = width * height
+        self.fbo_labels = ctx.framebuffer([self.ids, self.inv_depth], self.depth)
         # RGBA reads back ~10x faster than RGB on Mesa; cv2 drops the alpha (numpy's strided
         # copy would cost more than the whole read-back).
-        self.rgba_host = np.zeros((height, width, 4), np.uint8)
-        self.color_host = np.zeros((height, width, 3), np.uint8)
-        # One extra element past the end: the empty sample of pixels without preimage.
-        self.instance_host = np.zeros(n + 1, np.int32)
-        self.class_host = np.zeros(n + 1, np.int32)
-        self.inv_depth_host = np.zeros(n + 1, np.float32)
+        self.rgba = np.zeros((height, width, 4), np.uint8)
+        self.color_rgb = np.zeros((height, width, 3), np.uint8)
+        # Packed ids as int32 (cv2.remap has no unsigned 32-bit type; nearest copies bits).
+        self.ids_host = np.zeros((height, width), np.int32)
+        self.inv_depth_host = np.zeros((height, width), np.float32)
+        self.ids_out = np.zeros((out_height, out_width), np.int32)
 
     def release(self) -> None:
-        for obj in (self.fbo, self.fbo_color, self.fbo_labels, self.color, self.instance,
-                    self.klass, self.inv_depth, self.depth):
+        for obj in (self.fbo, self.fbo_color, self.fbo_labels, self.color, self.ids,
+                    self.inv_depth, self.depth):
             obj.release()
 
 
@@ -453,8 +497,8 @@ class Renderer:
 
     Re-usable across frames and cameras of that size: GPU buffers are cached per :class:`Mesh`
     object (a static scene is uploaded once; a mesh's buffers are freed after the mesh is
-    garbage-collected), lens maps per (K, dist, size). Closed, outward-oriented meshes
-    (:func:`is_closed_outward`) are drawn with back faces culled while the camera is outside
+    garbage-collected), lens maps per (K, dist, size). Closed, outward-oriented parts of meshes
+    (:func:`closed_outward_faces`) are drawn with back faces culled while the camera is outside
     their bounding box. Not thread-safe: use one renderer per thread.
     """
 
@@ -470,11 +514,13 @@ class Renderer:
         import moderngl
 
         self._mgl = moderngl
-        # Window y runs down the image (see projection_matrix): counter-clockwise faces seen
-        # from outside are clockwise on screen.
-        self.ctx.front_face = "cw"
-        self.ctx.cull_face = "back"
-        self._programs = (_Program(self.ctx, textured=False), _Program(self.ctx, textured=True))
+        with self.ctx:
+            # Window y runs down the image (see projection_matrix): counter-clockwise faces
+            # seen from outside are clockwise on screen.
+            self.ctx.front_face = "cw"
+            self.ctx.cull_face = "back"
+            self._programs = (_Program(self.ctx, textured=False),
+                              _Program(self.ctx, textured=True))
         self._meshes: dict[int, _GpuMesh] = {}
         self._dead_meshes: list[int] = []
         self._lens_maps: collections.OrderedDict[tuple[bytes, bytes, int, int], LensMap] = (
@@ -486,14 +532,15 @@ class Renderer:
     # ---------------------------------------------------------------------------- lifecycle
     def release(self) -> None:
         """Free every GPU resource and the GL context (the renderer is unusable afterwards)."""
-        for gm in self._meshes.values():
-            gm.release()
-        self._meshes.clear()
-        if self._targets is not None:
-            self._targets.release()
-            self._targets = None
-        for prog in self._programs:
-            prog.release()
+        with self.ctx:
+            for gm in self._meshes.values():
+                gm.release()
+            self._meshes.clear()
+            if self._targets is not None:
+                self._targets.release()
+                self._targets = None
+            for prog in self._programs:
+                prog.release()
         self.ctx.release()
 
     def __enter__(self) -> Renderer:
@@ -533,7 +580,9 @@ class Renderer:
         columns = [mesh.vertices, mesh.normals, mesh.colors] + ([mesh.uv] if textured else [])
         vertices = np.hstack(columns).astype(np.float32)  # type: ignore[arg-type]
         vbo = self.ctx.buffer(vertices.tobytes())
-        ibo = self.ctx.buffer(np.ascontiguousarray(mesh.faces, np.uint32).tobytes())
+        closed = closed_outward_faces(mesh)
+        faces = np.concatenate([mesh.faces[closed], mesh.faces[~closed]])  # closed parts first
+        ibo = self.ctx.buffer(np.ascontiguousarray(faces, np.uint32).tobytes())
         layout = "3f 3f 3f 2f" if textured else "3f 3f 3f"
         vao = self.ctx.vertex_array(prog.program, [(vbo, layout, *prog.attributes)],
                                     index_buffer=ibo, index_element_size=4)
@@ -544,12 +593,17 @@ class Renderer:
             texture = self.ctx.texture((img.shape[1], img.shape[0]), 3, data=img.tobytes(),
                                        alignment=1)
             texture.build_mipmaps()
-            texture.filter = (self._mgl.LINEAR_MIPMAP_LINEAR, self._mgl.LINEAR)
+            texture.filter = (self._mgl.LINEAR_MIPMAP_NEAREST, self._mgl.LINEAR)
         dead = self._dead_meshes
-        ref = weakref.ref(mesh, lambda _r, k=key: dead.append(k))
-        lo, hi = mesh.bounds()
-        gm = _GpuMesh(ref, prog, vbo, ibo, vao, texture, is_closed_outward(mesh),
-                      lo.astype(np.float64), hi.astype(np.float64))
+
+        def on_collected(_ref: weakref.ref[Mesh], k: int = key) -> None:
+            dead.append(k)  # freed at the next render, with this renderer's context current
+
+        ref = weakref.ref(mesh, on_collected)
+        num_closed = int(closed.sum())
+        box = mesh.vertices[mesh.faces[closed].ravel()] if num_closed else mesh.vertices[:1]
+        gm = _GpuMesh(ref, prog, vbo, ibo, vao, texture, num_closed, len(faces),
+                      box.min(axis=0).astype(np.float64), box.max(axis=0).astype(np.float64))
         self._meshes[key] = gm
         return gm
 
@@ -566,7 +620,7 @@ class Renderer:
         if t is None or t.size != (width, height):
             if t is not None:
                 t.release()
-            t = self._targets = _Targets(self.ctx, width, height)
+            t = self._targets = _Targets(self.ctx, width, height, self.width, self.height)
         return t
 
     # ---------------------------------------------------------------------------- rendering
@@ -586,14 +640,21 @@ class Renderer:
             out = RenderOutput.empty(self.width, self.height)
         else:
             _check_out(out, self.width, self.height)
-        self._purge_dead_meshes()
         lm = self.lens_map(camera)
+        # Every GL call goes to the thread's current context: with several renderers in one
+        # process (one per image size, say) each must make its own current first.
+        with self.ctx:
+            self._purge_dead_meshes()
+            self._draw(scene, camera, lm, out)
+        return out
+
+    def _draw(self, scene: Scene, camera: CameraModel, lm: LensMap, out: RenderOutput) -> None:
         rw, rh = lm.render_size
         t = self._targets_for(rw, rh)
         mgl = self._mgl
 
         bg = tuple(float(c) for c in scene.background_rgb)
-        t.fbo_color.clear(*bg, 1.0)
+        t.fbo_color.clear(bg[0], bg[1], bg[2], 1.0)
         t.fbo_labels.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         t.fbo.use()
         self.ctx.enable_only(mgl.DEPTH_TEST)
@@ -623,14 +684,22 @@ class Renderer:
             prog.class_id.value = int(obj.class_id)
             if gm.texture is not None:
                 gm.texture.use(0)
-            cull = gm.cullable and self._outside_box(gm, obj.T_world_object, cam_world)
-            if cull != culling:
-                (self.ctx.enable if cull else self.ctx.disable)(mgl.CULL_FACE)
-                culling = cull
-            gm.vao.render(mgl.TRIANGLES)
+            if gm.num_closed and self._outside_box(gm, obj.T_world_object, cam_world):
+                if not culling:
+                    self.ctx.enable(mgl.CULL_FACE)
+                    culling = True
+                gm.vao.render(mgl.TRIANGLES, vertices=3 * gm.num_closed)
+                first = gm.num_closed
+            else:
+                first = 0
+            if first < gm.num_faces:
+                if culling:
+                    self.ctx.disable(mgl.CULL_FACE)
+                    culling = False
+                gm.vao.render(mgl.TRIANGLES, vertices=3 * (gm.num_faces - first),
+                              first=3 * first)
 
         self._read_back(t, lm, bg, out)
-        return out
 
     def _outside_box(self, gm: _GpuMesh, T_world_object: np.ndarray,
                      cam_world: np.ndarray) -> bool:
@@ -647,25 +716,26 @@ class Renderer:
     def _read_back(self, t: _Targets, lm: LensMap, bg: tuple[float, ...],
                    out: RenderOutput) -> None:
         fbo = t.fbo
-        fbo.read_into(t.rgba_host, components=4, attachment=0)
+        fbo.read_into(t.rgba, components=4, attachment=0)
         if lm.identity:
-            cv2.cvtColor(t.rgba_host, cv2.COLOR_RGBA2RGB, dst=out.color_rgb)
-            fbo.read_into(out.instance_id, components=1, attachment=1, dtype="i4")
-            fbo.read_into(out.class_id, components=1, attachment=2, dtype="i4")
-            fbo.read_into(out.depth_m, components=1, attachment=3, dtype="f4")
+            cv2.cvtColor(t.rgba, cv2.COLOR_RGBA2RGB, dst=out.color_rgb)
+            fbo.read_into(t.ids_out, components=1, attachment=1, dtype="u4")
+            fbo.read_into(out.depth_m, components=1, attachment=2, dtype="f4")
         else:
-            assert lm.color_maps is not None and lm.nearest_index is not None
-            cv2.cvtColor(t.rgba_host, cv2.COLOR_RGBA2RGB, dst=t.color_host)
-            fbo.read_into(t.instance_host, components=1, attachment=1, dtype="i4")
-            fbo.read_into(t.class_host, components=1, attachment=2, dtype="i4")
-            fbo.read_into(t.inv_depth_host, components=1, attachment=3, dtype="f4")
+            assert lm.color_maps is not None and lm.nearest_map is not None
+            fbo.read_into(t.ids_host, components=1, attachment=1, dtype="u4")
+            fbo.read_into(t.inv_depth_host, components=1, attachment=2, dtype="f4")
+            cv2.cvtColor(t.rgba, cv2.COLOR_RGBA2RGB, dst=t.color_rgb)
             border = tuple(round(255.0 * min(max(c, 0.0), 1.0)) for c in bg)
-            cv2.remap(t.color_host, *lm.color_maps, cv2.INTER_LINEAR, dst=out.color_rgb,
+            cv2.remap(t.color_rgb, *lm.color_maps, cv2.INTER_LINEAR, dst=out.color_rgb,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=border)
-            idx = lm.nearest_index
-            np.take(t.instance_host, idx, out=out.instance_id.reshape(-1), mode="clip")
-            np.take(t.class_host, idx, out=out.class_id.reshape(-1), mode="clip")
-            np.take(t.inv_depth_host, idx, out=out.depth_m.reshape(-1), mode="clip")
+            for src, dst in ((t.ids_host, t.ids_out), (t.inv_depth_host, out.depth_m)):
+                cv2.remap(src, lm.nearest_map, None,  # type: ignore[call-overload]
+                          cv2.INTER_NEAREST, dst=dst, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0)
+        packed = t.ids_out.view(np.uint32)
+        np.right_shift(packed, 8, out=out.instance_id.view(np.uint32))
+        np.bitwise_and(packed, 0xFF, out=out.class_id.view(np.uint32))
         with np.errstate(divide="ignore"):
             np.reciprocal(out.depth_m, out=out.depth_m)  # 1 / 0 (nothing drawn) = inf
 

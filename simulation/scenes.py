@@ -21,9 +21,11 @@ from typing import Final
 import numpy as np
 
 from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_z, se3_from_planar
+from protocol.geometry import distort_normalized, invert_transform, rotation_z, se3_from_planar
 from protocol.site import RobotModel, look_at_T_world_cam
+from simulation.labels import lens_fold_radius
 from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject
+from simulation.robot_mesh import box, cylinder
 
 ROBOT_INSTANCE: Final = 1
 FIRST_OTHER_INSTANCE: Final = 100
@@ -52,50 +54,15 @@ def textured_quad(corners: np.ndarray, texture: np.ndarray, repeat: tuple[float,
                 np.tile(normal, (4, 1)), uv, texture)
 
 
-def box_mesh(size_m: Sequence[float], color: Sequence[float]) -> Mesh:
-    """An axis-aligned box centred on the origin, flat-shaded (24 vertices)."""
-    sx, sy, sz = (0.5 * float(s) for s in size_m)
-    faces_axes = [  # (normal, u axis, v axis)
-        ((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, -1, 0), (0, 0, 1)),
-        ((0, 1, 0), (-1, 0, 0), (0, 0, 1)), ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
-        ((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (1, 0, 0), (0, -1, 0)),
-    ]
-    half = np.array([sx, sy, sz])
-    verts, normals, faces = [], [], []
-    for n, u, v in faces_axes:
-        n_, u_, v_ = (np.array(a, dtype=np.float64) for a in (n, u, v))
-        center = n_ * half
-        du, dv = u_ * half, v_ * half
-        base = len(verts)
-        verts += [center - du - dv, center + du - dv, center + du + dv, center - du + dv]
-        normals += [n_] * 4
-        faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
-    return Mesh(np.array(verts), np.array(faces), np.asarray(color, np.float32),
-                np.array(normals))
-
-
-def cylinder_mesh(radius_m: float, height_m: float, color: Sequence[float],
-                  segments: int = 16) -> Mesh:
-    """A capped cylinder standing on z = 0."""
-    ang = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    ring = np.column_stack([radius_m * np.cos(ang), radius_m * np.sin(ang)])
-    side_v = np.vstack([np.column_stack([ring, np.zeros(segments)]),
-                        np.column_stack([ring, np.full(segments, height_m)])])
-    side_n = np.vstack([np.column_stack([np.cos(ang), np.sin(ang), np.zeros(segments)])] * 2)
-    i = np.arange(segments)
-    j = (i + 1) % segments
-    side_f = np.vstack([np.column_stack([i, j, segments + j]),
-                        np.column_stack([i, segments + j, segments + i])])
-    top_c = len(side_v)
-    top_v = np.vstack([[0, 0, height_m], np.column_stack([ring, np.full(segments, height_m)])])
-    top_f = np.column_stack([np.full(segments, top_c), top_c + 1 + i, top_c + 1 + j])
-    bot_c = top_c + len(top_v)
-    bot_v = np.vstack([[0, 0, 0], np.column_stack([ring, np.zeros(segments)])])
-    bot_f = np.column_stack([np.full(segments, bot_c), bot_c + 1 + j, bot_c + 1 + i])
-    verts = np.vstack([side_v, top_v, bot_v])
-    normals = np.vstack([side_n, np.tile([0, 0, 1.0], (len(top_v), 1)),
-                         np.tile([0, 0, -1.0], (len(bot_v), 1))])
-    return Mesh(verts, np.vstack([side_f, top_f, bot_f]), np.asarray(color, np.float32), normals)
+def textured_quads(quads: Sequence[np.ndarray], texture: np.ndarray,
+                   repeats: Sequence[tuple[float, float]]) -> Mesh:
+    """Several quads (each (4, 3), counter-clockwise from the front) sharing one texture, as one
+    mesh (one upload, one texture)."""
+    parts = [textured_quad(q, texture, r) for q, r in zip(quads, repeats, strict=True)]
+    return Mesh(np.vstack([p.vertices for p in parts]),
+                np.vstack([p.faces + 4 * i for i, p in enumerate(parts)]),
+                np.vstack([p.colors for p in parts]), np.vstack([p.normals for p in parts]),
+                np.vstack([p.uv for p in parts]), texture)
 
 
 def procedural_texture(rng: np.random.Generator, size: int = 128) -> np.ndarray:
@@ -127,10 +94,27 @@ def person_mesh(height_m: float, color: Sequence[float]) -> Mesh:
     """A person-shaped occluder (legs+torso column and a head), standing on z = 0."""
     from simulation.mesh import concatenate
 
-    body = cylinder_mesh(0.18, 0.82 * height_m, color)
-    head = box_mesh((0.2, 0.2, 0.22), (0.85, 0.7, 0.6)).transformed(
+    body = _cylinder(0.18, 0.82 * height_m, color)
+    head = box((0.2, 0.2, 0.22), color=(0.85, 0.7, 0.6)).transformed(
         _translation(0, 0, 0.82 * height_m + 0.11))
     return concatenate([body, head])
+
+
+def _walls(corners: Sequence[tuple[float, float]], height_m: float, texture: np.ndarray,
+           tile_m: float) -> Mesh:
+    """Walls along a closed polygon of floor ``corners`` (counter-clockwise seen from above, so
+    the walls face inwards), one texture tile every ``tile_m``."""
+    quads, repeats = [], []
+    for k in range(len(corners)):
+        (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % len(corners)]
+        quads.append(np.array([[x0, y0, 0], [x1, y1, 0], [x1, y1, height_m],
+                               [x0, y0, height_m]]))
+        repeats.append((math.hypot(x1 - x0, y1 - y0) / tile_m, height_m / tile_m))
+    return textured_quads(quads, texture, repeats)
+
+
+def _cylinder(radius_m: float, height_m: float, color: Sequence[float]) -> Mesh:
+    return cylinder(radius_m, 0.0, height_m, color=color, segments=16)
 
 
 def _translation(x: float, y: float, z: float) -> np.ndarray:
@@ -180,19 +164,14 @@ def site_geometry(scenario: object, seed: int = 0) -> SiteGeometry:
                           ((hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2))
     objs.append(SceneObject(floor, np.eye(4), 0, CLASS_ID["floor"]))
     corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
-    for k in range(4):  # walls face into the room
-        (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
-        quad = np.array([[x0, y0, 0], [x1, y1, 0], [x1, y1, h], [x0, y0, h]])
-        length = math.hypot(x1 - x0, y1 - y0)
-        objs.append(SceneObject(textured_quad(quad, wall_tex, (length / 2, h / 2)), np.eye(4), 0,
-                                CLASS_ID["wall"]))
-    for box in scenario.obstacles:  # type: ignore[attr-defined]
-        size = np.asarray(box.size_m, dtype=np.float64)
+    objs.append(SceneObject(_walls(corners, h, wall_tex, 2.0), np.eye(4), 0, CLASS_ID["wall"]))
+    for obstacle in scenario.obstacles:  # type: ignore[attr-defined]
+        size = np.asarray(obstacle.size_m, dtype=np.float64)
         color = rng.uniform(0.25, 0.85, 3)
-        mesh = box_mesh(size, color)
-        T = _planar_T(float(box.center_xy_m[0]), float(box.center_xy_m[1]), float(box.yaw_rad),
-                      float(box.z_min_m) + size[2] / 2)
-        objs.append(SceneObject(mesh, T, 0, obstacle_class(box.name)))
+        mesh = box(size, color=color)
+        cx, cy = (float(v) for v in obstacle.center_xy_m)
+        T = _planar_T(cx, cy, float(obstacle.yaw_rad), float(obstacle.z_min_m) + size[2] / 2)
+        objs.append(SceneObject(mesh, T, 0, obstacle_class(obstacle.name)))
     return SiteGeometry(tuple(objs))
 
 
@@ -229,6 +208,48 @@ class RandomizationConfig:
     distractors: tuple[int, int] = (2, 10)
     occluder_probability: float = 0.5
     room_half_size_m: float = 12.0
+    #: distinct floor/wall looks drawn per generator (re-used across samples, so the renderer
+    #: uploads their textures once; camera, light, objects and image noise change every sample)
+    environments: int = 48
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Environment:
+    """A textured floor and walls for randomized scenes."""
+
+    floor: SceneObject
+    walls: SceneObject
+
+
+def random_environments(seed: int, config: RandomizationConfig | None = None,
+                        ) -> tuple[Environment, ...]:
+    """``config.environments`` floor/wall looks, deterministic per ``seed``."""
+    cfg = config or RandomizationConfig()
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 104729]))
+    half = cfg.room_half_size_m
+    out = []
+    for _ in range(max(1, cfg.environments)):
+        floor = textured_quad(np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0],
+                                        [-half, half, 0]]), procedural_texture(rng),
+                              (half * rng.uniform(0.3, 1.5),) * 2)
+        corners = [(-half, -half), (half, -half), (half, half), (-half, half)]
+        walls = _walls(corners, float(rng.uniform(2.5, 4.5)), procedural_texture(rng),
+                       float(rng.uniform(1.0, 6.0)))
+        out.append(Environment(SceneObject(floor, np.eye(4), 0, CLASS_ID["floor"]),
+                               SceneObject(walls, np.eye(4), 0, CLASS_ID["wall"])))
+    return tuple(out)
+
+
+def _lens_covers(dist: np.ndarray, radius: float) -> bool:
+    """The lens images every distorted radius up to ``radius`` from a real direction: its
+    radial polynomial is still growing when it reaches it (it does not fold back before)."""
+    fold = lens_fold_radius(dist)
+    if not math.isfinite(fold):
+        return True
+    d = np.asarray(dist, np.float64).copy()
+    d[2:4] = 0.0
+    reached = float(distort_normalized(np.array([[fold, 0.0]]), d)[0, 0])
+    return reached > radius
 
 
 def look_at_camera(camera_id: str, position: np.ndarray, target: np.ndarray, width: int,
@@ -244,25 +265,19 @@ def look_at_camera(camera_id: str, position: np.ndarray, target: np.ndarray, wid
 
 def randomized_view(rng: np.random.Generator, robot_mesh: Mesh, model: RobotModel, width: int,
                     height: int, config: RandomizationConfig | None = None,
+                    environments: Sequence[Environment] | None = None,
                     ) -> tuple[Scene, CameraModel, np.ndarray]:
     """A random training scene with the robot near the origin; returns (scene, camera, robot
-    pose (3,) x, y, theta)."""
+    pose (3,) x, y, theta). ``environments``: the floor/wall looks to draw from (default: a
+    fresh set from ``rng``, slower: textures are uploaded again)."""
     cfg = config or RandomizationConfig()
     pose = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi, np.pi)])
     half = cfg.room_half_size_m
-    objs: list[SceneObject] = []
-    floor = textured_quad(np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0],
-                                    [-half, half, 0]]), procedural_texture(rng),
-                          (half * rng.uniform(0.3, 1.5),) * 2)
-    objs.append(SceneObject(floor, np.eye(4), 0, CLASS_ID["floor"]))
-    wall_h = float(rng.uniform(2.5, 4.5))
-    wall_tex = procedural_texture(rng)
-    corners = [(-half, -half), (half, -half), (half, half), (-half, half)]
-    for k in range(4):
-        (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
-        quad = np.array([[x0, y0, 0], [x1, y1, 0], [x1, y1, wall_h], [x0, y0, wall_h]])
-        objs.append(SceneObject(textured_quad(quad, wall_tex, (half / 2, wall_h / 2)), np.eye(4),
-                                0, CLASS_ID["wall"]))
+    if not environments:
+        environments = random_environments(
+            int(rng.integers(2**31)), dataclasses.replace(cfg, environments=1))
+    env = environments[int(rng.integers(len(environments)))]
+    objs: list[SceneObject] = [env.floor, env.walls]
     # camera: somewhere around the robot, looking at it (with jitter so it is not centred)
     dist = float(rng.uniform(*cfg.distance_m))
     az = float(rng.uniform(-np.pi, np.pi))
@@ -270,11 +285,17 @@ def randomized_view(rng: np.random.Generator, robot_mesh: Mesh, model: RobotMode
                         rng.uniform(*cfg.camera_height_m)])
     target = np.array([pose[0], pose[1], 0.5 * model.height_m]) + rng.normal(
         0, cfg.look_jitter_m * min(1.0, dist / 4), 3) * [1, 1, 0.4]
+    hfov_deg = float(rng.uniform(*cfg.hfov_deg))
     k1 = float(rng.uniform(-cfg.max_k1, 0.05))
     distortion = np.array([k1, rng.uniform(-0.1, 0.1) * abs(k1), rng.normal(0, 5e-4),
                            rng.normal(0, 5e-4), 0.0])
-    camera = look_at_camera("random", cam_pos, target, width, height,
-                            float(rng.uniform(*cfg.hfov_deg)), distortion)
+    # a physical lens: its radial polynomial must keep growing over the whole image (with a
+    # margin), else a wide field of view with strong barrel distortion folds back
+    f_norm = 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
+    corner_radius = math.hypot(0.5 * width, 0.5 * height) / f_norm  # distorted, normalized
+    while not _lens_covers(distortion, 1.15 * corner_radius):
+        distortion[:2] *= 0.5
+    camera = look_at_camera("random", cam_pos, target, width, height, hfov_deg, distortion)
     instance = FIRST_OTHER_INSTANCE
     # distractors: random boxes and cylinders away from the robot and the camera
     for _ in range(int(rng.integers(cfg.distractors[0], cfg.distractors[1] + 1))):
@@ -283,11 +304,11 @@ def randomized_view(rng: np.random.Generator, robot_mesh: Mesh, model: RobotMode
             continue
         color = rng.uniform(0.05, 0.95, 3)
         if rng.uniform() < 0.5:
-            mesh = box_mesh(rng.uniform([0.2, 0.2, 0.2], [1.5, 1.5, 2.0]), color)
+            mesh = box(rng.uniform([0.2, 0.2, 0.2], [1.5, 1.5, 2.0]), color=color)
             T = _planar_T(p[0], p[1], float(rng.uniform(-np.pi, np.pi)), 0.0)
             T[2, 3] = 0.5 * float(mesh.bounds()[1][2] - mesh.bounds()[0][2])
         else:
-            mesh = cylinder_mesh(float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.3, 2.0)),
+            mesh = _cylinder(float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.3, 2.0)),
                                  color)
             T = _planar_T(p[0], p[1], 0.0)
         objs.append(SceneObject(mesh, T, instance, CLASS_ID["distractor"]))
@@ -302,8 +323,8 @@ def randomized_view(rng: np.random.Generator, robot_mesh: Mesh, model: RobotMode
                 objs.append(SceneObject(occ, _planar_T(p[0], p[1], 0.0), instance,
                                         CLASS_ID["person"]))
             else:
-                occ = box_mesh(rng.uniform([0.3, 0.3, 0.3], [0.9, 0.9, 1.2]),
-                               rng.uniform(0.1, 0.9, 3))
+                occ = box(rng.uniform([0.3, 0.3, 0.3], [0.9, 0.9, 1.2]),
+                          color=rng.uniform(0.1, 0.9, 3))
                 T = _planar_T(p[0], p[1], float(rng.uniform(-np.pi, np.pi)))
                 T[2, 3] = 0.5 * float(occ.bounds()[1][2] - occ.bounds()[0][2])
                 objs.append(SceneObject(occ, T, instance, CLASS_ID["box"]))
@@ -312,5 +333,6 @@ def randomized_view(rng: np.random.Generator, robot_mesh: Mesh, model: RobotMode
     light = rng.normal(0, 1, 3)
     light[2] = abs(light[2]) + 0.5
     scene = Scene(tuple(objs), light_dir_world=tuple(light / np.linalg.norm(light)),
-                  ambient=float(rng.uniform(0.25, 0.6)))
+                  ambient=float(rng.uniform(0.25, 0.6)),
+                  background_rgb=tuple(float(v) for v in rng.uniform(0.0, 1.0, 3)))
     return scene, camera, pose

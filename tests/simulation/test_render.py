@@ -18,11 +18,12 @@ from protocol.errors import SmartedgeError
 from protocol.geometry import invert_transform, rotation_from_rpy
 from protocol.site import look_at_T_world_cam
 from simulation.labels import instance_bbox, keypoint_labels
-from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject
+from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject, concatenate
 from simulation.render_gl import (
     Renderer,
     RendererUnavailable,
     RenderOutput,
+    closed_outward_faces,
     create_context,
 )
 
@@ -50,7 +51,7 @@ def box_mesh(size_m, color=(0.8, 0.5, 0.2)) -> Mesh:
             u = np.zeros(3)
             u[(axis + 1) % 3] = 1.0
             v = np.cross(n, u)
-            c, du, dv = n * half, u * half, v * np.abs(half)
+            c, du, dv = n * half, u * half, v * half
             base = len(verts)
             verts += [c - du - dv, c + du - dv, c + du + dv, c - du + dv]
             faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
@@ -200,7 +201,10 @@ def test_box_corner_and_face_labels(renderer, camera) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def test_instance_class_and_depth_images_match_ray_casting(renderer, camera) -> None:
+@pytest.mark.parametrize("dist", [DIST, [0.12, 0.01, 0.0005, 0.0005, 0.0], np.zeros(5)],
+                         ids=["barrel", "pincushion", "pinhole"])
+def test_instance_class_and_depth_images_match_ray_casting(renderer, dist) -> None:
+    camera = make_camera([3.0, -1.2, 1.7], [0.0, 0.0, 0.4], dist=dist)
     # A plate 2.5 m in front of the camera, tilted 35 deg and 20 deg about the image axes.
     side = 3.0
     T_cam_plate = pose(0.2, 0.1, 2.5, roll=math.pi + 0.6, pitch=0.35)
@@ -218,9 +222,12 @@ def test_instance_class_and_depth_images_match_ray_casting(renderer, camera) -> 
     n, p0 = T_cam_plate[:3, 2], T_cam_plate[:3, 3]
     z = (n @ p0) / (rays @ n)  # ray parameter = camera z since rays have z = 1
     hit_plate = (rays * z[..., None] - p0) @ T_cam_plate[:3, :2]
-    # 1.5 px at the hit's depth, measured in the plate's plane (foreshortened by the tilt).
+    # Pixels clearly inside / outside: by 1.5 px (nearest sampling of the distorted image moves
+    # edges by up to half a pixel), by 0.05 px without distortion (GL samples pixel centres
+    # exactly), at the hit's depth, measured in the plate's plane (foreshortened by the tilt).
+    margin_px = 1.5 if np.any(dist) else 0.05
     cos_tilt = np.abs(rays @ n) / np.linalg.norm(rays, axis=-1)
-    margin_m = 1.5 * z / camera.K[0, 0] / np.maximum(cos_tilt, 1e-6)
+    margin_m = margin_px * z / camera.K[0, 0] / np.maximum(cos_tilt, 1e-6)
     dist_in = side / 2 - np.abs(hit_plate).max(axis=-1)
     interior = (z > 0) & (dist_in > margin_m)
     exterior = (z <= 0) | (dist_in < -margin_m)
@@ -232,7 +239,8 @@ def test_instance_class_and_depth_images_match_ray_casting(renderer, camera) -> 
     assert np.isinf(out.depth_m[exterior]).all()
     bg = np.round(np.array(BACKGROUND) * 255).astype(np.uint8)
     assert (np.abs(out.color_rgb[exterior].astype(int) - bg) <= 1).all()
-    assert np.abs(out.depth_m[interior] - z[interior]).max() < 0.01
+    depth_tol_m = 0.01 if np.any(dist) else 1e-4
+    assert np.abs(out.depth_m[interior] - z[interior]).max() < depth_tol_m
     assert set(np.unique(out.instance_id)) == {0, PLATE_ID}
 
 
@@ -309,6 +317,62 @@ def test_same_scene_twice_gives_identical_arrays_and_uploads_once(renderer, came
     assert set(np.unique(a.class_id)) == {CLASS_ID["floor"], CLASS_ID["box"], 0}
 
 
+def test_back_face_culling_only_where_it_cannot_change_the_image(renderer) -> None:
+    box = box_mesh((4.0, 4.0, 3.0))
+    inward = Mesh(box.vertices, box.faces[:, ::-1], box.colors)
+    panel = quad_mesh([[3, 0, 0], [4, 0, 0], [4, 1, 0], [3, 1, 0]])
+    assert closed_outward_faces(box).all()
+    assert not closed_outward_faces(inward).any()
+    assert not closed_outward_faces(panel).any()
+    moved = inward.transformed(pose(10.0, 0.0, 0.0))
+    np.testing.assert_array_equal(closed_outward_faces(concatenate([box, panel, moved])),
+                                  [True] * 12 + [False] * 14)
+    # A camera inside a closed box (a room shell) sees its walls all around: no culling there.
+    inside = make_camera([0.3, -0.2, 0.1], [1.0, 0.5, -0.2])
+    for mesh in (box, inward):
+        out = renderer.render(Scene((SceneObject(mesh, np.eye(4), BOX_ID, 2),)), inside)
+        assert (out.instance_id == BOX_ID).all()
+        assert np.isfinite(out.depth_m).all() and out.depth_m.max() < 4.0
+
+
+def test_meshes_of_a_static_scene_are_uploaded_once_and_freed_after_use(renderer,
+                                                                         camera) -> None:
+    import gc
+
+    gc.collect()
+    renderer.render(Scene(()), camera)  # frees what earlier tests left behind
+    start = renderer.num_uploaded_meshes
+    scene = box_scene()
+    renderer.render(scene, camera)
+    assert renderer.num_uploaded_meshes == start + 2  # floor and box
+    renderer.render(scene, camera)
+    assert renderer.num_uploaded_meshes == start + 2
+    extra = SceneObject(box_mesh((0.2, 0.2, 0.2)), pose(1.0, 1.0, 0.1), 5, 3)
+    renderer.render(Scene((*scene.objects, extra)), camera)
+    assert renderer.num_uploaded_meshes == start + 3
+    del extra
+    gc.collect()
+    renderer.render(scene, camera)
+    assert renderer.num_uploaded_meshes == start + 2
+
+
+def test_renderers_of_other_sizes_in_the_same_process_do_not_interfere(renderer,
+                                                                        camera) -> None:
+    scene = box_scene()
+    first = renderer.render(scene, camera)
+    K_small = camera.K * 0.5
+    K_small[2, 2] = 1.0
+    small = CameraModel("small", 320, 200, K_small, camera.dist, camera.T_cam_world)
+    with Renderer(320, 200) as other:
+        other.render(box_scene(), small)
+        again = renderer.render(scene, camera)
+        assert (other.render(scene, small).instance_id == BOX_ID).any()
+    after = renderer.render(scene, camera)
+    for name in ("color_rgb", "depth_m", "instance_id", "class_id"):
+        assert np.array_equal(getattr(first, name), getattr(again, name)), name
+        assert np.array_equal(getattr(first, name), getattr(after, name)), name
+
+
 def test_camera_looking_away_sees_nothing(renderer) -> None:
     away = make_camera([3.0, -1.2, 1.7], [6.0, -3.0, 2.5])
     out = renderer.render(box_scene(), away)
@@ -379,6 +443,11 @@ def test_camera_size_must_match_the_renderer(renderer) -> None:
                         np.zeros(5), np.eye(4))
     with pytest.raises(ValueError, match="32x24"):
         renderer.render(Scene(()), small)
+    with pytest.raises(ValueError, match=r"out\.depth_m"):
+        bad = RenderOutput.empty(W, H)
+        renderer.render(Scene(()), make_camera([0, 0, 1], [1, 0, 1]),
+                        out=RenderOutput(bad.color_rgb, bad.depth_m.astype(np.float64),
+                                         bad.instance_id, bad.class_id))
 
 
 # ----------------------------------------------------------------------------------------------
