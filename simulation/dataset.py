@@ -159,13 +159,15 @@ class SampleGenerator:
     ``scenario``: a :class:`simulation.scenario.Scenario` (site, room, obstacles);
     ``mode``: ``site`` or ``randomized``; ``width``/``height``: image size (default: each
     site camera's own in site mode, 848x480 randomized); ``robot_mesh``: the robot's mesh
-    (default: the built-in HSR-like mesh of the scenario's robot model). The GL renderer is
-    created on first use, in the process that renders.
+    (default: the built-in HSR-like mesh of the scenario's robot model); ``robot_model``: its
+    keypoints (default: the site's model of the scenario's robot). The GL renderer is created on
+    first use, in the process that renders.
     """
 
     def __init__(self, scenario: Any, mode: str = "site", *, seed: int = 0,
                  width: int | None = None, height: int | None = None,
                  robot_mesh: Mesh | None = None,
+                 robot_model: Any = None,
                  randomization: RandomizationConfig | None = None) -> None:
         if mode not in MODES:
             raise DatasetError(f"mode {mode!r}: expected one of {MODES}")
@@ -176,7 +178,7 @@ class SampleGenerator:
         self.seed = int(seed)
         self.width, self.height = width, height
         self.robot_id = scenario.robot_id
-        self.model = scenario.site.robot_model(self.robot_id)
+        self.model = robot_model or scenario.site.robot_model(self.robot_id)
         if robot_mesh is None:
             from simulation.robot_mesh import hsr_like_mesh
 
@@ -323,7 +325,7 @@ def write_dataset(generator: SampleGenerator, out_dir: str | Path, count: int, *
     else:
         kwargs = {"scenario_path": generator.scenario.source_path, "mode": generator.mode,
                   "seed": generator.seed, "width": generator.width, "height": generator.height,
-                  "robot_mesh": generator.robot_mesh,
+                  "robot_mesh": generator.robot_mesh, "robot_model": generator.model,
                   "randomization": generator.randomization}
         ctx = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx,

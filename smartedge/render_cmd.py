@@ -11,6 +11,7 @@ Examples::
     smartedge render --out runs/render --count 200                  # views of the site's cameras
     smartedge render --out runs/random --count 5000 --randomize --workers 2
     smartedge render --out runs/preview --count 8 --preview 8 --size 848x480
+    smartedge render --out runs/husky --randomize --robot husky.urdf --keypoints husky_kp.yaml
 """
 
 from __future__ import annotations
@@ -37,6 +38,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--size", help="WxH (default: each camera's own; 848x480 randomized)")
     parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     parser.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="your robot instead of the built-in one: a mesh (OBJ, STL, PLY, "
+                        "GLB) or a URDF, in the robot base frame; needs --keypoints")
+    parser.add_argument("--keypoints", metavar="FILE",
+                        help="the robot's keypoints (YAML: keypoints: [{name, link, xyz_m}])")
     parser.add_argument("--preview", type=int, default=0, metavar="K",
                         help="also write the first K images with labels drawn (preview/)")
     return parser
@@ -52,6 +58,27 @@ def parse_size(text: str | None) -> tuple[int | None, int | None]:
     if min(w, h) < 8 or max(w, h) > 8192:
         raise SmartedgeError(f"--size {text!r}: 8..8192 pixels per side")
     return w, h
+
+
+def load_user_robot(robot: str | None, keypoints: str | None) -> tuple[object, object]:
+    """(mesh, robot model) of ``--robot`` + ``--keypoints``, or (None, None) for the built-in."""
+    if robot is None and keypoints is None:
+        return None, None
+    if robot is None or keypoints is None:
+        raise SmartedgeError("--robot and --keypoints go together")
+    from simulation.robot_mesh import (
+        load_keypoint_file,
+        load_robot_mesh,
+        load_urdf,
+        robot_model_from_mesh,
+    )
+
+    if Path(robot).suffix.lower() == ".urdf":
+        mesh, links = load_urdf(robot)
+    else:
+        mesh, links = load_robot_mesh(robot), None
+    names, kp = load_keypoint_file(keypoints, links)
+    return mesh, robot_model_from_mesh(Path(robot).stem, mesh, names, kp)
 
 
 def draw_labels(sample: object) -> np.ndarray:
@@ -82,8 +109,10 @@ def main(argv: Sequence[str]) -> int:
 
         width, height = parse_size(args.size)
         scenario = load_scenario(Path(args.scenario) if args.scenario else PAPER_SCENARIO)
+        mesh, model = load_user_robot(args.robot, args.keypoints)
         gen = SampleGenerator(scenario, "randomized" if args.randomize else "site",
-                              seed=args.seed, width=width, height=height)
+                              seed=args.seed, width=width, height=height, robot_mesh=mesh,
+                              robot_model=model)
         print(f"smartedge render: {args.count} {gen.mode} images of robot {gen.robot_id!r} "
               f"({scenario.name}), seed {args.seed}, {args.workers} worker(s) → {args.out}")
         labels = write_dataset(gen, args.out, args.count, workers=args.workers, progress=print)

@@ -135,3 +135,23 @@ def test_render_command_writes_dataset_and_preview(tmp_path: Path) -> None:
     assert len((out / "labels.jsonl").read_text().splitlines()) == 3
     assert len(list((out / "preview").iterdir())) == 2
     assert main(["render", "--out", str(out), "--size", "big"]) == 1
+
+
+def test_render_command_with_a_user_robot_from_a_registry_urdf(tmp_path: Path) -> None:
+    """A real robot description (Clearpath Husky from pybullet_data, BSD) with a keypoint file
+    renders and is labelled with its own keypoints."""
+    pybullet_data = pytest.importorskip("pybullet_data")
+    from smartedge.cli import main
+
+    from tests.simulation.test_robot_mesh import HUSKY_KEYPOINTS
+
+    urdf = Path(pybullet_data.getDataPath()) / "husky" / "husky.urdf"
+    kp = tmp_path / "husky_kp.yaml"
+    kp.write_text(HUSKY_KEYPOINTS)
+    out = tmp_path / "husky"
+    assert main(["render", "--out", str(out), "--count", "4", "--randomize", "--size",
+                 "320x192", "--robot", str(urdf), "--keypoints", str(kp)]) == 0
+    docs = [json.loads(line) for line in (out / "labels.jsonl").read_text().splitlines()]
+    assert all(len(d["robots"][0]["keypoints_px"]) == 5 for d in docs)
+    assert sum(any(d["robots"][0]["visible"]) for d in docs) >= 2
+    assert main(["render", "--out", str(out), "--robot", str(urdf)]) == 1  # no --keypoints
