@@ -142,7 +142,6 @@ def test_render_command_with_a_user_robot_from_a_registry_urdf(tmp_path: Path) -
     renders and is labelled with its own keypoints."""
     pybullet_data = pytest.importorskip("pybullet_data")
     from smartedge.cli import main
-
     from tests.simulation.test_robot_mesh import HUSKY_KEYPOINTS
 
     urdf = Path(pybullet_data.getDataPath()) / "husky" / "husky.urdf"
