@@ -18,6 +18,7 @@ Conventions:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Final
 
@@ -259,6 +260,39 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
+
+
+#: the fold search covers normalized radii up to this (about 87 degrees off-axis), in these steps
+_FOLD_SEARCH_MAX_RADIUS: Final = 20.0
+_FOLD_SEARCH_STEP: Final = 1e-3
+
+
+def lens_fold_radius(dist: np.ndarray) -> float:
+    """Normalized undistorted radius (of x/z, y/z) where the lens model's radial distortion stops
+    growing with the radius; ``inf`` when it keeps growing (every physical lens).
+
+    Beyond it the polynomial folds back: ``cv2.projectPoints`` puts points from outside the
+    field of view into the image, where no real lens images them. The renderer leaves image
+    pixels without a preimage inside this radius empty; keypoints beyond it are not in the
+    image. Tangential terms (tiny for real lenses) are ignored. Cached per coefficient vector.
+    """
+    return _fold_radius(np.asarray(dist, np.float64).ravel()[:8].tobytes())
+
+
+@functools.lru_cache(maxsize=64)
+def _fold_radius(dist_bytes: bytes) -> float:
+    coeffs = np.frombuffer(dist_bytes, np.float64)
+    d = np.zeros(8)
+    d[: len(coeffs)] = coeffs
+    d[2:4] = 0.0  # radial part only
+    if not np.any(d):
+        return math.inf
+    r = np.arange(1, int(_FOLD_SEARCH_MAX_RADIUS / _FOLD_SEARCH_STEP) + 1) * _FOLD_SEARCH_STEP
+    with np.errstate(all="ignore"):
+        r_d = distort_normalized(np.column_stack([r, np.zeros_like(r)]), d)[:, 0]
+        growing = np.isfinite(r_d[1:]) & (np.diff(r_d) > 0)
+    stop = np.flatnonzero(~growing)
+    return float(r[stop[0]]) if len(stop) else math.inf
 
 
 # --------------------------------------------------------------------------------------------

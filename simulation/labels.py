@@ -8,15 +8,13 @@ top-left pixel; the same as :mod:`protocol.camera` and :mod:`simulation.render_g
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
 from typing import TYPE_CHECKING, Final
 
 import cv2
 import numpy as np
 
 from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized
+from protocol.geometry import lens_fold_radius
 
 if TYPE_CHECKING:
     from simulation.render_gl import RenderOutput
@@ -32,8 +30,6 @@ DEFAULT_DEPTH_TOLERANCE_M: Final = 0.04
 #: Keypoints closer to the camera plane than this are "behind" (not projectable).
 MIN_DEPTH_M: Final = 1e-6
 #: Largest normalized radius (tan of the off-axis angle, ~87 deg) searched for a lens fold.
-_FOLD_SEARCH_MAX_RADIUS: Final = 20.0
-_FOLD_SEARCH_STEP: Final = 1e-3
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -106,32 +102,6 @@ def keypoint_labels(output: RenderOutput, camera: CameraModel, keypoints_world: 
     return KeypointLabels(uv, depth, in_image, visible)
 
 
-def lens_fold_radius(dist: np.ndarray) -> float:
-    """Normalized undistorted radius (of x/z, y/z) where the lens model's radial distortion stops
-    growing with the radius; ``inf`` when it keeps growing (every physical lens).
-
-    Beyond it the polynomial folds back: ``cv2.projectPoints`` puts points from outside the
-    field of view into the image, where no real lens images them. The renderer leaves image
-    pixels without a preimage inside this radius empty; keypoints beyond it are not in the
-    image. Tangential terms (tiny for real lenses) are ignored. Cached per coefficient vector.
-    """
-    return _fold_radius(np.asarray(dist, np.float64).ravel()[:8].tobytes())
-
-
-@functools.lru_cache(maxsize=64)
-def _fold_radius(dist_bytes: bytes) -> float:
-    coeffs = np.frombuffer(dist_bytes, np.float64)
-    d = np.zeros(8)
-    d[: len(coeffs)] = coeffs
-    d[2:4] = 0.0  # radial part only
-    if not np.any(d):
-        return math.inf
-    r = np.arange(1, int(_FOLD_SEARCH_MAX_RADIUS / _FOLD_SEARCH_STEP) + 1) * _FOLD_SEARCH_STEP
-    with np.errstate(all="ignore"):
-        r_d = distort_normalized(np.column_stack([r, np.zeros_like(r)]), d)[:, 0]
-        growing = np.isfinite(r_d[1:]) & (np.diff(r_d) > 0)
-    stop = np.flatnonzero(~growing)
-    return float(r[stop[0]]) if len(stop) else math.inf
 
 
 def instance_bbox(output: RenderOutput, instance_id: int) -> np.ndarray | None:

@@ -46,8 +46,7 @@ import numpy as np
 
 from protocol.camera import CameraModel
 from protocol.errors import SmartedgeError
-from protocol.geometry import distort_normalized
-from simulation.labels import lens_fold_radius
+from protocol.geometry import distort_normalized, lens_fold_radius
 from simulation.mesh import Mesh, Scene
 
 if TYPE_CHECKING:

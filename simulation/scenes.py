@@ -21,9 +21,14 @@ from typing import Final
 import numpy as np
 
 from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized, invert_transform, rotation_z, se3_from_planar
+from protocol.geometry import (
+    distort_normalized,
+    invert_transform,
+    lens_fold_radius,
+    rotation_z,
+    se3_from_planar,
+)
 from protocol.site import RobotModel, look_at_T_world_cam
-from simulation.labels import lens_fold_radius
 from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject
 from simulation.robot_mesh import box, cylinder
 

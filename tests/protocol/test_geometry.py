@@ -16,6 +16,7 @@ from protocol.geometry import (
     angle_diff,
     distort_normalized,
     invert_transform,
+    lens_fold_radius,
     quaternion_to_rotation,
     quaternion_to_yaw,
     rotation_from_rotvec,
@@ -279,3 +280,16 @@ def test_static_detector_from_site_thresholds() -> None:
     det = StaticDetector.from_thresholds(th)
     assert (det.max_speed_mps, det.max_yaw_rate_radps, det.dwell_s) == (
         th.static_max_speed_mps, th.static_max_yaw_rate_radps, th.static_dwell_s)
+
+
+@given(st.floats(-0.5, -0.01))
+def test_lens_fold_radius_matches_the_analytic_fold_of_k1(k1: float) -> None:
+    # r (1 + k1 r^2) stops growing where 1 + 3 k1 r^2 = 0
+    expected = 1.0 / math.sqrt(-3.0 * k1)
+    got = lens_fold_radius(np.array([k1, 0.0, 0.0, 0.0, 0.0]))
+    assert abs(got - expected) <= 2e-3 * max(1.0, expected)
+
+
+def test_lens_fold_radius_is_infinite_for_lenses_that_keep_growing() -> None:
+    assert math.isinf(lens_fold_radius(np.zeros(5)))
+    assert math.isinf(lens_fold_radius(np.array([0.1, 0.01, 0.0, 0.0, 0.0])))
