@@ -35,7 +35,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Mapping
-from typing import Final, Protocol
+from typing import TYPE_CHECKING, Final, Protocol
 
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
@@ -44,6 +44,9 @@ from backend_service.sync import FrameSetSynchronizer
 from protocol.geometry import MotionState, StaticDetector
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 from protocol.site import Site
+
+if TYPE_CHECKING:  # gtsam is imported only where the pose graph is built
+    from backend_service.fusion import FusionConfig
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +261,7 @@ class BackendPipeline:
     """
 
     def __init__(self, site: Site, config: PipelineConfig | None = None, *,
-                 fusion_config: object = None,
+                 fusion_config: FusionConfig | None = None,
                  fusion_factory: FusionFactory | None = None,
                  with_fusion: bool = True) -> None:
         self.site = site
@@ -266,7 +269,7 @@ class BackendPipeline:
         if with_fusion and fusion_factory is None:
             from backend_service.fusion import FusionConfig, PoseGraphFusion
 
-            fcfg = fusion_config if isinstance(fusion_config, FusionConfig) else FusionConfig()
+            fcfg = fusion_config or FusionConfig()
 
             def fusion_factory(robot_id: str) -> Fusion:
                 return PoseGraphFusion(robot_id, fcfg)

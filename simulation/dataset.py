@@ -44,6 +44,7 @@ from simulation.scenes import (
     site_geometry,
     site_scene,
 )
+from simulation.world import World
 
 log = logging.getLogger(__name__)
 
@@ -187,6 +188,7 @@ class SampleGenerator:
         self.randomization = randomization or RandomizationConfig()
         self.camera_ids = tuple(sorted(scenario.site.cameras))
         self._geometry = site_geometry(scenario, seed=self.seed) if mode == "site" else None
+        self._world = World(scenario) if mode == "site" else None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._environments: tuple[Any, ...] | None = None
 
@@ -225,13 +227,12 @@ class SampleGenerator:
             index += 1
 
     def _site_view(self, rng: np.random.Generator) -> tuple[Any, CameraModel, np.ndarray]:
-        from simulation.world import World
-
         sc = self.scenario
         cam = sc.site.cameras[self.camera_ids[int(rng.integers(len(self.camera_ids)))]]
         if self.width is not None:
             cam = scaled_camera(cam, self.width, self.height)  # type: ignore[arg-type]
-        world = World(sc)
+        world = self._world
+        assert world is not None
         lo = np.asarray(sc.room_min_xy_m) + self.model.footprint_radius_m
         hi = np.asarray(sc.room_max_xy_m) - self.model.footprint_radius_m
         pose = np.zeros(3)

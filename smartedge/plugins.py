@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import threading
 import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -33,8 +32,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-_lock = threading.Lock()
-_registered: set[str] = set()
 
 
 class SimulatedCameraSource:
@@ -115,25 +112,18 @@ SIM_ADAPTER = SimAdapterPlugin()
 
 
 def register_sim_source() -> None:
-    """Offer ``--source sim`` in the edge agent (idempotent)."""
-    with _lock:
-        if "source" in _registered:
-            return
-        from edge_agent.sources import register_source
+    """Offer ``--source sim`` in the edge agent (idempotent: the registry ignores the same
+    plug-in registered again)."""
+    from edge_agent.sources import register_source
 
-        register_source("sim", SIM_SOURCE)
-        _registered.add("source")
+    register_source("sim", SIM_SOURCE)
 
 
 def register_sim_adapter() -> None:
-    """Offer ``--adapter sim`` in the robot bridge (idempotent)."""
-    with _lock:
-        if "adapter" in _registered:
-            return
-        from robot_bridge.adapters.registry import register_adapter
+    """Offer ``--adapter sim`` in the robot bridge (idempotent, as above)."""
+    from robot_bridge.adapters.registry import register_adapter
 
-        register_adapter("sim", SIM_ADAPTER)
-        _registered.add("adapter")
+    register_adapter("sim", SIM_ADAPTER)
 
 
 def register_simulation() -> None:
