@@ -26,6 +26,7 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "evaluate": ("smartedge.evaluate", "main", "trajectory metrics and the paper's experiments"),
     "bench": ("smartedge.bench", "main", "benchmarks: codec, pose, sim, fusion, backend"),
     "render": ("smartedge.render_cmd", "main", "rendered camera images with exact labels"),
+    "train": ("smartedge.train_cmd", "main", "train the detector / keypoint CNN on renders"),
     "site": ("smartedge.site_tool", "main", "check a site file or a camera calibration file"),
 }
 

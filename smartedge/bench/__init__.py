@@ -17,6 +17,7 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "fusion": ("smartedge.bench.fusion", "main", "ISAM2 latency and memory over 1 h"),
     "backend": ("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
     "render": ("smartedge.bench.render", "main", "rendered images/s with exact labels"),
+    "edge": ("smartedge.bench.edge", "main", "detector + keypoint latency with onnxruntime"),
 }
 
 

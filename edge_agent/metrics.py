@@ -1,0 +1,108 @@
+"""Held-out metrics for the detector and the keypoint network (numpy only, no torch: the
+ONNX evaluation in ``smartedge evaluate keypoints`` uses them too)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """IoU of two (4,) ``x0, y0, x1, y1`` boxes (edge coordinates)."""
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def detection_ap(detections: Sequence[np.ndarray], gt_boxes: np.ndarray,
+                 iou_threshold: float = 0.5) -> dict[str, float]:
+    """AP at ``iou_threshold`` (all-point interpolated) for one class with at most one true
+    box per image (``gt_boxes`` (N, 4), NaN row: none); also the mean IoU of the best-scoring
+    detection on images with a robot and the false-positive rate on images without one."""
+    scores: list[float] = []
+    hits: list[bool] = []
+    ious: list[float] = []
+    fp_empty = 0
+    n_gt = 0
+    n_empty = 0
+    for dets, gt in zip(detections, gt_boxes, strict=True):
+        has_gt = bool(np.all(np.isfinite(gt)))
+        n_gt += has_gt
+        n_empty += not has_gt
+        matched = False
+        for i, d in enumerate(dets):  # best first
+            iou = box_iou(d[:4], gt) if has_gt else 0.0
+            if has_gt and i == 0:
+                ious.append(iou)
+            hit = has_gt and not matched and iou >= iou_threshold
+            matched |= hit
+            scores.append(float(d[4]))
+            hits.append(hit)
+        if has_gt and len(dets) == 0:
+            ious.append(0.0)
+        if not has_gt and len(dets) and float(dets[0][4]) >= 0.3:
+            fp_empty += 1
+    order = np.argsort(-np.asarray(scores, float)) if scores else np.zeros(0, int)
+    tp = np.asarray(hits, float)[order]
+    if n_gt == 0:
+        ap = float("nan")
+    else:
+        ctp, cfp = np.cumsum(tp), np.cumsum(1 - tp)
+        recall = ctp / n_gt
+        precision = ctp / np.maximum(ctp + cfp, 1e-9)
+        # all-point interpolation: precision envelope over recall steps
+        mrec = np.concatenate([[0.0], recall, [1.0]])
+        mpre = np.concatenate([[1.0], precision, [0.0]])
+        mpre = np.maximum.accumulate(mpre[::-1])[::-1]
+        steps = np.flatnonzero(mrec[1:] != mrec[:-1])
+        ap = float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
+    return {
+        "AP@0.5": ap,
+        "mean IoU": float(np.mean(ious)) if ious else float("nan"),
+        "false positive rate (no robot, score >= 0.3)": fp_empty / n_empty if n_empty else 0.0,
+        "images with robot": float(n_gt),
+    }
+
+
+def keypoint_metrics(err_px: np.ndarray, confidence: np.ndarray, valid: np.ndarray,
+                     visible: np.ndarray) -> dict[str, float]:
+    """Pixel-error figures over the ``valid`` (N, K) keypoints: median/mean, PCK at 2 and 5 px,
+    the same for occluded (not ``visible``) keypoints, and the confidence calibration: median
+    error in the lowest and highest confidence third and their Spearman correlation (negative:
+    a low confidence means a worse keypoint)."""
+    e = err_px[valid]
+    if e.size == 0:
+        return {"keypoints": 0.0}
+    c = confidence[valid]
+    occ = err_px[valid & ~visible]
+    vis = err_px[valid & visible]
+    out = {
+        "median error px": float(np.median(e)),
+        "mean error px": float(np.mean(e)),
+        "PCK@2px": float(np.mean(e <= 2.0)),
+        "PCK@5px": float(np.mean(e <= 5.0)),
+        "visible median error px": float(np.median(vis)) if vis.size else float("nan"),
+        "occluded median error px": float(np.median(occ)) if occ.size else float("nan"),
+        "occluded PCK@5px": float(np.mean(occ <= 5.0)) if occ.size else float("nan"),
+        "keypoints": float(e.size),
+        "occluded share": float(occ.size / e.size),
+    }
+    lo, hi = np.quantile(c, [1 / 3, 2 / 3])
+    out["median error px, low-confidence third"] = float(np.median(e[c <= lo]))
+    out["median error px, high-confidence third"] = float(np.median(e[c >= hi]))
+    out["confidence-error Spearman"] = spearman(c, e)
+    return out
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float:
+    if len(a) < 3:
+        return float("nan")
+    ra = np.argsort(np.argsort(a)).astype(float)
+    rb = np.argsort(np.argsort(b)).astype(float)
+    ra -= ra.mean()
+    rb -= rb.mean()
+    den = np.sqrt((ra ** 2).sum() * (rb ** 2).sum())
+    return float((ra * rb).sum() / den) if den > 0 else float("nan")

@@ -1,0 +1,357 @@
+"""The edge's networks at run time: model cards, onnxruntime sessions, decoding (no torch).
+
+A model is an ONNX file with its card beside it (same name, ``.json``: :class:`DetectorCard` /
+:class:`KeypointCard`: input size, robot model and keypoint names, training record, held-out
+metrics); ``.md`` is the same card for people and ``.reference.npz`` holds torch's outputs on
+fixed inputs (the export check). The shipped models for the built-in robot live in
+``edge_agent/models/`` (:func:`default_model_dir`); a site file's robot model may name others.
+
+:class:`RobotKeypointPipeline` runs detector → crop → keypoints on a full frame and returns raw
+(distorted) pixel keypoints with confidences per detected robot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Final
+
+import numpy as np
+
+from edge_agent.crop import CROP_PADDING, crop_transform, extract_crop, resize_for_detector, to_nchw
+from protocol.errors import SmartedgeError
+
+log = logging.getLogger(__name__)
+
+CARD_VERSION: Final = 1
+KINDS: Final = ("detector", "keypoints")
+
+
+class ModelError(SmartedgeError):
+    """A model file or card is missing, corrupt or does not fit the site's robot model."""
+
+
+def default_model_dir() -> Path:
+    """The folder of the shipped models for the built-in robot (package data)."""
+    return Path(__file__).resolve().parent / "models"
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelCard:
+    """What the edge pipeline needs to know about a model, and how it was made."""
+
+    KIND: ClassVar[str] = ""
+    version: int
+    onnx: str
+    robot_model: str
+    keypoint_names: list[str]
+    input_w: int
+    input_h: int
+    metrics: dict[str, dict[str, float]]
+    onnx_check: dict[str, float]
+    training: dict[str, Any]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.KIND, **dataclasses.asdict(self)}
+
+    def write(self, folder: Path) -> None:
+        (folder / f"{self.KIND}.json").write_text(json.dumps(self.to_json(), indent=2) + "\n",
+                                                  encoding="utf-8")
+        (folder / f"{self.KIND}.md").write_text(self.markdown(), encoding="utf-8")
+
+    @classmethod
+    def read(cls, path: Path) -> ModelCard:
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ModelError(f"{path}: model card not found (train the model with "
+                             f"`smartedge train {cls.KIND}`; the card sits beside the .onnx "
+                             "file)") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelError(f"{path}: cannot read the model card: {exc}") from None
+        if not isinstance(doc, dict) or doc.get("kind") != cls.KIND:
+            raise ModelError(f"{path}: not a {cls.KIND} model card "
+                             f"(kind {doc.get('kind') if isinstance(doc, dict) else None!r})")
+        if doc.get("version") != CARD_VERSION:
+            raise ModelError(f"{path}: card version {doc.get('version')!r}, "
+                             f"this smartedge reads {CARD_VERSION}")
+        doc.pop("kind")
+        names = {f.name for f in dataclasses.fields(cls)}
+        missing = sorted(names - doc.keys())
+        if missing:
+            raise ModelError(f"{path}: model card lacks {missing}")
+        try:
+            return cls(**{k: v for k, v in doc.items() if k in names})
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"{path}: bad model card: {exc}") from None
+
+    def markdown(self) -> str:
+        t = self.training
+        lines = [
+            f"# {self.KIND} model card",
+            "",
+            f"- file: `{self.onnx}` (ONNX opset 17, one self-contained file)",
+            f"- robot model: `{self.robot_model}` ({len(self.keypoint_names)} keypoints: "
+            f"{', '.join(self.keypoint_names)}); mesh: {t.get('robot_mesh', '?')}",
+            f"- input: {self.input_w}x{self.input_h} RGB float32 in [0, 1], NCHW "
+            "(normalised inside the graph)",
+            f"- parameters: {t.get('parameters', 0) / 1e6:.2f} M",
+            "",
+            "## Training",
+            "",
+            "Trained only on synthetic renders of smartedge's renderer "
+            "(`smartedge train`, domain-randomized scenes plus views from the site's cameras).",
+            "",
+        ]
+        for key in ("train_sets", "val_sets"):
+            sets = ", ".join(f"{s['mode']} seed {s['seed']} x{s['count']}" for s in t.get(key, []))
+            lines.append(f"- {'training' if key == 'train_sets' else 'held-out'} sets: {sets}")
+        lines += [
+            f"- steps: {t.get('steps')} x batch {t.get('batch')}, AdamW lr {t.get('lr')}, "
+            f"final loss {t.get('final_loss')}",
+            f"- wall time: render {t.get('render_wall_s')} s, train {t.get('train_wall_s')} s, "
+            f"total {t.get('total_wall_s')} s on {t.get('device')} ({t.get('machine')}, "
+            f"{t.get('threads')} torch threads, torch {t.get('torch')})",
+            "",
+            "## Held-out metrics",
+            "",
+        ]
+        for name, figures in self.metrics.items():
+            lines.append(f"- {name}: " + ", ".join(f"{k} {_fmt(v)}" for k, v in figures.items()))
+        lines += ["", "## Export check", "",
+                  "onnxruntime vs torch, max abs difference per output: "
+                  + ", ".join(f"{k} {v:.2g}" for k, v in self.onnx_check.items()), ""]
+        return "\n".join(lines)
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectorCard(ModelCard):
+    KIND: ClassVar[str] = "detector"
+    stride: int = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class KeypointCard(ModelCard):
+    KIND: ClassVar[str] = "keypoints"
+    crop_padding: float = CROP_PADDING
+
+
+# --------------------------------------------------------------------------------------------
+# decoding (numpy; shared with the torch validation)
+# --------------------------------------------------------------------------------------------
+
+
+def decode_detections(peaks: np.ndarray, size: np.ndarray, offset: np.ndarray, stride: int,
+                      min_score: float = 0.3, max_detections: int = 8) -> np.ndarray:
+    """One image's detector outputs (peaks (1, h, w), size (2, h, w), offset (2, h, w)) →
+    (n, 5) boxes ``x0, y0, x1, y1`` in input pixels (OpenCV centre convention) and score,
+    best first."""
+    heat = peaks[0]
+    flat = heat.ravel()
+    n = min(max_detections, flat.size)
+    top = np.argpartition(-flat, n - 1)[:n] if n < flat.size else np.arange(flat.size)
+    top = top[flat[top] >= min_score]
+    top = top[np.argsort(-flat[top])]
+    k, j = np.unravel_index(top, heat.shape)
+    cx = (j + offset[0, k, j]) * stride - 0.5
+    cy = (k + offset[1, k, j]) * stride - 0.5
+    w, h = size[0, k, j], size[1, k, j]
+    return np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2, flat[top]], axis=1)
+
+
+# --------------------------------------------------------------------------------------------
+# onnxruntime sessions
+# --------------------------------------------------------------------------------------------
+
+
+def providers_available(prefer: Sequence[str] = ("TensorrtExecutionProvider",
+                                                 "CUDAExecutionProvider",
+                                                 "CPUExecutionProvider")) -> list[str]:
+    """The preferred execution providers this onnxruntime build has (CPU always last)."""
+    import onnxruntime as ort
+
+    have = set(ort.get_available_providers())
+    chosen = [p for p in prefer if p in have]
+    return chosen or ["CPUExecutionProvider"]
+
+
+def _session(path: Path, threads: int, providers: Sequence[str] | None) -> Any:
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise ModelError(f"{path}: model file not found")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = max(1, int(threads))
+    opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), opts,
+                                    providers=list(providers or ["CPUExecutionProvider"]))
+    except Exception as exc:  # onnxruntime raises its own exception types for bad files
+        raise ModelError(f"{path}: onnxruntime cannot load the model: "
+                         f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}") from None
+
+
+def _check_io(path: Path, sess: Any, inputs: Sequence[tuple[str, tuple[int, ...]]],
+              outputs: Sequence[str]) -> None:
+    got_in = [(i.name, tuple(i.shape[1:])) for i in sess.get_inputs()]
+    want_in = [(n, s) for n, s in inputs]
+    if got_in != want_in:
+        raise ModelError(f"{path}: inputs {got_in} do not match the card ({want_in})")
+    got_out = [o.name for o in sess.get_outputs()]
+    if got_out != list(outputs):
+        raise ModelError(f"{path}: outputs {got_out}, expected {list(outputs)}")
+
+
+def card_path(onnx_path: Path) -> Path:
+    """The model card beside an ONNX file (same name, ``.json``)."""
+    return onnx_path.with_suffix(".json")
+
+
+def reference_path(onnx_path: Path) -> Path:
+    """The torch reference outputs beside an ONNX file (``<name>.reference.npz``: ``inputs``
+    (N, H, W, 3) uint8 and one array per output), written by training for export checks."""
+    return onnx_path.with_name(onnx_path.stem + ".reference.npz")
+
+
+class Detector:
+    """The robot detector: full frame → boxes in frame pixels with scores."""
+
+    def __init__(self, onnx_path: Path | str, *, threads: int = 2,
+                 providers: Sequence[str] | None = None) -> None:
+        self.path = Path(onnx_path)
+        if not self.path.is_file():
+            raise ModelError(f"{self.path}: detector model file not found")
+        self.card = DetectorCard.read(card_path(self.path))
+        self.session = _session(self.path, threads, providers)
+        _check_io(self.path, self.session, [("image", (3, self.card.input_h, self.card.input_w))],
+                  ["peaks", "size", "offset"])
+
+    def detect(self, image_rgb: np.ndarray, min_score: float = 0.3,
+               max_detections: int = 8) -> np.ndarray:
+        """(n, 5) ``x0, y0, x1, y1, score`` in the frame's pixels, best first."""
+        c = self.card
+        h, w = image_rgb.shape[:2]
+        x = to_nchw(resize_for_detector(image_rgb, c.input_w, c.input_h))
+        peaks, size, offset = self.session.run(None, {"image": x})
+        boxes = decode_detections(peaks[0], size[0], offset[0], c.stride, min_score,
+                                  max_detections)
+        s = np.array([w / c.input_w, h / c.input_h] * 2)
+        boxes[:, :4] = (boxes[:, :4] + 0.5) * s - 0.5
+        return boxes
+
+
+class KeypointEstimator:
+    """The keypoint network: crops around boxes → keypoints in frame pixels + confidences."""
+
+    def __init__(self, onnx_path: Path | str, *, threads: int = 2,
+                 providers: Sequence[str] | None = None) -> None:
+        self.path = Path(onnx_path)
+        if not self.path.is_file():
+            raise ModelError(f"{self.path}: keypoint model file not found")
+        self.card = KeypointCard.read(card_path(self.path))
+        self.session = _session(self.path, threads, providers)
+        _check_io(self.path, self.session, [("crop", (3, self.card.input_h, self.card.input_w))],
+                  ["keypoints", "confidence"])
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.card.keypoint_names)
+
+    def estimate(self, image_rgb: np.ndarray, boxes_xyxy: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """(n, K, 2) keypoints in frame pixels and (n, K) confidences for (n, 4) boxes."""
+        c = self.card
+        n = len(boxes_xyxy)
+        if n == 0:
+            return np.zeros((0, self.num_keypoints, 2)), np.zeros((0, self.num_keypoints))
+        tfs = [crop_transform(b[:4], c.input_w, c.input_h, padding=c.crop_padding)
+               for b in boxes_xyxy]
+        crops = np.stack([extract_crop(image_rgb, tf, c.input_w, c.input_h) for tf in tfs])
+        kp, conf = self.session.run(None, {"crop": to_nchw(crops)})
+        kp_img = np.stack([tf.to_image(k) for tf, k in zip(tfs, kp, strict=True)])
+        return kp_img, conf.astype(np.float64)
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotObservation:
+    """One detected robot: ``bbox_xyxy`` and ``score`` from the detector, ``keypoints_px``
+    (K, 2) raw frame pixels, ``confidence`` (K,)."""
+
+    bbox_xyxy: np.ndarray
+    score: float
+    keypoints_px: np.ndarray
+    confidence: np.ndarray
+
+
+@dataclasses.dataclass
+class StageTimes:
+    detector_ms: float = 0.0
+    keypoints_ms: float = 0.0
+
+
+def model_files(folder: Path | str | None = None) -> tuple[Path, Path]:
+    """(detector, keypoints) ONNX files of a model folder (default: the shipped models)."""
+    base = Path(folder) if folder is not None else default_model_dir()
+    if not base.is_dir():
+        raise ModelError(f"{base}: model folder not found")
+    return base / "detector.onnx", base / "keypoints.onnx"
+
+
+class RobotKeypointPipeline:
+    """Detector → crop → keypoints for one robot model.
+
+    ``detector`` / ``keypoints``: ONNX files (each with its card beside it); default: the
+    shipped models. ``keypoint_names``: the site's robot model's, checked against the keypoint
+    model's card. ``providers``: onnxruntime execution providers in order of preference
+    (default CPU)."""
+
+    def __init__(self, detector: Path | str | None = None, keypoints: Path | str | None = None,
+                 *, threads: int = 2, providers: Sequence[str] | None = None,
+                 keypoint_names: Sequence[str] | None = None) -> None:
+        shipped = default_model_dir()
+        self.providers = list(providers or ["CPUExecutionProvider"])
+        self.detector = Detector(shipped / "detector.onnx" if detector is None else detector,
+                                 threads=threads, providers=self.providers)
+        self.keypoints = KeypointEstimator(
+            shipped / "keypoints.onnx" if keypoints is None else keypoints, threads=threads,
+            providers=self.providers)
+        self.folder = self.keypoints.path.parent
+        kp_names = list(self.keypoints.card.keypoint_names)
+        if keypoint_names is not None and list(keypoint_names) != kp_names:
+            raise ModelError(
+                f"{self.keypoints.path}: the model has {len(kp_names)} keypoints {kp_names}; "
+                f"the site's robot model has {len(keypoint_names)} {list(keypoint_names)}")
+        self.times = StageTimes()
+
+    @classmethod
+    def from_folder(cls, folder: Path | str | None, **kwargs: Any) -> RobotKeypointPipeline:
+        """The ``detector.onnx`` + ``keypoints.onnx`` of ``folder`` (default: shipped)."""
+        det, kp = model_files(folder)
+        return cls(det, kp, **kwargs)
+
+    @property
+    def model_id(self) -> str:
+        return f"{self.keypoints.card.robot_model}/{self.folder.name}"
+
+    def __call__(self, image_rgb: np.ndarray, *, min_score: float = 0.3,
+                 max_robots: int = 4) -> list[RobotObservation]:
+        if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
+            raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {image_rgb.shape} "
+                             f"{image_rgb.dtype}")
+        t0 = time.perf_counter()
+        boxes = self.detector.detect(image_rgb, min_score, max_robots)
+        t1 = time.perf_counter()
+        kp, conf = self.keypoints.estimate(image_rgb, boxes)
+        t2 = time.perf_counter()
+        self.times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3)
+        return [RobotObservation(b[:4].copy(), float(b[4]), k, c)
+                for b, k, c in zip(boxes, kp, conf, strict=True)]

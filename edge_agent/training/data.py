@@ -1,0 +1,221 @@
+"""Training data: renders from :class:`simulation.dataset.SampleGenerator`, turned into the
+networks' inputs with the deployed pre-processing (:mod:`edge_agent.crop`).
+
+Rendering is the expensive part on a CPU, so :func:`render_set` renders a set of views once,
+in parallel worker processes, into compact shards (detector-sized frames, keypoint crops with
+their labels) under a cache folder; training then runs epochs over them with on-the-fly
+augmentation. Shards are written as they complete, so an interrupted run resumes where it
+stopped. The same seed always gives the same set.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import logging
+import multiprocessing
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge_agent.crop import crop_transform, extract_crop, resize_for_detector
+
+log = logging.getLogger(__name__)
+
+SHARD = 200  # views per shard file
+
+
+@dataclasses.dataclass(frozen=True)
+class SetSpec:
+    """One rendered set: ``count`` views of ``mode`` (``site``/``randomized``) from ``seed``."""
+
+    mode: str
+    seed: int
+    count: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.mode}-s{self.seed}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """Network input sizes and crop sampling: detector input, keypoint crop, and how many
+    jittered crops of each visible robot to keep (``crop_jitter``: 0 = the deployed crop only,
+    as for evaluation)."""
+
+    det_w: int = 424
+    det_h: int = 240
+    crop_w: int = 192
+    crop_h: int = 256
+    crops_per_robot: int = 2
+    crop_jitter: bool = True
+    frame_w: int | None = None  # render size (None: 848x480 / the site cameras' own)
+    frame_h: int | None = None
+
+
+@dataclasses.dataclass
+class RenderedSet:
+    """Arrays of a rendered set. Detector part, one row per view: ``det_images`` (N, h, w, 3)
+    uint8, ``boxes`` (N, 4) robot box in *frame* pixels (NaN: none visible), ``frame_size``
+    (N, 2) frame width, height. Keypoint part, one row per crop: ``crops`` (M, ch, cw, 3),
+    ``crop_kp`` (M, K, 2) crop pixels, ``crop_in_image`` / ``crop_visible`` (M, K),
+    ``crop_scale`` (M,) crop pixels per frame pixel, ``crop_view`` (M,) row of the view."""
+
+    det_images: np.ndarray
+    boxes: np.ndarray
+    frame_size: np.ndarray
+    crops: np.ndarray
+    crop_kp: np.ndarray
+    crop_in_image: np.ndarray
+    crop_visible: np.ndarray
+    crop_scale: np.ndarray
+    crop_view: np.ndarray
+
+    @staticmethod
+    def concatenate(parts: Sequence[RenderedSet]) -> RenderedSet:
+        out: dict[str, np.ndarray] = {}
+        offset = 0
+        views = []
+        for p in parts:
+            views.append(p.crop_view + offset)
+            offset += len(p.det_images)
+        for f in dataclasses.fields(RenderedSet):
+            if f.name == "crop_view":
+                out[f.name] = np.concatenate(views) if views else np.zeros(0, np.int64)
+            else:
+                out[f.name] = np.concatenate([getattr(p, f.name) for p in parts])
+        return RenderedSet(**out)
+
+    def save(self, path: Path) -> None:
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **dataclasses.asdict(self))
+        tmp.replace(path)
+
+    @staticmethod
+    def load(path: Path) -> RenderedSet:
+        with np.load(path) as z:
+            return RenderedSet(**{f.name: z[f.name] for f in dataclasses.fields(RenderedSet)})
+
+
+def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
+                 augment_clean: bool) -> RenderedSet:
+    """One rendered :class:`simulation.dataset.Sample` → its rows (photometric augmentation of
+    un-augmented site views when ``augment_clean``)."""
+    from simulation.dataset import augment
+
+    g = geometry
+    image = sample.image_rgb
+    if augment_clean and sample.mode == "site":
+        image = augment(image, rng)
+    h, w = image.shape[:2]
+    det = resize_for_detector(image, g.det_w, g.det_h)
+    robot = sample.robots[0]
+    box = (np.full(4, np.nan) if robot.bbox_xyxy is None
+           else np.asarray(robot.bbox_xyxy, np.float64))
+    crops, kps, scales = [], [], []
+    if robot.bbox_xyxy is not None and (box[2] - box[0]) * (box[3] - box[1]) >= 64:
+        n = g.crops_per_robot if g.crop_jitter else 1
+        for _ in range(n):
+            jitter: dict[str, Any] = {}
+            if g.crop_jitter:
+                jitter = {"shift": tuple(rng.uniform(-0.08, 0.08, 2)),
+                          "zoom": float(rng.uniform(0.85, 1.3))}
+            tf = crop_transform(box, g.crop_w, g.crop_h, **jitter)
+            crops.append(extract_crop(image, tf, g.crop_w, g.crop_h))
+            kps.append(tf.to_crop(robot.keypoints_px))
+            scales.append(tf.scale)
+    k = len(robot.visible)
+    m = len(crops)
+    return RenderedSet(
+        det_images=det[None],
+        boxes=box[None],
+        frame_size=np.array([[w, h]], np.int32),
+        crops=np.asarray(crops, np.uint8).reshape(m, g.crop_h, g.crop_w, 3),
+        crop_kp=np.asarray(kps, np.float32).reshape(m, k, 2),
+        crop_in_image=np.repeat(robot.in_image[None], m, 0).astype(bool),
+        crop_visible=np.repeat(robot.visible[None], m, 0).astype(bool),
+        crop_scale=np.asarray(scales, np.float32),
+        crop_view=np.zeros(m, np.int64),
+    )
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(scenario_path: str, robot_model: Any, robot_mesh: Any) -> None:
+    from simulation.scenario import load_scenario
+
+    _WORKER.update(scenario=load_scenario(scenario_path), model=robot_model, mesh=robot_mesh,
+                   gens={})
+
+
+def _render_shard(spec: SetSpec, start: int, stop: int, geometry: Geometry,
+                  augment_clean: bool) -> RenderedSet:
+    from simulation.dataset import SampleGenerator
+
+    gens = _WORKER["gens"]
+    if spec.name not in gens:
+        gens[spec.name] = SampleGenerator(
+            _WORKER["scenario"], spec.mode, seed=spec.seed, width=geometry.frame_w,
+            height=geometry.frame_h, robot_mesh=_WORKER["mesh"], robot_model=_WORKER["model"])
+    gen = gens[spec.name]
+    parts = []
+    for i in range(start, stop):
+        rng = np.random.default_rng(np.random.SeedSequence([spec.seed, i, 4242]))
+        parts.append(view_records(gen(i), geometry, rng, augment_clean))
+    return RenderedSet.concatenate(parts)
+
+
+def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cache_dir: Path,
+               *, workers: int = 2, augment_clean: bool = True, robot_model: Any = None,
+               robot_mesh: Any = None, progress: Callable[[str], None] | None = None
+               ) -> RenderedSet:
+    """Render (or reuse from ``cache_dir``) every view of ``specs``; returns them concatenated.
+
+    Shard files are named by set, range and geometry, so a cache folder can hold several sets
+    and an interrupted render resumes. ``workers`` processes render in parallel, each with its
+    own GL context."""
+    say = progress or (lambda line: log.info("%s", line))
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tag = (f"d{geometry.det_w}x{geometry.det_h}-c{geometry.crop_w}x{geometry.crop_h}"
+           f"-n{geometry.crops_per_robot}{'j' if geometry.crop_jitter else 'e'}"
+           f"-f{geometry.frame_w}x{geometry.frame_h}{'-a' if augment_clean else ''}")
+    jobs: list[tuple[SetSpec, int, int, Path]] = []
+    for spec in specs:
+        for start in range(0, spec.count, SHARD):
+            stop = min(spec.count, start + SHARD)
+            jobs.append((spec, start, stop, cache_dir / f"{spec.name}-{start}-{stop}-{tag}.npz"))
+    todo = [j for j in jobs if not j[3].exists()]
+    total = sum(j[2] - j[1] for j in todo)
+    if todo:
+        say(f"rendering {total} views ({len(jobs) - len(todo)} of {len(jobs)} shards cached) "
+            f"with {workers} worker(s)")
+        t0 = time.perf_counter()
+        done = 0
+        model = robot_model or scenario.site.robot_model(scenario.robot_id)
+
+        def finished(part: RenderedSet, path: Path) -> None:
+            nonlocal done
+            part.save(path)
+            done += len(part.det_images)
+            rate = done / max(time.perf_counter() - t0, 1e-9)
+            say(f"  rendered {done}/{total} views ({rate:.1f} views/s)")
+
+        if workers <= 1:  # in this process (tests, debugging)
+            _WORKER.update(scenario=scenario, model=model, mesh=robot_mesh, gens={})
+            for spec, a, b, path in todo:
+                finished(_render_shard(spec, a, b, geometry, augment_clean), path)
+            return RenderedSet.concatenate([RenderedSet.load(j[3]) for j in jobs])
+        ctx = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(
+                max(1, workers), mp_context=ctx, initializer=_worker_init,
+                initargs=(scenario.source_path, model, robot_mesh)) as pool:
+            futures = {pool.submit(_render_shard, spec, a, b, geometry, augment_clean): path
+                       for spec, a, b, path in todo}
+            for fut in concurrent.futures.as_completed(futures):
+                finished(fut.result(), futures[fut])
+    return RenderedSet.concatenate([RenderedSet.load(j[3]) for j in jobs])

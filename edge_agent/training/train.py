@@ -1,0 +1,456 @@
+"""Train, validate and export the detector and the keypoint network.
+
+``smartedge train detector|keypoints`` runs :func:`train`: render (or reuse) the training and
+held-out sets, train with checkpoints (an interrupted run resumes), validate on the held-out
+sets, export one self-contained ONNX file, check onnxruntime against torch, write the model card
+(``<kind>.json`` read by the edge pipeline, ``<kind>.md`` for people).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from edge_agent.metrics import detection_ap, keypoint_metrics
+from edge_agent.models import (
+    CARD_VERSION,
+    DetectorCard,
+    KeypointCard,
+    decode_detections,
+    reference_path,
+)
+from edge_agent.training.data import Geometry, RenderedSet, SetSpec, render_set
+from edge_agent.training.nets import KeypointNet, RobotDetector
+from protocol.errors import SmartedgeError
+
+log = logging.getLogger(__name__)
+
+KINDS: Final = ("detector", "keypoints")
+
+
+class TrainingError(SmartedgeError):
+    """Training cannot start or its result fails a check (export, onnxruntime mismatch)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """What one training run does. ``train_sets`` / ``val_sets``: rendered sets (held-out
+    sets must use other seeds); ``steps`` (or ``minutes``: a time budget, steps then set from
+    the measured speed); ``batch``; ``lr`` (AdamW, cosine decay); ``threads``: torch CPU
+    threads; ``workers``: render processes; ``sigma_px``: keypoint label width."""
+
+    kind: str
+    train_sets: tuple[SetSpec, ...]
+    val_sets: tuple[SetSpec, ...]
+    geometry: Geometry = dataclasses.field(default_factory=Geometry)
+    steps: int = 4000
+    minutes: float | None = None
+    batch: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    threads: int = 2
+    workers: int = 2
+    sigma_px: float = 1.5
+    checkpoint_every: int = 200
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise TrainingError(f"kind {self.kind!r}: expected one of {KINDS}")
+        train_seeds = {s.seed for s in self.train_sets}
+        clash = train_seeds & {s.seed for s in self.val_sets}
+        if clash:
+            raise TrainingError(f"held-out sets reuse training seed(s) {sorted(clash)}")
+        if self.steps < 1 or self.batch < 1:
+            raise TrainingError(f"steps {self.steps}, batch {self.batch}: both must be >= 1")
+
+
+# --------------------------------------------------------------------------------------------
+# targets and losses
+# --------------------------------------------------------------------------------------------
+
+
+def frame_to_input(box: np.ndarray, frame_size: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Box edges (..., 4) in frame pixels → detector-input pixels (edges scale exactly)."""
+    s = np.array([w, h, w, h]) / np.concatenate([frame_size, frame_size], -1)
+    return (box + 0.5) * s - 0.5
+
+
+def detector_targets(boxes_in: np.ndarray, out_w: int, out_h: int, stride: int
+                     ) -> tuple[np.ndarray, ...]:
+    """Per image (B, 4) input-pixel boxes (NaN row: no robot) → heat (B, 1, h, w), log-size
+    and offset (B, 2, h, w) targets and their mask (B, 1, h, w)."""
+    b = len(boxes_in)
+    heat = np.zeros((b, 1, out_h, out_w), np.float32)
+    size = np.zeros((b, 2, out_h, out_w), np.float32)
+    off = np.zeros((b, 2, out_h, out_w), np.float32)
+    mask = np.zeros((b, 1, out_h, out_w), np.float32)
+    gx, gy = np.arange(out_w) + 0.5, np.arange(out_h) + 0.5
+    for i, box in enumerate(boxes_in):
+        if not np.all(np.isfinite(box)):
+            continue
+        # edge coordinates (0 = the image's left edge) in output cells
+        x0, y0, x1, y1 = (box + 0.5) / stride
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        j = int(np.clip(np.floor(cx), 0, out_w - 1))
+        k = int(np.clip(np.floor(cy), 0, out_h - 1))
+        sx, sy = max(0.8, (x1 - x0) / 6), max(0.8, (y1 - y0) / 6)
+        g = np.exp(-((gx[None] - cx) ** 2) / (2 * sx * sx)
+                   - ((gy[:, None] - cy) ** 2) / (2 * sy * sy))
+        heat[i, 0] = np.maximum(heat[i, 0], g)
+        heat[i, 0, k, j] = 1.0
+        w_px, h_px = (x1 - x0) * stride, (y1 - y0) * stride
+        size[i, :, k, j] = np.log(max(w_px, 1.0)), np.log(max(h_px, 1.0))
+        off[i, :, k, j] = cx - j, cy - k
+        mask[i, 0, k, j] = 1.0
+    return heat, size, off, mask
+
+
+def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss, normalised by the number of centres."""
+    p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+    pos = target.eq(1).float()
+    pos_loss = -torch.log(p) * (1 - p) ** 2 * pos
+    neg_loss = -torch.log(1 - p) * p ** 2 * (1 - target) ** 4 * (1 - pos)
+    return (pos_loss.sum() + neg_loss.sum()) / pos.sum().clamp_min(1.0)
+
+
+def simcc_targets(kp_px: torch.Tensor, bins: int, split: int, sigma_px: float) -> torch.Tensor:
+    """(B, K) pixel coordinates → (B, K, bins) Gaussian label distributions."""
+    centres = torch.arange(bins, dtype=kp_px.dtype) / split
+    t = torch.exp(-((centres - kp_px[..., None]) ** 2) / (2 * sigma_px ** 2))
+    return t / t.sum(-1, keepdim=True).clamp_min(1e-12)
+
+
+def keypoint_weights(kp: np.ndarray, in_image: np.ndarray, w: int, h: int) -> np.ndarray:
+    """(M, K) 1 for keypoints to learn: in the frame and inside the crop."""
+    u, v = kp[..., 0], kp[..., 1]
+    inside = (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+    return (inside & in_image).astype(np.float32)
+
+
+def photometric(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Per-image contrast/brightness/colour gain in [0, 1] space (cheap, in torch)."""
+    b = x.shape[0]
+    gain = 0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=gen)
+    colour = 0.9 + 0.2 * torch.rand(b, 3, 1, 1, generator=gen)
+    bias = 0.12 * (torch.rand(b, 1, 1, 1, generator=gen) - 0.5)
+    return (x * gain * colour + bias).clamp(0, 1)
+
+
+def _to_tensor(images: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+# --------------------------------------------------------------------------------------------
+# the training loop
+# --------------------------------------------------------------------------------------------
+
+
+def _build(cfg: TrainConfig, num_keypoints: int) -> torch.nn.Module:
+    g = cfg.geometry
+    if cfg.kind == "detector":
+        return RobotDetector()
+    return KeypointNet(num_keypoints, g.crop_w, g.crop_h)
+
+
+def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx: np.ndarray,
+                gen: torch.Generator, rng: np.random.Generator, device: torch.device
+                ) -> torch.Tensor:
+    g = cfg.geometry
+    if cfg.kind == "detector":
+        images = data.det_images[idx]
+        boxes = frame_to_input(data.boxes[idx], data.frame_size[idx], g.det_w, g.det_h)
+        flip = rng.uniform(size=len(idx)) < 0.5
+        images = np.where(flip[:, None, None, None], images[:, :, ::-1], images)
+        fx0 = g.det_w - 1 - boxes[:, 2]
+        fx1 = g.det_w - 1 - boxes[:, 0]
+        boxes = np.where(flip[:, None], np.stack([fx0, boxes[:, 1], fx1, boxes[:, 3]], 1), boxes)
+        x = photometric(_to_tensor(images), gen).to(device)
+        out = model.forward_train(x)
+        h, w = out.heat_logits.shape[-2:]
+        heat, size, off, mask = (torch.from_numpy(a).to(device)
+                                 for a in detector_targets(boxes, w, h, RobotDetector.stride))
+        n = mask.sum().clamp_min(1.0)
+        l_size = (F.l1_loss(out.log_size, size, reduction="none") * mask).sum() / n
+        l_off = (F.l1_loss(out.offset, off, reduction="none") * mask).sum() / n
+        return focal_loss(out.heat_logits, heat) + l_size + l_off
+    kp = data.crop_kp[idx]
+    wgt = keypoint_weights(kp, data.crop_in_image[idx], g.crop_w, g.crop_h)
+    wgt = torch.from_numpy(wgt).to(device)
+    x = photometric(_to_tensor(data.crops[idx]), gen).to(device)
+    out = model.forward_train(x)
+    kp_t = torch.from_numpy(kp).to(device)
+    tx = simcc_targets(kp_t[..., 0], out.logits_x.shape[-1], model.split, cfg.sigma_px)
+    ty = simcc_targets(kp_t[..., 1], out.logits_y.shape[-1], model.split, cfg.sigma_px)
+    ce = (-(tx * F.log_softmax(out.logits_x, -1)).sum(-1)
+          - (ty * F.log_softmax(out.logits_y, -1)).sum(-1))
+    return (ce * wgt).sum() / wgt.sum().clamp_min(1.0)
+
+
+def _rows(cfg: TrainConfig, data: RenderedSet) -> int:
+    return len(data.det_images) if cfg.kind == "detector" else len(data.crops)
+
+
+def _progress_line(step: int, total: int, loss: float, rate: float, eta_s: float) -> str:
+    filled = int(30 * step / max(total, 1))
+    return (f"  [{'#' * filled}{'.' * (30 - filled)}] step {step}/{total} loss {loss:.4f} "
+            f"{rate:.1f} img/s eta {eta_s / 60:.1f} min")
+
+
+def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
+                 say: Callable[[str], None]) -> dict[str, Any]:
+    """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists. Returns the run's
+    record (steps, wall time, losses)."""
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    model.to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    rows = _rows(cfg, data)
+    if rows < cfg.batch:
+        raise TrainingError(f"{rows} training rows for batch {cfg.batch}: render more views")
+    state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": []}
+    if ckpt.exists():
+        saved = torch.load(ckpt, map_location=device, weights_only=False)
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["opt"])
+        state = saved["state"]
+        say(f"resuming from {ckpt} at step {state['step']}/{state['total_steps']}")
+    gen = torch.Generator().manual_seed(cfg.seed + state["step"])
+    rng = np.random.default_rng([cfg.seed, state["step"]])
+    model.train()
+    t_last = time.perf_counter()
+    window: list[float] = []
+    step_times: list[float] = []
+    while state["step"] < state["total_steps"]:
+        step = state["step"]
+        warmup = min(1.0, (step + 1) / 100)
+        lr = cfg.lr * warmup * 0.5 * (1 + math.cos(math.pi * step / state["total_steps"]))
+        for group in opt.param_groups:
+            group["lr"] = lr
+        idx = rng.choice(rows, cfg.batch, replace=False)
+        t0 = time.perf_counter()
+        loss = _batch_loss(cfg, model, data, idx, gen, rng, device)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+        dt = time.perf_counter() - t0
+        step_times.append(dt)
+        state["wall_s"] += dt
+        state["step"] += 1
+        window.append(float(loss.detach()))
+        if cfg.minutes is not None and state["step"] == 20 and state.get("budgeted") is None:
+            per_step = float(np.median(step_times[5:])) * 1.05
+            state["total_steps"] = max(40, int(cfg.minutes * 60 / per_step))
+            state["budgeted"] = True
+            say(f"time budget {cfg.minutes:.0f} min at {per_step * 1000:.0f} ms/step: "
+                f"{state['total_steps']} steps")
+        if state["step"] % 25 == 0 or state["step"] == state["total_steps"]:
+            mean = float(np.mean(window))
+            state["losses"].append([state["step"], mean])
+            window = []
+            rate = cfg.batch / max(float(np.median(step_times[-25:])), 1e-9)
+            eta = (state["total_steps"] - state["step"]) * cfg.batch / rate
+            say(_progress_line(state["step"], state["total_steps"], mean, rate, eta))
+        if state["step"] % cfg.checkpoint_every == 0 or time.perf_counter() - t_last > 300:
+            _save_checkpoint(ckpt, model, opt, state)
+            t_last = time.perf_counter()
+    _save_checkpoint(ckpt, model, opt, state)
+    model.eval()
+    return state
+
+
+def _save_checkpoint(path: Path, model: torch.nn.Module, opt: Any, state: dict[str, Any]) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state}, tmp)
+    tmp.replace(path)
+
+
+# --------------------------------------------------------------------------------------------
+# validation (torch, on the held-out sets)
+# --------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def predict_detector(model: RobotDetector, det_images: np.ndarray, batch: int = 16
+                     ) -> list[np.ndarray]:
+    """Detections (n, 5: x0, y0, x1, y1 in input pixels, score) per image."""
+    model.eval()
+    out = []
+    for i in range(0, len(det_images), batch):
+        peaks, size, off = model(_to_tensor(det_images[i:i + batch]))
+        for p, s, o in zip(peaks.numpy(), size.numpy(), off.numpy(), strict=True):
+            out.append(decode_detections(p, s, o, RobotDetector.stride, min_score=0.05))
+    return out
+
+
+@torch.no_grad()
+def predict_keypoints(model: KeypointNet, crops: np.ndarray, batch: int = 32
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    model.eval()
+    kps, confs = [], []
+    for i in range(0, len(crops), batch):
+        kp, conf = model(_to_tensor(crops[i:i + batch]))
+        kps.append(kp.numpy())
+        confs.append(conf.numpy())
+    return np.concatenate(kps), np.concatenate(confs)
+
+
+def validate(cfg: TrainConfig, model: torch.nn.Module, sets: dict[str, RenderedSet]
+             ) -> dict[str, dict[str, float]]:
+    """Held-out metrics per set name."""
+    g = cfg.geometry
+    result: dict[str, dict[str, float]] = {}
+    for name, data in sets.items():
+        if cfg.kind == "detector":
+            dets = predict_detector(model, data.det_images)  # type: ignore[arg-type]
+            gt = frame_to_input(data.boxes, data.frame_size, g.det_w, g.det_h)
+            result[name] = detection_ap(dets, gt)
+        else:
+            kp, conf = predict_keypoints(model, data.crops)  # type: ignore[arg-type]
+            # errors in frame pixels: crop error / crop scale
+            err = np.linalg.norm(kp - data.crop_kp, axis=-1) / data.crop_scale[:, None]
+            wgt = keypoint_weights(data.crop_kp, data.crop_in_image, g.crop_w, g.crop_h) > 0
+            result[name] = keypoint_metrics(err, conf, wgt, data.crop_visible)
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# export
+# --------------------------------------------------------------------------------------------
+
+
+def export_onnx(cfg: TrainConfig, model: torch.nn.Module, path: Path) -> None:
+    g = cfg.geometry
+    model = model.cpu().eval()
+    if cfg.kind == "detector":
+        dummy = torch.rand(1, 3, g.det_h, g.det_w)
+        names_in, names_out = ["image"], ["peaks", "size", "offset"]
+        dyn = {"image": {0: "batch"}, "peaks": {0: "batch"}, "size": {0: "batch"},
+               "offset": {0: "batch"}}
+    else:
+        dummy = torch.rand(1, 3, g.crop_h, g.crop_w)
+        names_in, names_out = ["crop"], ["keypoints", "confidence"]
+        dyn = {"crop": {0: "batch"}, "keypoints": {0: "batch"}, "confidence": {0: "batch"}}
+    tmp = path.with_suffix(".tmp.onnx")
+    torch.onnx.export(model, (dummy,), str(tmp), dynamo=False, opset_version=17,
+                      input_names=names_in, output_names=names_out, dynamic_axes=dyn)
+    tmp.replace(path)
+
+
+def check_onnxruntime(cfg: TrainConfig, model: torch.nn.Module, path: Path,
+                      samples: np.ndarray) -> dict[str, float]:
+    """Run the exported file with onnxruntime on ``samples`` (N, H, W, 3 uint8 inputs) and
+    compare with torch; raises :class:`TrainingError` past the tolerance."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = cfg.threads
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    x = _to_tensor(samples)
+    with torch.no_grad():
+        ref = [t.numpy() for t in model.cpu().eval()(x)]
+    got = sess.run(None, {sess.get_inputs()[0].name: x.numpy()})
+    names = [o.name for o in sess.get_outputs()]
+    diffs = {}
+    for name, r, o in zip(names, ref, got, strict=True):
+        diffs[name] = float(np.max(np.abs(r - o))) if r.size else 0.0
+    np.savez_compressed(reference_path(path), inputs=np.asarray(samples, np.uint8),
+                        **dict(zip(names, ref, strict=True)))
+    tol = {"peaks": 1e-3, "size": 1e-2, "offset": 1e-3, "keypoints": 0.05, "confidence": 1e-3}
+    bad = {k: v for k, v in diffs.items() if v > tol.get(k, 1e-3)}
+    if bad:
+        raise TrainingError(f"{path}: onnxruntime differs from torch: {bad}")
+    return diffs
+
+
+# --------------------------------------------------------------------------------------------
+# the whole run
+# --------------------------------------------------------------------------------------------
+
+
+def train(cfg: TrainConfig, scenario: Any, out_dir: Path, *, robot_model: Any = None,
+          robot_mesh: Any = None, robot_mesh_name: str = "built-in HSR-like mesh",
+          say: Callable[[str], None] = print) -> Path:
+    """Render, train, validate, export, check, write the model card. Returns the ONNX path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model_def = robot_model or scenario.site.robot_model(scenario.robot_id)
+    cache = out_dir / "cache"
+    t_start = time.perf_counter()
+    say(f"{cfg.kind}: training sets {[s.name for s in cfg.train_sets]}, "
+        f"held-out {[s.name for s in cfg.val_sets]}")
+    data = render_set(scenario, cfg.train_sets, cfg.geometry, cache, workers=cfg.workers,
+                      robot_model=model_def, robot_mesh=robot_mesh, progress=say)
+    eval_geom = dataclasses.replace(cfg.geometry, crop_jitter=False)
+    val = {s.name: render_set(scenario, [s], eval_geom, cache, workers=cfg.workers,
+                              augment_clean=False, robot_model=model_def,
+                              robot_mesh=robot_mesh, progress=say)
+           for s in cfg.val_sets}
+    render_s = time.perf_counter() - t_start
+    model = _build(cfg, model_def.num_keypoints)
+    n_params = sum(p.numel() for p in model.parameters())
+    say(f"{cfg.kind}: {n_params / 1e6:.2f} M parameters, {_rows(cfg, data)} training rows, "
+        f"device {'cuda' if torch.cuda.is_available() else 'cpu'}")
+    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say)
+    metrics = validate(cfg, model, val)
+    for name, figures in metrics.items():
+        say(f"held-out {name}: " + ", ".join(f"{k} {v:.3g}" for k, v in figures.items()))
+    onnx_path = out_dir / f"{cfg.kind}.onnx"
+    export_onnx(cfg, model, onnx_path)
+    first = next(iter(val.values()))
+    probe = first.det_images[:4] if cfg.kind == "detector" else first.crops[:8]
+    diffs = check_onnxruntime(cfg, model, onnx_path, probe)
+    say(f"onnxruntime matches torch: max abs diff {diffs}")
+    card = _card(cfg, model_def, robot_mesh_name, state, metrics, diffs, n_params,
+                 render_s, time.perf_counter() - t_start, onnx_path)
+    card.write(out_dir)
+    say(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e6:.2f} MB) and its model card")
+    return onnx_path
+
+
+def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any],
+          metrics: dict[str, dict[str, float]], diffs: dict[str, float], n_params: int,
+          render_s: float, total_s: float, onnx_path: Path) -> DetectorCard | KeypointCard:
+    g = cfg.geometry
+    training = {
+        "train_sets": [dataclasses.asdict(s) for s in cfg.train_sets],
+        "val_sets": [dataclasses.asdict(s) for s in cfg.val_sets],
+        "steps": state["step"], "batch": cfg.batch, "lr": cfg.lr, "sigma_px": cfg.sigma_px,
+        "train_wall_s": round(state["wall_s"], 1), "render_wall_s": round(render_s, 1),
+        "total_wall_s": round(total_s, 1),
+        "device": "cuda" if torch.cuda.is_available() else "cpu", "threads": cfg.threads,
+        "machine": f"{platform.machine()}, {_cpu_count()} cores, {platform.system()}",
+        "torch": torch.__version__,
+        "final_loss": state["losses"][-1][1] if state["losses"] else None,
+        "parameters": n_params, "robot_mesh": mesh_name,
+    }
+    common = {"version": CARD_VERSION, "onnx": onnx_path.name, "robot_model": model_def.name,
+              "keypoint_names": list(model_def.keypoint_names), "metrics": metrics,
+              "onnx_check": diffs, "training": training}
+    if cfg.kind == "detector":
+        return DetectorCard(input_w=g.det_w, input_h=g.det_h, stride=RobotDetector.stride,
+                            **common)
+    return KeypointCard(input_w=g.crop_w, input_h=g.crop_h, **common)
+
+
+def _cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def dump_json(obj: Any) -> str:
+    return json.dumps(obj, indent=2)

@@ -1,0 +1,97 @@
+"""``smartedge train detector|keypoints``: train a network on synthetic renders only.
+
+Renders (once, cached in ``OUT/cache``) domain-randomized scenes and views from the site's own
+cameras, trains with a progress line and checkpoints (run the same command again to resume an
+interrupted run), validates on held-out seeds, exports one ONNX file, checks onnxruntime
+against torch and writes the model card (``OUT/<kind>.json`` + ``.md``). Needs the ``train``
+extra (torch). Uses CUDA when torch sees a GPU.
+
+Examples::
+
+    smartedge train detector  --out runs/models --minutes 45
+    smartedge train keypoints --out runs/models --minutes 45
+    smartedge train keypoints --out runs/tiny --steps 5 --train-views 16 --val-views 8 --tiny
+    smartedge train keypoints --out runs/husky --robot-mesh husky.urdf --keypoints husky_kp.yaml
+
+The shipped models in ``edge_agent/models/`` were made with ``scripts/train_shipped_models.sh``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from protocol.errors import SmartedgeError
+
+#: held-out seeds are the training seeds + this (never equal: checked by TrainConfig)
+HELD_OUT_SEED_OFFSET = 1000
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="smartedge train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("kind", choices=("detector", "keypoints"))
+    p.add_argument("--out", required=True, help="output folder (model, card, cache, checkpoint)")
+    p.add_argument("--scenario", help="scenario file (default: the paper's lab); its site file "
+                   "gives the cameras and the robot model")
+    p.add_argument("--robot", help="robot id in the site (default: the site's only robot)")
+    p.add_argument("--robot-mesh", metavar="FILE", help="your robot's mesh or URDF instead of "
+                   "the built-in one (needs --keypoints; see smartedge render)")
+    p.add_argument("--keypoints", metavar="FILE", help="your robot's keypoint file")
+    p.add_argument("--train-views", type=int, default=3000,
+                   help="randomized training views (default 3000)")
+    p.add_argument("--site-views", type=int, default=1200,
+                   help="training views from the site's cameras (default 1200)")
+    p.add_argument("--val-views", type=int, default=200,
+                   help="held-out views of each kind (default 200)")
+    p.add_argument("--seed", type=int, default=1, help="training seed (default 1); held-out "
+                   f"sets use seed + {HELD_OUT_SEED_OFFSET} and + {HELD_OUT_SEED_OFFSET + 1}")
+    p.add_argument("--steps", type=int, default=3000, help="optimizer steps (default 3000)")
+    p.add_argument("--minutes", type=float, help="time budget instead of --steps (the step count "
+                   "is set from the speed measured in the first steps)")
+    p.add_argument("--batch", type=int, help="batch size (default 16 detector, 32 keypoints)")
+    p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
+    p.add_argument("--tiny", action="store_true",
+                   help="tiny images (smoke test: checks the whole chain in seconds)")
+    return p
+
+
+def main(argv: Sequence[str]) -> int:
+    args = build_parser().parse_args(list(argv))
+    try:
+        try:
+            from edge_agent.training.data import Geometry, SetSpec
+            from edge_agent.training.train import TrainConfig, train
+        except ModuleNotFoundError as exc:
+            raise SmartedgeError(f"missing {exc.name!r}: smartedge train needs the train extra "
+                                 "(pip install 'smartedge[train]')") from None
+        from simulation.scenario import PAPER_SCENARIO, load_scenario
+        from smartedge.render_cmd import load_user_robot
+
+        scenario = load_scenario(Path(args.scenario) if args.scenario else PAPER_SCENARIO)
+        mesh, model = load_user_robot(args.robot_mesh, args.keypoints)
+        if model is None:
+            model = scenario.site.robot_model(args.robot or scenario.robot_id)
+        geometry = (Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
+                    if args.tiny else Geometry())
+        train_sets = tuple(s for s in (SetSpec("randomized", args.seed, args.train_views),
+                                       SetSpec("site", args.seed + 1, args.site_views))
+                           if s.count > 0)
+        val_sets = (SetSpec("randomized", args.seed + HELD_OUT_SEED_OFFSET, args.val_views),
+                    SetSpec("site", args.seed + HELD_OUT_SEED_OFFSET + 1, args.val_views))
+        batch = args.batch or (16 if args.kind == "detector" else 32)
+        cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
+                          minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
+                          workers=args.workers)
+        mesh_name = Path(args.robot_mesh).name if args.robot_mesh else "built-in HSR-like mesh"
+        path = train(cfg, scenario, Path(args.out), robot_model=model, robot_mesh=mesh,
+                     robot_mesh_name=mesh_name, say=lambda line: print(line, flush=True))
+    except SmartedgeError as exc:
+        print(f"smartedge train: {exc}", file=sys.stderr)
+        return 1
+    print(f"model: {path}")
+    return 0
