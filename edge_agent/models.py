@@ -333,6 +333,13 @@ class RobotKeypointPipeline:
         self.times = StageTimes()
 
     @classmethod
+    def for_robot(cls, robot_model: Any, **kwargs: Any) -> RobotKeypointPipeline:
+        """The models a site's :class:`protocol.site.RobotModel` names (default: shipped),
+        checked against its keypoint names."""
+        return cls(robot_model.detector_onnx, robot_model.keypoints_onnx,
+                   keypoint_names=robot_model.keypoint_names, **kwargs)
+
+    @classmethod
     def from_folder(cls, folder: Path | str | None, **kwargs: Any) -> RobotKeypointPipeline:
         """The ``detector.onnx`` + ``keypoints.onnx`` of ``folder`` (default: shipped)."""
         det, kp = model_files(folder)

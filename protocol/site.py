@@ -32,7 +32,9 @@ class RobotModel:
     ``keypoints_base_m``: (M, 3) keypoint positions in the robot base frame (x forward, y left,
     z up, origin on the ground at the rotation centre), metres, in the order the detector
     outputs them. ``footprint_radius_m``: radius of the base. ``height_m``: height of the body
-    (used for occlusion and rendering in simulation).
+    (used for occlusion and rendering in simulation). ``detector_onnx`` / ``keypoints_onnx``:
+    the edge's models for this robot (site file key ``models: {detector, keypoints}``, paths
+    relative to the site file; ``None``: the shipped models of the built-in robot).
     """
 
     name: str
@@ -40,6 +42,8 @@ class RobotModel:
     keypoints_base_m: np.ndarray
     footprint_radius_m: float
     height_m: float = 1.0
+    detector_onnx: Path | None = None
+    keypoints_onnx: Path | None = None
 
     @property
     def num_keypoints(self) -> int:
@@ -363,9 +367,10 @@ def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> Ca
     return CameraModel(cam_id, width, height, K, dist, T_cam_world, offset)
 
 
-def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any) -> RobotModel:
+def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any,
+                       base_dir: Path = Path(".")) -> RobotModel:
     node = ctx.mapping(key, value)
-    ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m"})
+    ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m", "models"})
     kkey = join_key(key, "keypoints")
     kps = ctx.require(key, node, "keypoints")
     if not isinstance(kps, list) or len(kps) < 3:
@@ -393,7 +398,22 @@ def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any) -> Ro
     height = ctx.number(join_key(key, "height_m"), node.get("height_m", 1.0), lo=0.01, hi=10.0)
     pts = np.stack(xyz)
     pts.setflags(write=False)
-    return RobotModel(name, tuple(names), pts, radius, height)
+    onnx: dict[str, Path | None] = {"detector": None, "keypoints": None}
+    if "models" in node:
+        mkey = join_key(key, "models")
+        models = ctx.mapping(mkey, node["models"])
+        ctx.no_unknown(mkey, models, set(onnx))
+        for kind in onnx:
+            if kind not in models:
+                raise ctx.fail(join_key(mkey, kind), "required key is missing (give both "
+                               "models, or neither for the shipped ones)")
+            raw = models[kind]
+            if not isinstance(raw, str) or not raw.strip():
+                raise ctx.fail(join_key(mkey, kind), "expected the path of an .onnx file")
+            path = Path(raw).expanduser()
+            onnx[kind] = path if path.is_absolute() else base_dir / path
+    return RobotModel(name, tuple(names), pts, radius, height, onnx["detector"],
+                      onnx["keypoints"])
 
 
 def _parse_thresholds(ctx: ConfigReader, value: Any) -> Thresholds:
@@ -421,7 +441,8 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
     if not models_node:
         raise ctx.fail("robot_models", "define at least one robot model")
     robot_models = {
-        ctx.ident(f"robot_models.{n}", n): _parse_robot_model(ctx, f"robot_models.{n}", n, v)
+        ctx.ident(f"robot_models.{n}", n):
+            _parse_robot_model(ctx, f"robot_models.{n}", n, v, base_dir)
         for n, v in models_node.items()
     }
     robots_node = ctx.require("", top, "robots")

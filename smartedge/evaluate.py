@@ -5,11 +5,15 @@
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3] [--feedback-seeds K] [--robustness-runs R]
+    smartedge evaluate keypoints [--model DIR] [--seed S] [--count N]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
 metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
 (Markdown) and Fig. 6-like plots (PNG) into DIR, then experiment 2 (correction feedback on
 3x Traj. 3, Fig. 7) and experiment 3 (robustness, Table III), and ``report.md`` with all three.
+``keypoints`` renders a fresh held-out set (seed S, N views each of randomized scenes and of the
+site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the ONNX models
+(default: the shipped ones), one figure per line with its name.
 """
 
 from __future__ import annotations
@@ -85,6 +89,26 @@ def _paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _keypoints(args: argparse.Namespace) -> int:
+    from edge_agent.models import ModelError
+    from smartedge.evaluation.keypoints import evaluate_keypoints
+
+    if args.count < 1:
+        print("smartedge evaluate keypoints: --count must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        result = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
+                                    scenario_path=args.scenario, threads=args.threads,
+                                    progress=lambda line: print(line, flush=True))
+    except (ModelError, OSError, ValueError) as exc:
+        print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
+        return 1
+    for line in result.lines():
+        print(line)
+    print(f"({result.views} views in {result.wall_s:.0f} s)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="smartedge evaluate",
@@ -137,6 +161,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--robustness-runs", type=int, default=None,
         help="experiment 3: runs per condition (default: the scenario's, paper: 5)",
     )
+    p_kp = sub.add_parser("keypoints", help="detector AP and keypoint errors of the ONNX "
+                          "models on fresh held-out renders")
+    p_kp.add_argument("--model", help="model folder (default: the shipped models)")
+    p_kp.add_argument("--seed", type=int, default=4242,
+                      help="held-out seed (default 4242; the shipped models trained on 1-2)")
+    p_kp.add_argument("--count", type=int, default=100,
+                      help="views per set: randomized scenes and the site's cameras (default 100)")
+    p_kp.add_argument("--scenario", default=None, help="scenario file (default: the paper's lab)")
+    p_kp.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     return parser
 
 
@@ -144,6 +177,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if args.what == "ate":
         return _ate(args)
+    if args.what == "keypoints":
+        return _keypoints(args)
     if args.runs < 1 or args.feedback_seeds < 1 or (
             args.robustness_runs is not None and args.robustness_runs < 1):
         print("smartedge evaluate paper: --runs, --feedback-seeds and --robustness-runs must "
