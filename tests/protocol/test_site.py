@@ -194,3 +194,32 @@ def test_unknown_camera_and_robot_lookups_name_the_known_ids(example_site) -> No
         example_site.camera("cam_x")
     with pytest.raises(KeyError, match="hsr"):
         example_site.robot_model("r2d2")
+
+
+def test_robot_model_names_its_models_relative_to_the_site_file(tmp_path: Path) -> None:
+    """``robot_models.<name>.models`` gives the edge's ONNX files, relative to the site file;
+    without it the shipped models are used (None)."""
+    doc = _doc()
+    name = next(iter(doc["robot_models"]))
+    assert load_site(_write(tmp_path, doc)).robot_models[name].detector_onnx is None
+    doc["robot_models"][name]["models"] = {"detector": "m/det.onnx",
+                                           "keypoints": "/abs/kp.onnx"}
+    model = load_site(_write(tmp_path, doc)).robot_models[name]
+    assert model.detector_onnx == tmp_path / "m" / "det.onnx"
+    assert model.keypoints_onnx == Path("/abs/kp.onnx")
+
+
+@pytest.mark.parametrize("models, key", [
+    ({"detector": "d.onnx"}, "models.keypoints"),
+    ({"detector": "d.onnx", "keypoints": 3}, "models.keypoints"),
+    ({"detector": "d.onnx", "keypoints": "k.onnx", "seg": "s.onnx"}, "models"),
+    ("d.onnx", "models"),
+])
+def test_bad_robot_models_entry_names_the_key(tmp_path: Path, models: object, key: str) -> None:
+    doc = _doc()
+    name = next(iter(doc["robot_models"]))
+    doc["robot_models"][name]["models"] = models
+    with pytest.raises(SiteConfigError) as info:
+        load_site(_write(tmp_path, doc, "bad_models.yaml"))
+    assert f"robot_models.{name}.{key}" in str(info.value)
+    assert "bad_models.yaml" in str(info.value)
