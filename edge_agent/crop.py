@@ -71,8 +71,9 @@ def extract_crop(image_rgb: np.ndarray, transform: CropTransform, crop_w: int, c
     """(crop_h, crop_w, 3) uint8 crop of ``image_rgb``; outside the image is black."""
     import cv2
 
-    interp = cv2.INTER_AREA if transform.scale < 1.0 else cv2.INTER_LINEAR
-    return cv2.warpAffine(image_rgb, transform.matrix(), (crop_w, crop_h), flags=interp,
+    # bilinear (warpAffine has no area averaging; training crops are made the same way)
+    return cv2.warpAffine(image_rgb, transform.matrix(), (crop_w, crop_h),
+                          flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
 
 

@@ -218,7 +218,9 @@ def card_path(onnx_path: Path) -> Path:
 
 def reference_path(onnx_path: Path) -> Path:
     """The torch reference outputs beside an ONNX file (``<name>.reference.npz``: ``inputs``
-    (N, H, W, 3) uint8 and one array per output), written by training for export checks."""
+    (N, H, W, 3) uint8, one array per output, and for the detector ``peaks_ambiguous``: cells
+    at the peak test's tie threshold, which either runtime may decide either way), written by
+    training for export checks."""
     return onnx_path.with_name(onnx_path.stem + ".reference.npz")
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from edge_agent.crop import crop_transform, extract_crop, resize_for_detector
+from protocol.errors import UsageError
 
 log = logging.getLogger(__name__)
 
@@ -181,6 +182,8 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
     own GL context."""
     say = progress or (lambda line: log.info("%s", line))
     cache_dir.mkdir(parents=True, exist_ok=True)
+    model = robot_model or scenario.site.robot_model(scenario.robot_id)
+    _check_manifest(cache_dir, scenario, model, robot_mesh)
     tag = (f"d{geometry.det_w}x{geometry.det_h}-c{geometry.crop_w}x{geometry.crop_h}"
            f"-n{geometry.crops_per_robot}{'j' if geometry.crop_jitter else 'e'}"
            f"-f{geometry.frame_w}x{geometry.frame_h}{'-a' if augment_clean else ''}")
@@ -196,7 +199,6 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
             f"with {workers} worker(s)")
         t0 = time.perf_counter()
         done = 0
-        model = robot_model or scenario.site.robot_model(scenario.robot_id)
 
         def finished(part: RenderedSet, path: Path) -> None:
             nonlocal done
@@ -219,3 +221,30 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
             for fut in concurrent.futures.as_completed(futures):
                 finished(fut.result(), futures[fut])
     return RenderedSet.concatenate([RenderedSet.load(j[3]) for j in jobs])
+
+
+def _check_manifest(cache_dir: Path, scenario: Any, model: Any, mesh: Any) -> None:
+    """A cache folder holds renders of one robot in one scenario: ``cache.json`` records which,
+    and a run for another robot is refused instead of training on the wrong renders."""
+    import hashlib
+    import json
+
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(model.keypoints_base_m, np.float64).tobytes())
+    if mesh is not None:
+        digest.update(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    doc = {"scenario": Path(str(scenario.source_path)).name, "robot_model": model.name,
+           "keypoint_names": list(model.keypoint_names),
+           "robot_mesh": "built-in" if mesh is None else "custom",
+           "fingerprint": digest.hexdigest()[:16]}
+    path = cache_dir / "cache.json"
+    if path.exists():
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            old = None
+        if old != doc:
+            raise UsageError(f"{path}: this render cache is of another robot or scenario "
+                             f"({old}); use another --out or delete {cache_dir}")
+        return
+    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")

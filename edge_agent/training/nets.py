@@ -25,6 +25,8 @@ from torch import nn
 #: ImageNet-style normalisation constants (applied inside the graph)
 _MEAN: Final = (0.485, 0.456, 0.406)
 _STD: Final = (0.229, 0.224, 0.225)
+#: heat values this close to their 3x3 neighbourhood's maximum count as peaks
+PEAK_TIE: Final = 1e-5
 
 
 class ConvBNAct(nn.Sequential):
@@ -168,7 +170,8 @@ class RobotDetector(nn.Module):
         size (N, 2, h, w) box width/height in input pixels; offset (N, 2, h, w) cells)."""
         out = self.forward_train(x)
         heat = torch.sigmoid(out.heat_logits)
-        peaks = heat * (F.max_pool2d(heat, 3, 1, 1) == heat).to(heat.dtype)
+        # a local maximum, ties (up to float noise) included
+        peaks = heat * (heat >= F.max_pool2d(heat, 3, 1, 1) - PEAK_TIE).to(heat.dtype)
         return peaks, torch.exp(out.log_size.clamp(-2.0, 8.0)), out.offset
 
 
@@ -183,7 +186,7 @@ class KeypointNet(nn.Module):
 
     def __init__(self, num_keypoints: int, input_w: int = 192, input_h: int = 256,
                  split: int = 2, hidden: int = 256, per_keypoint: int = 8,
-                 window_bins: int = 4) -> None:
+                 window_bins: int = 6) -> None:
         super().__init__()
         if input_w % 32 or input_h % 32:
             raise ValueError(f"keypoint input {input_w}x{input_h}: both must be multiples of 32")
