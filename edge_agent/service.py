@@ -6,8 +6,9 @@ Frames come from a source, the robot keypoint detector turns them into
 
 Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the registered ones:
 
-- ``camera``: a real camera through the ONNX keypoint detector (needs a keypoint model, which
-  this version does not ship; the agent says so and exits with code 2).
+- ``camera``: a real camera through the ONNX detector + keypoint models (the models ship in
+  ``edge_agent/models/``; the capture side is not built yet, so the agent says so and exits
+  with code 2).
 - ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.plugins`): the simulated
   site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.

@@ -79,11 +79,14 @@ def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
 
 
 class CameraSourcePlugin:
-    """A real camera through the ONNX keypoint detector. This version ships no keypoint model,
-    so the source says so instead of running."""
+    """A real camera through the ONNX detector + keypoint models. The models ship
+    (``edge_agent/models/``, :mod:`edge_agent.models`), the capture side (OpenCV, RealSense) is
+    not built yet, so the source says so instead of running."""
 
     unavailable = (
-        "the camera source needs the robot keypoint model (ONNX), which this version does not ship"
+        "the camera frame source (OpenCV/RealSense capture) is not built in this version; the "
+        "detector and keypoint models ship in edge_agent/models/ (see smartedge evaluate "
+        "keypoints)"
     )
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:

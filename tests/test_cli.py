@@ -39,10 +39,10 @@ def test_site_check_ok_and_error_names_file_and_key(tmp_path) -> None:
     assert str(bad) in proc.stderr and "thresholds.sync_windw_ms" in proc.stderr
 
 
-def test_edge_agent_without_a_model_says_so() -> None:
+def test_edge_agent_camera_source_says_it_is_not_built() -> None:
     proc = _run("edge-agent", "--site", str(EXAMPLE_SITE), "--camera", "cam_sw")
     assert proc.returncode == 2
-    assert "keypoint model" in proc.stderr and "--source sim" in proc.stderr
+    assert "camera frame source" in proc.stderr and "--source sim" in proc.stderr
 
 
 def test_services_reject_unknown_site_ids() -> None:
