@@ -6,9 +6,11 @@ Frames come from a source, the robot keypoint detector turns them into
 
 Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the registered ones:
 
-- ``camera``: a real camera through the ONNX detector + keypoint models (the models ship in
-  ``edge_agent/models/``; the capture side is not built yet, so the agent says so and exits
-  with code 2).
+- ``camera``: frames from OpenCV (``--device``: a V4L2 index or path, an RTSP/HTTP URL, a video
+  file), an image folder (``--images``) or a RealSense (``--realsense``), through the ONNX
+  detector + keypoint models of the site's robot model (default: the shipped ones in
+  ``edge_agent/models/``; ``--model`` overrides). A camera that fails to open or stops
+  delivering is reported in the status and retried with back-off.
 - ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.plugins`): the simulated
   site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.
@@ -47,6 +49,9 @@ class EdgeAgentNode(ServiceNode):
         self.source = source
         self.tick_period_s = tick_period_s
         self._key = keys.detections_key(site.name, camera_id)
+        bind = getattr(source, "bind_stats", None)
+        if bind is not None:
+            bind(self.stats)
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         out = []
@@ -59,7 +64,16 @@ class EdgeAgentNode(ServiceNode):
         return out
 
     def state(self) -> tuple[str, str]:
+        health = getattr(self.source, "health", None)
+        if health is not None:
+            return health()  # type: ignore[no-any-return]
         return "ok", f"source={self.source.label}"
+
+    def close(self) -> None:
+        closer = getattr(self.source, "close", None)
+        if closer is not None:
+            closer()
+        super().close()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -4,7 +4,8 @@ A source plug-in is registered under a name (:func:`register_source`); the edge 
 offers every registered name as a ``--source`` choice, lets each plug-in add its own argument
 group, and builds the chosen source with ``plugin.build(args, site)``.
 
-The edge agent registers only what it ships (``camera``). Anything else, such as the simulated
+The edge agent registers only what it ships (``camera``: OpenCV, image folders, RealSense
+through the ONNX models). Anything else, such as the simulated
 site, is registered from the top floor (:mod:`smartedge.plugins`): this package never imports
 the code that provides it.
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from typing import Protocol
+from typing import Any, Protocol
 
 from protocol.errors import UsageError
 from protocol.messages import RobotDetections
@@ -78,22 +79,120 @@ def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     SOURCES.add_arguments(parser, default)
 
 
-class CameraSourcePlugin:
-    """A real camera through the ONNX detector + keypoint models. The models ship
-    (``edge_agent/models/``, :mod:`edge_agent.models`), the capture side (OpenCV, RealSense) is
-    not built yet, so the source says so instead of running."""
+class CameraFrameSource:
+    """A camera (or stream, file, image folder) through the ONNX pipeline: each poll takes the
+    newest frame from the reader thread and turns it into a :class:`RobotDetections`."""
 
-    unavailable = (
-        "the camera frame source (OpenCV/RealSense capture) is not built in this version; the "
-        "detector and keypoint models ship in edge_agent/models/ (see smartedge evaluate "
-        "keypoints)"
-    )
+    def __init__(self, reader: Any, pipeline: Any, label: str) -> None:
+        self.reader = reader
+        self.pipeline = pipeline
+        self.label = label
+        self._stats: Any = None
+        self._skipped_seen = 0
+
+    def bind_stats(self, stats: Any) -> None:
+        """Record per-stage latencies and skipped frames in the service's stats."""
+        self._stats = stats
+
+    def poll(self, now_ns: int) -> list[RobotDetections]:
+        frame = self.reader.take()
+        if frame is None:
+            return []
+        msg, lat = self.pipeline.process(frame)
+        if self._stats is not None:
+            self._stats.latency("detector", lat.detector_s)
+            self._stats.latency("keypoints", lat.keypoints_s)
+            self._stats.latency("grab_to_detections", max(0, now_ns - frame.stamp_ns) * 1e-9
+                                + lat.detector_s + lat.keypoints_s)
+            skipped = self.reader.status().skipped
+            if skipped > self._skipped_seen:
+                self._stats.count("frames_skipped", skipped - self._skipped_seen)
+                self._skipped_seen = skipped
+        return [msg]
+
+    def health(self) -> tuple[str, str]:
+        st = self.reader.status()
+        detail = f"source={self.label} frames={st.grabbed} skipped={st.skipped}"
+        if st.state == "ok":
+            return "ok", detail
+        if st.state == "ended":
+            return "degraded", f"{detail}; the source ended"
+        if st.state == "opening":
+            return "starting", detail
+        return "degraded", f"{detail}; {st.error} (retry in {st.retry_in_s:.1f} s)"
+
+    def close(self) -> None:
+        self.reader.stop()
+
+
+class CameraSourcePlugin:
+    """``--source camera``: frames from OpenCV (``--device``: index, device path, stream URL or
+    video file), an image folder (``--images``) or a RealSense (``--realsense``), through the
+    site robot model's ONNX models (``--model`` overrides)."""
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        pass
+        g = parser.add_argument_group("camera source (--source camera)")
+        what = g.add_mutually_exclusive_group()
+        what.add_argument("--device", metavar="URI",
+                          help="OpenCV input: device index (0), device path (/dev/video0), "
+                          "stream URL (rtsp://..., http://...) or video file")
+        what.add_argument("--images", metavar="DIR", help="a folder of images, in name order")
+        what.add_argument("--realsense", nargs="?", const="", metavar="SERIAL",
+                          help="an Intel RealSense colour stream (needs pyrealsense2)")
+        g.add_argument("--rate", type=float, default=10.0,
+                       help="--images: frames per second (0: as fast as processed; default 10)")
+        g.add_argument("--loop", action="store_true", help="--images / video file: loop")
+        g.add_argument("--model", metavar="DIR",
+                       help="model folder (detector.onnx + keypoints.onnx with their cards); "
+                       "default: the site's robot model's models, else the shipped ones")
+        g.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+        g.add_argument("--providers", default="auto",
+                       help="onnxruntime execution providers, comma-separated, or auto "
+                       "(TensorRT, CUDA where installed, else CPU)")
+        g.add_argument("--min-score", type=float, default=0.3,
+                       help="detector score below which a box is dropped (default 0.3)")
 
     def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource:
-        raise UsageError(self.unavailable)
+        from edge_agent.frames import (
+            ImageFolderGrabber,
+            LatestFrameReader,
+            OpenCVGrabber,
+            RealSenseGrabber,
+        )
+        from edge_agent.models import RobotKeypointPipeline, model_files, providers_available
+        from edge_agent.pipeline import EdgePipeline
+
+        if site is None:
+            raise UsageError("--source camera needs --site (the camera's calibration and the "
+                             "robot model)")
+        camera = site.camera(args.camera)
+        if args.images:
+            grabber: Any = ImageFolderGrabber(args.images, rate_hz=args.rate, loop=args.loop)
+        elif args.realsense is not None:
+            grabber = RealSenseGrabber(args.realsense or None, width=camera.width,
+                                       height=camera.height)
+        elif args.device:
+            grabber = OpenCVGrabber(args.device, width=camera.width, height=camera.height)
+        else:
+            raise UsageError("--source camera needs --device URI, --images DIR or --realsense")
+        if args.providers == "auto":
+            providers = providers_available()
+        else:
+            providers = [p.strip() for p in args.providers.split(",") if p.strip()]
+        model = site.robot_model()  # the site's robot (one robot per edge model for now)
+        if args.model:
+            det, kp = model_files(args.model)
+            models = RobotKeypointPipeline(det, kp, threads=args.threads, providers=providers,
+                                           keypoint_names=model.keypoint_names)
+        else:
+            models = RobotKeypointPipeline.for_robot(model, threads=args.threads,
+                                                     providers=providers)
+        log.info("%s: models %s and %s, onnxruntime providers %s, %d thread(s)", args.camera,
+                 models.detector.path, models.keypoints.path, providers, args.threads)
+        pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
+                                expected_size=(camera.width, camera.height))
+        reader = LatestFrameReader(grabber).start()
+        return CameraFrameSource(reader, pipeline, grabber.label)
 
 
 register_source("camera", CameraSourcePlugin())

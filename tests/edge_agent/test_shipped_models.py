@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from edge_agent.models import (  # noqa: E402
+from edge_agent.models import (
     DetectorCard,
     KeypointCard,
     RobotKeypointPipeline,

@@ -1,0 +1,86 @@
+"""The edge's per-frame pipeline: a :class:`~edge_agent.frames.Frame` through the ONNX models to a
+:class:`protocol.messages.RobotDetections` (transport-free; the edge agent publishes it).
+
+Keypoints stay raw (distorted) frame pixels, as the backend's camera model expects; the message
+carries the frame's size and the model id so the backend can tell what they refer to.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from edge_agent.frames import Frame
+from edge_agent.models import RobotKeypointPipeline
+from protocol.messages import Detection, RobotDetections
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class StageLatency:
+    """Seconds per stage of one frame."""
+
+    detector_s: float
+    keypoints_s: float
+    encode_s: float = 0.0
+
+
+class EdgePipeline:
+    """Detector → crops → keypoints → :class:`RobotDetections` for one camera.
+
+    ``min_score``: detections below are dropped; ``max_robots`` per frame; ``robot_id``: the
+    id to put on detections (``""``: the detector cannot tell robots apart; the backend
+    attributes them when the site has one robot); ``expected_size``: the camera's calibrated
+    (width, height): a frame of another size is logged once (the backend then scales or rejects
+    by the message's image size)."""
+
+    def __init__(self, camera_id: str, models: RobotKeypointPipeline, *, min_score: float = 0.3,
+                 max_robots: int = 4, robot_id: str = "",
+                 expected_size: tuple[int, int] | None = None) -> None:
+        self.camera_id = camera_id
+        self.models = models
+        self.min_score = min_score
+        self.max_robots = max_robots
+        self.robot_id = robot_id
+        self.expected_size = expected_size
+        self._warned_size = False
+
+    @property
+    def model_id(self) -> str:
+        return self.models.model_id
+
+    def process(self, frame: Frame) -> tuple[RobotDetections, StageLatency]:
+        image = frame.image_rgb
+        h, w = image.shape[:2]
+        if self.expected_size and (w, h) != tuple(self.expected_size) and not self._warned_size:
+            log.warning("%s: frames are %dx%d, the site's calibration is %dx%d: keypoints are "
+                        "sent in frame pixels with the frame's size", self.camera_id, w, h,
+                        *self.expected_size)
+            self._warned_size = True
+        found = self.models(image, min_score=self.min_score, max_robots=self.max_robots)
+        t1 = time.perf_counter()
+        detections = []
+        for obs in found:
+            box = np.asarray(obs.bbox_xyxy, np.float64).copy()
+            box[[0, 2]] = np.clip(box[[0, 2]], -0.5, w - 0.5)
+            box[[1, 3]] = np.clip(box[[1, 3]], -0.5, h - 0.5)
+            if box[2] < box[0] or box[3] < box[1]:
+                continue
+            kp = np.asarray(obs.keypoints_px, np.float64)
+            scores = np.clip(np.nan_to_num(obs.confidence, nan=0.0), 0.0, 1.0)
+            if not np.all(np.isfinite(kp)):
+                bad = ~np.all(np.isfinite(kp), axis=1)
+                kp[bad] = 0.0
+                scores[bad] = 0.0
+            detections.append(Detection(box, float(np.clip(obs.score, 0.0, 1.0)), kp, scores,
+                                        self.robot_id))
+        msg = RobotDetections(self.camera_id, frame.stamp_ns, frame.seq, w, h, self.model_id,
+                              tuple(detections))
+        t2 = time.perf_counter()
+        times = self.models.times
+        return msg, StageLatency(times.detector_ms * 1e-3, times.keypoints_ms * 1e-3,
+                                 (t2 - t1))
