@@ -39,10 +39,13 @@ def test_site_check_ok_and_error_names_file_and_key(tmp_path) -> None:
     assert str(bad) in proc.stderr and "thresholds.sync_windw_ms" in proc.stderr
 
 
-def test_edge_agent_camera_source_says_it_is_not_built() -> None:
+def test_edge_agent_camera_source_needs_an_input() -> None:
+    """``--source camera`` (the default) without --device/--images/--realsense exits at start
+    with a message naming the options (not a restart loop of tracebacks)."""
     proc = _run("edge-agent", "--site", str(EXAMPLE_SITE), "--camera", "cam_sw")
-    assert proc.returncode == 2
-    assert "camera frame source" in proc.stderr and "--source sim" in proc.stderr
+    assert proc.returncode == 1
+    assert "--device" in proc.stderr and "--images" in proc.stderr
+    assert "Traceback" not in proc.stderr
 
 
 def test_services_reject_unknown_site_ids() -> None:
