@@ -86,13 +86,15 @@ class OpenCVGrabber:
     """``cv2.VideoCapture``: ``uri`` is a device index (``"0"``), a device path
     (``/dev/video0``), a stream URL (``rtsp://``, ``http://``) or a video file. ``width`` /
     ``height`` / ``fps`` are requested from devices (None: the device's default). Video files
-    play at their own frame rate (``realtime``) or as fast as they are read. Stamps: the time
+    play at their own frame rate (``realtime``) or as fast as they are read, once or
+    (``loop``) over and over. Stamps: the time
     of the grab (``CLOCK_REALTIME``), which is what a live camera's frame is closest to."""
 
     def __init__(self, uri: str, *, width: int | None = None, height: int | None = None,
-                 fps: float | None = None, realtime: bool = True,
+                 fps: float | None = None, realtime: bool = True, loop: bool = False,
                  clock_ns: Callable[[], int] = time.time_ns) -> None:
         self.uri = str(uri)
+        self.loop = loop
         self.label = f"opencv:{self.uri}"
         self.width, self.height, self.fps = width, height, fps
         self.realtime = realtime
@@ -138,6 +140,11 @@ class OpenCVGrabber:
                 time.sleep(delay)
             self._next_s = max(self._next_s + self._period_s, time.monotonic() - self._period_s)
         ok, image = self._cap.read()
+        if not ok and self._is_file and self.loop and self._seq > 0:
+            import cv2
+
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)  # back to the first frame
+            ok, image = self._cap.read()
         stamp = self._clock_ns()
         if not ok:
             if self._is_file:
@@ -155,7 +162,8 @@ class OpenCVGrabber:
 class ImageFolderGrabber:
     """The images of a folder in name order, one every ``1 / rate_hz`` seconds (``rate_hz``
     0: as fast as read), once or looping. An image that cannot be read is logged and counted
-    in :attr:`unreadable`, and skipped."""
+    in :attr:`unreadable`, and skipped; a folder none of whose images can be read raises
+    :class:`FrameSourceError`."""
 
     def __init__(self, folder: str | Path, *, rate_hz: float = 10.0, loop: bool = False,
                  clock_ns: Callable[[], int] = time.time_ns) -> None:
@@ -169,6 +177,7 @@ class ImageFolderGrabber:
         self._seq = 0
         self._next_s = 0.0
         self.unreadable = 0
+        self.last_error = ""
 
     def open(self) -> None:
         if not self.folder.is_dir():
@@ -183,9 +192,16 @@ class ImageFolderGrabber:
     def read(self) -> Frame | None:
         import cv2
 
+        failed_in_a_row = 0
         while True:
+            if failed_in_a_row >= len(self._files):
+                raise FrameSourceError(f"{self.folder}: none of its {len(self._files)} images "
+                                       f"can be read ({self.last_error})")
             if self._index >= len(self._files):
                 if not self.loop:
+                    if self._seq == 0 and self.unreadable:
+                        raise FrameSourceError(f"{self.folder}: none of its images can be "
+                                               f"read ({self.last_error})")
                     return None
                 self._index = 0
             path = self._files[self._index]
@@ -201,6 +217,8 @@ class ImageFolderGrabber:
                 rgb = _to_rgb(image, str(path))
             except FrameSourceError as exc:
                 self.unreadable += 1
+                failed_in_a_row += 1
+                self.last_error = str(exc)
                 log.error("%s (unreadable image, skipped)", exc)
                 continue
             self._seq += 1
@@ -281,11 +299,16 @@ class ReaderStatus:
 
 class LatestFrameReader:
     """Runs ``grabber`` in a daemon thread; :meth:`take` returns the newest frame not yet
-    taken. Failures are retried after ``backoff_s`` doubling up to ``max_backoff_s``."""
+    taken. Failures are retried after ``backoff_s`` doubling up to ``max_backoff_s`` (reset
+    by the first good frame after a re-open). ``lossless``: wait until each frame is taken
+    before reading the next (offline folders and files: every frame processed, none skipped)."""
 
     def __init__(self, grabber: Grabber, *, backoff_s: float = 0.5,
-                 max_backoff_s: float = 10.0) -> None:
+                 max_backoff_s: float = 10.0, lossless: bool = False) -> None:
         self.grabber = grabber
+        self.lossless = lossless
+        self._taken = threading.Event()
+        self._taken.set()
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
         self._lock = threading.Lock()
@@ -302,7 +325,9 @@ class LatestFrameReader:
     def take(self) -> Frame | None:
         with self._lock:
             frame, self._frame = self._frame, None
-            return frame
+        if frame is not None:
+            self._taken.set()
+        return frame
 
     def status(self) -> ReaderStatus:
         with self._lock:
@@ -310,10 +335,16 @@ class LatestFrameReader:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
+        self._taken.set()
         if self._thread.is_alive():
             self._thread.join(timeout_s)
-        with self._lock:
-            self._status.state = "stopped"
+        if not self._thread.is_alive():
+            with self._lock:
+                self._status.state = "stopped"
+        else:
+            log.warning("%s: the grab thread did not stop within %.1f s (a blocking driver "
+                        "call); it is a daemon and ends with the process", self.grabber.label,
+                        timeout_s)
 
     def _set(self, **fields: Any) -> None:
         with self._lock:
@@ -331,9 +362,16 @@ class LatestFrameReader:
                         self._status.reopens += 1
                 opened_once = True
                 self._set(state="ok", error="", retry_in_s=0.0)
-                delay = self.backoff_s
+                first = True
                 while not self._stop.is_set():
+                    if self.lossless:
+                        while not self._taken.wait(0.1):
+                            if self._stop.is_set():
+                                return
                     frame = self.grabber.read()
+                    if frame is not None and first:
+                        delay = self.backoff_s  # a stream that delivers again: reset back-off
+                        first = False
                     if frame is None:
                         self._set(state="ended")
                         log.info("%s: end of the source", self.grabber.label)
@@ -344,6 +382,7 @@ class LatestFrameReader:
                             self._status.skipped += 1
                         self._frame = frame
                         self._status.grabbed += 1
+                        self._taken.clear()
             except Exception as exc:  # a driver can raise anything: report, back off, retry
                 msg = str(exc) if isinstance(exc, FrameSourceError) else \
                     f"{self.grabber.label}: {type(exc).__name__}: {exc}"

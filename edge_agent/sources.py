@@ -119,6 +119,8 @@ class CameraFrameSource:
             return "degraded", f"{detail}; the source ended"
         if st.state == "opening":
             return "starting", detail
+        if st.state == "stopped":
+            return "stopping", detail
         return "degraded", f"{detail}; {st.error} (retry in {st.retry_in_s:.1f} s)"
 
     def close(self) -> None:
@@ -140,7 +142,8 @@ class CameraSourcePlugin:
         what.add_argument("--realsense", nargs="?", const="", metavar="SERIAL",
                           help="an Intel RealSense colour stream (needs pyrealsense2)")
         g.add_argument("--rate", type=float, default=10.0,
-                       help="--images: frames per second (0: as fast as processed; default 10)")
+                       help="--images: frames per second (0: every image in turn, each as soon "
+                       "as the previous one is processed; default 10)")
         g.add_argument("--loop", action="store_true", help="--images / video file: loop")
         g.add_argument("--model", metavar="DIR",
                        help="model folder (detector.onnx + keypoints.onnx with their cards); "
@@ -172,7 +175,8 @@ class CameraSourcePlugin:
             grabber = RealSenseGrabber(args.realsense or None, width=camera.width,
                                        height=camera.height)
         elif args.device:
-            grabber = OpenCVGrabber(args.device, width=camera.width, height=camera.height)
+            grabber = OpenCVGrabber(args.device, width=camera.width, height=camera.height,
+                                    loop=args.loop)
         else:
             raise UsageError("--source camera needs --device URI, --images DIR or --realsense")
         if args.providers == "auto":
@@ -191,7 +195,8 @@ class CameraSourcePlugin:
                  models.detector.path, models.keypoints.path, providers, args.threads)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
                                 expected_size=(camera.width, camera.height))
-        reader = LatestFrameReader(grabber).start()
+        lossless = bool(args.images) and args.rate <= 0
+        reader = LatestFrameReader(grabber, lossless=lossless).start()
         return CameraFrameSource(reader, pipeline, grabber.label)
 
 
