@@ -169,3 +169,64 @@ class CameraFeed:
         while self._pending and self._pending[0][0] <= now_ns:
             out.append(heapq.heappop(self._pending)[2])
         return out
+
+
+class RenderedCameraFeed:
+    """The images one simulated camera takes: the site rendered from the camera's *true* pose
+    (calibration error included) with the robot at its ground-truth pose at the capture time.
+
+    Same capture schedule as :class:`CameraFeed` (the scenario's rate, the camera's phase);
+    ``rate_hz`` overrides the rate (a CPU that cannot render and infer every frame). A caller
+    that falls behind gets the newest due frame; :attr:`skipped` counts the ones it missed.
+    The GL renderer is created on first use, in the calling process."""
+
+    def __init__(self, live: LiveSimulation, camera_id: str, rate_hz: float | None = None,
+                 texture_seed: int = 0) -> None:
+        from simulation.detections import true_cameras
+        from simulation.robot_mesh import hsr_like_mesh
+        from simulation.scenes import site_geometry
+
+        if camera_id not in live.site.cameras:
+            raise UnknownIdError(
+                f"camera {camera_id!r} is not in the simulated site; known: "
+                f"{sorted(live.site.cameras)}"
+            )
+        self.live = live
+        self.camera_id = camera_id
+        self.camera = true_cameras(live.scenario)[camera_id]
+        rate = rate_hz or live.scenario.cameras.rate_hz
+        self._period_ns = round(1e9 / rate)
+        self._phase_ns = round(live.run.camera_phase_s[camera_id] * 1e9)
+        self._geometry = site_geometry(live.scenario, seed=texture_seed)
+        self._robot_mesh = hsr_like_mesh(live.site.robot_model(live.robot_id))
+        self._renderer: object | None = None
+        self._next_frame: int | None = None
+        self.skipped = 0
+        self.seq = 0
+
+    def _capture_ns(self, frame: int) -> int:
+        return self.live.spec.epoch_ns + self._phase_ns + frame * self._period_ns
+
+    def due(self, now_ns: int) -> int | None:
+        """The capture stamp of the newest frame due at ``now_ns`` not yet taken, or None."""
+        newest = (now_ns - self._capture_ns(0)) // self._period_ns
+        if newest < 0:
+            return None
+        if self._next_frame is None:
+            self._next_frame = int(newest)  # joining late: start at the current frame
+        if newest < self._next_frame:
+            return None
+        self.skipped += int(newest - self._next_frame)
+        self._next_frame = int(newest) + 1
+        self.seq += 1
+        return self._capture_ns(int(newest))
+
+    def render(self, capture_ns: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image at ``capture_ns``."""
+        from simulation.render_gl import Renderer
+        from simulation.scenes import site_scene
+
+        if self._renderer is None:
+            self._renderer = Renderer(self.camera.width, self.camera.height)
+        scene = site_scene(self._geometry, self._robot_mesh, self.live.ground_truth(capture_ns))
+        return self._renderer.render(scene, self.camera).color_rgb  # type: ignore[attr-defined]

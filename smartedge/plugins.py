@@ -47,18 +47,72 @@ class SimulatedCameraSource:
         return self._feed.poll(now_ns)
 
 
+class RenderedCameraSource:
+    """One simulated camera's rendered images through the edge's ONNX pipeline (the closed
+    loop: the same models and code as on a real camera); the site comes with it."""
+
+    label = "sim-render"
+
+    def __init__(self, feed: Any, pipeline: Any, site: Site) -> None:
+        self._feed = feed
+        self._pipeline = pipeline
+        self.site = site
+        self._stats: Any = None
+        self._skipped_seen = 0
+
+    def bind_stats(self, stats: Any) -> None:
+        self._stats = stats
+
+    def poll(self, now_ns: int) -> list[RobotDetections]:
+        from edge_agent.frames import Frame
+
+        capture_ns = self._feed.due(now_ns)
+        if capture_ns is None:
+            return []
+        t0 = time.perf_counter()
+        image = self._feed.render(capture_ns)
+        render_s = time.perf_counter() - t0
+        msg, lat = self._pipeline.process(Frame(image, capture_ns, self._feed.seq))
+        if self._stats is not None:
+            self._stats.latency("render", render_s)
+            self._stats.latency("detector", lat.detector_s)
+            self._stats.latency("keypoints", lat.keypoints_s)
+            if self._feed.skipped > self._skipped_seen:
+                self._stats.count("frames_skipped", self._feed.skipped - self._skipped_seen)
+                self._skipped_seen = self._feed.skipped
+        return [msg]
+
+    def health(self) -> tuple[str, str]:
+        detail = f"source={self.label} frames={self._feed.seq} skipped={self._feed.skipped}"
+        if self._feed.seq > 10 and self._feed.skipped > self._feed.seq:
+            return "degraded", f"{detail}; rendering + inference cannot keep up with the rate"
+        return "ok", detail
+
+
 class SimSourcePlugin:
-    """``--source sim``: the edge agent of one camera of a live simulation."""
+    """``--source sim``: the edge agent of one camera of a live simulation: detections from
+    the scenario's noise model (``--detections noise``) or rendered images through the ONNX
+    models (``--detections cnn``)."""
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         from simulation.live import add_sim_arguments
 
-        add_sim_arguments(parser)
+        group = add_sim_arguments(parser)
+        group.add_argument("--detections", choices=("noise", "cnn"), default="noise",
+                           help="sim source: the detection noise model (default) or rendered "
+                           "images through the ONNX detector + keypoint models (--model, "
+                           "--threads, --min-score as for the camera source)")
+        group.add_argument("--render-rate", type=float, default=None, metavar="HZ",
+                           help="sim source with --detections cnn: frames per second "
+                           "(default: the scenario's camera rate)")
 
-    def build(self, args: argparse.Namespace, site: Site | None) -> SimulatedCameraSource:
+    def build(self, args: argparse.Namespace, site: Site | None
+              ) -> SimulatedCameraSource | RenderedCameraSource:
         from simulation.live import CameraFeed, LiveSimulation, spec_from_args
 
         live = LiveSimulation(spec_from_args(args))
+        if getattr(args, "detections", "noise") == "cnn":
+            return self._build_rendered(args, live)
         feed = CameraFeed(live, args.camera)
         log.info(
             "edge agent %s: SIMULATED source (scenario %s, trajectory %s, t0 in %.1f s)",
@@ -68,6 +122,29 @@ class SimSourcePlugin:
             (live.spec.epoch_ns - time.time_ns()) * 1e-9,
         )
         return SimulatedCameraSource(feed, live.site)
+
+    @staticmethod
+    def _build_rendered(args: argparse.Namespace, live: Any) -> RenderedCameraSource:
+        from edge_agent.models import RobotKeypointPipeline, model_files
+        from edge_agent.pipeline import EdgePipeline
+        from simulation.live import RenderedCameraFeed
+
+        model = live.site.robot_model(live.robot_id)
+        threads = getattr(args, "threads", 2)
+        if getattr(args, "model", None):
+            det, kp = model_files(args.model)
+            models = RobotKeypointPipeline(det, kp, threads=threads,
+                                           keypoint_names=model.keypoint_names)
+        else:
+            models = RobotKeypointPipeline.for_robot(model, threads=threads)
+        feed = RenderedCameraFeed(live, args.camera, rate_hz=args.render_rate)
+        camera = live.site.cameras[args.camera]
+        pipeline = EdgePipeline(args.camera, models, min_score=getattr(args, "min_score", 0.3),
+                                expected_size=(camera.width, camera.height))
+        log.info("edge agent %s: SIMULATED camera, rendered images through %s at %.1f Hz "
+                 "(scenario %s, trajectory %s)", args.camera, models.model_id,
+                 1e9 / feed._period_ns, live.scenario.name, live.spec.trajectory)
+        return RenderedCameraSource(feed, pipeline, live.site)
 
 
 class SimAdapterPlugin:
