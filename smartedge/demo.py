@@ -189,8 +189,12 @@ class Services:
             bridge.append("--no-feedback")
         if self.args.kidnapped:
             bridge.append("--kidnapped")
+        detections = ["--detections", self.args.detections]
+        if self.args.detections == "cnn":
+            detections += ["--render-rate", f"{self.args.render_rate:g}"]
         edges = [
-            ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *listen_any]
+            ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *detections,
+             *listen_any]
             for c in self.camera_ids
         ]
         return [
@@ -267,6 +271,11 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
     return svc.build_node(args), make_config(options_from_args(args))
 
 
+#: how the demo's edge agents detect the robot, and the rendered frame rate per camera
+DEFAULT_DETECTIONS = "noise"
+DEFAULT_RENDER_RATE_HZ = 5.0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="smartedge demo",
@@ -298,6 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--kidnapped",
         action="store_true",
         help="the robot starts without localization (initialized by cameras)",
+    )
+    parser.add_argument(
+        "--detections", choices=("noise", "cnn"), default=DEFAULT_DETECTIONS,
+        help="edge agents: the detection noise model, or rendered images through the shipped "
+        f"ONNX models (closed loop) (default {DEFAULT_DETECTIONS})",
+    )
+    parser.add_argument(
+        "--render-rate", type=float, default=DEFAULT_RENDER_RATE_HZ, metavar="HZ",
+        help="--detections cnn: frames per second per camera (default "
+        f"{DEFAULT_RENDER_RATE_HZ:g}: what 2 CPU cores render and infer for 4 cameras)",
     )
     parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
     return parser

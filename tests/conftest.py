@@ -56,3 +56,7 @@ def zenoh_pair() -> Iterator[tuple[object, object, str]]:
     finally:
         b.close()
         a.close()
+
+
+# the tiny trained detector + keypoint models (session-scoped), for tests outside edge_agent/
+from tests.edge_agent.conftest import tiny_models  # noqa: E402, F401
