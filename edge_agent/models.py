@@ -113,9 +113,11 @@ class ModelCard:
         lines += [
             f"- steps: {t.get('steps')} x batch {t.get('batch')}, AdamW lr {t.get('lr')}, "
             f"final loss {t.get('final_loss')}",
-            f"- wall time: render {t.get('render_wall_s')} s, train {t.get('train_wall_s')} s, "
+            f"- wall time: render {_render_time(t.get('render_wall_s'))}, "
+            f"train {t.get('train_wall_s')} s, "
             f"total {t.get('total_wall_s')} s on {t.get('device')} ({t.get('machine')}, "
-            f"{t.get('threads')} torch threads, torch {t.get('torch')})",
+            f"torch {t.get('torch')})",
+            *(f"  - {leg}" for leg in t.get("history", [])),
             "",
             "## Held-out metrics",
             "",
@@ -128,7 +130,13 @@ class ModelCard:
         return "\n".join(lines)
 
 
+def _render_time(seconds: float | None) -> str:
+    return "n/a (an existing render cache was used)" if seconds is None else f"{seconds} s"
+
+
 def _fmt(v: float) -> str:
+    if isinstance(v, float) and v.is_integer():
+        return str(int(v))
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
@@ -183,7 +191,8 @@ def providers_available(prefer: Sequence[str] = ("TensorrtExecutionProvider",
     return chosen or ["CPUExecutionProvider"]
 
 
-def _session(path: Path, threads: int, providers: Sequence[str] | None) -> Any:
+def _session(path: Path, threads: int, providers: Sequence[str] | None,
+             spinning: bool = False) -> Any:
     import onnxruntime as ort
 
     if not path.is_file():
@@ -192,6 +201,8 @@ def _session(path: Path, threads: int, providers: Sequence[str] | None) -> Any:
     opts.intra_op_num_threads = max(1, int(threads))
     opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
+    if not spinning:  # idle intra-op threads sleep instead of spinning (few cores)
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         return ort.InferenceSession(str(path), opts,
                                     providers=list(providers or ["CPUExecutionProvider"]))
@@ -228,12 +239,12 @@ class Detector:
     """The robot detector: full frame → boxes in frame pixels with scores."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
-                 providers: Sequence[str] | None = None) -> None:
+                 providers: Sequence[str] | None = None, spinning: bool = False) -> None:
         self.path = Path(onnx_path)
         if not self.path.is_file():
             raise ModelError(f"{self.path}: detector model file not found")
         self.card = DetectorCard.read(card_path(self.path))
-        self.session = _session(self.path, threads, providers)
+        self.session = _session(self.path, threads, providers, spinning)
         _check_io(self.path, self.session, [("image", (3, self.card.input_h, self.card.input_w))],
                   ["peaks", "size", "offset"])
 
@@ -255,12 +266,12 @@ class KeypointEstimator:
     """The keypoint network: crops around boxes → keypoints in frame pixels + confidences."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
-                 providers: Sequence[str] | None = None) -> None:
+                 providers: Sequence[str] | None = None, spinning: bool = False) -> None:
         self.path = Path(onnx_path)
         if not self.path.is_file():
             raise ModelError(f"{self.path}: keypoint model file not found")
         self.card = KeypointCard.read(card_path(self.path))
-        self.session = _session(self.path, threads, providers)
+        self.session = _session(self.path, threads, providers, spinning)
         _check_io(self.path, self.session, [("crop", (3, self.card.input_h, self.card.input_w))],
                   ["keypoints", "confidence"])
 
@@ -314,18 +325,20 @@ class RobotKeypointPipeline:
     ``detector`` / ``keypoints``: ONNX files (each with its card beside it); default: the
     shipped models. ``keypoint_names``: the site's robot model's, checked against the keypoint
     model's card. ``providers``: onnxruntime execution providers in order of preference
-    (default CPU)."""
+    (default CPU). ``spinning``: let onnxruntime's idle threads spin (its default); off here,
+    because on a 2-core board spinning threads starve the frame pre-processing (measured
+    ~2x slower per frame, ``smartedge bench edge``)."""
 
     def __init__(self, detector: Path | str | None = None, keypoints: Path | str | None = None,
                  *, threads: int = 2, providers: Sequence[str] | None = None,
-                 keypoint_names: Sequence[str] | None = None) -> None:
+                 keypoint_names: Sequence[str] | None = None, spinning: bool = False) -> None:
         shipped = default_model_dir()
         self.providers = list(providers or ["CPUExecutionProvider"])
         self.detector = Detector(shipped / "detector.onnx" if detector is None else detector,
-                                 threads=threads, providers=self.providers)
+                                 threads=threads, providers=self.providers, spinning=spinning)
         self.keypoints = KeypointEstimator(
             shipped / "keypoints.onnx" if keypoints is None else keypoints, threads=threads,
-            providers=self.providers)
+            providers=self.providers, spinning=spinning)
         self.folder = self.keypoints.path.parent
         kp_names = list(self.keypoints.card.keypoint_names)
         if keypoint_names is not None and list(keypoint_names) != kp_names:

@@ -166,8 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_kp.add_argument("--model", help="model folder (default: the shipped models)")
     p_kp.add_argument("--seed", type=int, default=4242,
                       help="held-out seed (default 4242; the shipped models trained on 1-2)")
-    p_kp.add_argument("--count", type=int, default=100,
-                      help="views per set: randomized scenes and the site's cameras (default 100)")
+    p_kp.add_argument("--count", type=int, default=300,
+                      help="views per set: randomized scenes and the site's cameras (default 300)")
     p_kp.add_argument("--scenario", default=None, help="scenario file (default: the paper's lab)")
     p_kp.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     return parser

@@ -211,9 +211,9 @@ def _progress_line(step: int, total: int, loss: float, rate: float, eta_s: float
 
 
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
-                 say: Callable[[str], None]) -> dict[str, Any]:
+                 say: Callable[[str], None], render_s: float | None = None) -> dict[str, Any]:
     """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists. Returns the run's
-    record (steps, wall time, losses)."""
+    record (steps, training wall time, the first run's render time, losses)."""
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -224,7 +224,7 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
         raise TrainingError(f"{rows} training rows for batch {cfg.batch}: render more views")
     identity = {"kind": cfg.kind, "geometry": dataclasses.asdict(cfg.geometry)}
     state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": [],
-                             "identity": identity}
+                             "identity": identity, "render_wall_s": render_s}
     if ckpt.exists():
         try:
             saved = torch.load(ckpt, map_location=device, weights_only=False)
@@ -234,6 +234,7 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             raise TrainingError(f"{ckpt}: cannot resume from this checkpoint ({exc}); "
                                 "delete it or use another --out") from None
         state = saved["state"]
+        state.setdefault("render_wall_s", None)  # checkpoints from before it was recorded
         if state.get("identity", identity) != identity:
             raise TrainingError(f"{ckpt}: checkpoint of another configuration "
                                 f"({state['identity']}, now {identity}); use another --out")
@@ -241,6 +242,8 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             say(f"{ckpt}: --steps {cfg.steps} replaces the checkpoint's {state['total_steps']}")
             state["total_steps"] = cfg.steps
         say(f"resuming from {ckpt} at step {state['step']}/{state['total_steps']}")
+    history = state.setdefault("history", [])
+    first_step = state["step"]
     gen = torch.Generator().manual_seed(cfg.seed + state["step"])
     rng = np.random.default_rng([cfg.seed, state["step"]])
     model.train()
@@ -281,6 +284,10 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
         if state["step"] % cfg.checkpoint_every == 0 or time.perf_counter() - t_last > 300:
             _save_checkpoint(ckpt, model, opt, state)
             t_last = time.perf_counter()
+    if state["step"] > first_step:
+        history.append(f"steps {first_step}-{state['step']} of a {state['total_steps']}-step "
+                       f"cosine schedule, {cfg.threads} thread(s), "
+                       f"{'cuda' if device.type == 'cuda' else 'cpu'}")
     _save_checkpoint(ckpt, model, opt, state)
     model.eval()
     return state
@@ -430,7 +437,8 @@ def train(cfg: TrainConfig, scenario: Any, out_dir: Path, *, robot_model: Any = 
     n_params = sum(p.numel() for p in model.parameters())
     say(f"{cfg.kind}: {n_params / 1e6:.2f} M parameters, {_rows(cfg, data)} training rows, "
         f"device {'cuda' if torch.cuda.is_available() else 'cpu'}")
-    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say)
+    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s)
+    t_eval = time.perf_counter()
     metrics = validate(cfg, model, val)
     for name, figures in metrics.items():
         say(f"held-out {name}: " + ", ".join(f"{k} {v:.3g}" for k, v in figures.items()))
@@ -446,8 +454,10 @@ def train(cfg: TrainConfig, scenario: Any, out_dir: Path, *, robot_model: Any = 
         onnx_path.unlink(missing_ok=True)
         raise
     say(f"onnxruntime matches torch: max abs diff {diffs}")
+    first_render_s = state.get("render_wall_s")
+    total_s = (first_render_s or 0.0) + state["wall_s"] + (time.perf_counter() - t_eval)
     card = _card(cfg, model_def, robot_mesh_name, state, metrics, diffs, n_params,
-                 render_s, time.perf_counter() - t_start, onnx_path)
+                 first_render_s, total_s, onnx_path)
     card.write(out_dir)
     say(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e6:.2f} MB) and its model card")
     return onnx_path
@@ -455,19 +465,22 @@ def train(cfg: TrainConfig, scenario: Any, out_dir: Path, *, robot_model: Any = 
 
 def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any],
           metrics: dict[str, dict[str, float]], diffs: dict[str, float], n_params: int,
-          render_s: float, total_s: float, onnx_path: Path) -> DetectorCard | KeypointCard:
+          render_s: float | None, total_s: float, onnx_path: Path
+          ) -> DetectorCard | KeypointCard:
     g = cfg.geometry
     training = {
         "train_sets": [dataclasses.asdict(s) for s in cfg.train_sets],
         "val_sets": [dataclasses.asdict(s) for s in cfg.val_sets],
         "steps": state["step"], "batch": cfg.batch, "lr": cfg.lr, "sigma_px": cfg.sigma_px,
-        "train_wall_s": round(state["wall_s"], 1), "render_wall_s": round(render_s, 1),
+        "train_wall_s": round(state["wall_s"], 1),
+        "render_wall_s": None if render_s is None else round(render_s, 1),
         "total_wall_s": round(total_s, 1),
-        "device": "cuda" if torch.cuda.is_available() else "cpu", "threads": cfg.threads,
+        "device": "cuda" if torch.cuda.is_available() else "cpu",
         "machine": f"{platform.machine()}, {_cpu_count()} cores, {platform.system()}",
         "torch": torch.__version__,
-        "final_loss": state["losses"][-1][1] if state["losses"] else None,
+        "final_loss": round(state["losses"][-1][1], 4) if state["losses"] else None,
         "parameters": n_params, "robot_mesh": mesh_name,
+        "history": list(state.get("history", [])),
     }
     common = {"version": CARD_VERSION, "onnx": onnx_path.name, "robot_model": model_def.name,
               "keypoint_names": list(model_def.keypoint_names), "metrics": metrics,

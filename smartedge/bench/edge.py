@@ -28,7 +28,7 @@ def main(argv: Sequence[str]) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", help="model folder (default: the shipped models)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
-    parser.add_argument("--frames", type=int, default=200, help="timed frames (default 200)")
+    parser.add_argument("--frames", type=int, default=500, help="timed frames (default 500)")
     parser.add_argument("--views", type=int, default=8, help="distinct rendered views")
     args = parser.parse_args(list(argv))
 
@@ -61,20 +61,28 @@ def main(argv: Sequence[str]) -> int:
     print(f"models: {pipe.folder} (detector input {pipe.detector.card.input_w}x"
           f"{pipe.detector.card.input_h}, keypoints {pipe.keypoints.card.input_w}x"
           f"{pipe.keypoints.card.input_h})")
-    for f in frames:  # warm-up
-        pipe(f)
-    det_ms, kp_ms, total_ms = [], [], []
-    robots = 0
-    for k in range(args.frames):
-        t0 = time.perf_counter()
-        found = pipe(frames[k % len(frames)])
-        total_ms.append((time.perf_counter() - t0) * 1e3)
-        det_ms.append(pipe.times.detector_ms)
-        kp_ms.append(pipe.times.keypoints_ms)
-        robots += len(found)
-    print(f"  detector            {_stats(det_ms)}")
-    print(f"  keypoints (1 robot) {_stats(kp_ms)}")
-    print(f"  detector+keypoints  {_stats(total_ms)}  → "
-          f"{1e3 / np.median(total_ms):.0f} frames/s (target >= 60)")
-    print(f"  robots found per frame: {robots / args.frames:.2f}")
+    peer = RobotKeypointPipeline.from_folder(args.model, threads=args.threads, spinning=True)
+    medians = {}
+    for name, p in (("smartedge (idle threads sleep)", pipe),
+                    ("peer: onnxruntime default (spinning threads)", peer)):
+        for f in frames:  # warm-up
+            p(f)
+        det_ms, kp_ms, total_ms = [], [], []
+        robots = 0
+        for k in range(args.frames):
+            t0 = time.perf_counter()
+            found = p(frames[k % len(frames)])
+            total_ms.append((time.perf_counter() - t0) * 1e3)
+            det_ms.append(p.times.detector_ms)
+            kp_ms.append(p.times.keypoints_ms)
+            robots += len(found)
+        medians[name] = float(np.median(total_ms))
+        print(f"{name}:")
+        print(f"  detector            {_stats(det_ms)}")
+        print(f"  keypoints (1 robot) {_stats(kp_ms)}")
+        print(f"  detector+keypoints  {_stats(total_ms)}  → "
+              f"{1e3 / np.median(total_ms):.0f} frames/s (target >= 60)")
+        print(f"  robots found per frame: {robots / args.frames:.2f}")
+    ours, theirs = medians.values()
+    print(f"ratio: smartedge takes {ours / theirs:.2f}x the time of the peer per frame")
     return 0

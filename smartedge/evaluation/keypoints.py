@@ -97,7 +97,7 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
 
 
 def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
-                       count: int = 100, modes: Sequence[str] = ("randomized", "site"),
+                       count: int = 300, modes: Sequence[str] = ("randomized", "site"),
                        scenario_path: Path | None = None, threads: int = 2,
                        progress: Callable[[str], None] | None = None) -> KeypointEvaluation:
     """Render ``count`` held-out views per mode from ``seed`` and evaluate the models of

@@ -27,9 +27,11 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 SEED = 777
 #: floors measured on the shipped models with this test's set, with margin
 #: (measured figures: see docs/models.md)
+#: measured on this set (2026-11-23): randomized AP@0.5 0.856, median 0.91 px; site AP@0.5
+#: 0.854, median 0.60 px (other seeds: AP 0.83-0.93, median 0.6-1.1 px)
 FLOORS = {
-    "randomized": {"AP@0.5": 0.85, "median error px": 4.0},
-    "site": {"AP@0.5": 0.85, "median error px": 4.0},
+    "randomized": {"AP@0.5": 0.75, "median error px": 2.0},
+    "site": {"AP@0.5": 0.75, "median error px": 2.0},
 }
 
 
