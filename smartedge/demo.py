@@ -189,9 +189,11 @@ class Services:
             bridge.append("--no-feedback")
         if self.args.kidnapped:
             bridge.append("--kidnapped")
-        detections = ["--detections", self.args.detections]
-        if self.args.detections == "cnn":
-            detections += ["--render-rate", f"{self.args.render_rate:g}"]
+        mode = getattr(self.args, "detections", DEFAULT_DETECTIONS)
+        detections = ["--detections", mode]
+        if mode == "cnn":
+            rate = getattr(self.args, "render_rate", DEFAULT_RENDER_RATE_HZ)
+            detections += ["--render-rate", f"{rate:g}"]
         edges = [
             ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *detections,
              *listen_any]

@@ -66,6 +66,7 @@ def main(argv: Sequence[str]) -> int:
         try:
             from edge_agent.training.data import Geometry, SetSpec
             from edge_agent.training.train import TrainConfig, train
+            from smartedge.training_views import SimulationViews
         except ModuleNotFoundError as exc:
             raise SmartedgeError(f"missing {exc.name!r}: smartedge train needs the train extra "
                                  "(pip install 'smartedge[train]')") from None
@@ -88,8 +89,9 @@ def main(argv: Sequence[str]) -> int:
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
                           workers=args.workers)
         mesh_name = Path(args.robot_mesh).name if args.robot_mesh else "built-in HSR-like mesh"
-        path = train(cfg, scenario, Path(args.out), robot_model=model, robot_mesh=mesh,
-                     robot_mesh_name=mesh_name, say=lambda line: print(line, flush=True))
+        views = SimulationViews(str(scenario.source_path), model, mesh)
+        path = train(cfg, views, Path(args.out), robot_mesh_name=mesh_name,
+                     say=lambda line: print(line, flush=True))
     except SmartedgeError as exc:
         print(f"smartedge train: {exc}", file=sys.stderr)
         return 1

@@ -42,8 +42,8 @@ EDGE_SCRIPT = textwrap.dedent(
     import protocol, edge_agent
     for pkg in (protocol, edge_agent):
         for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
-            if info.name.split(".")[-1].startswith(("bench", "training")):
-                continue  # benchmarks and the optional training pipeline may use more
+            if any(part.startswith(("bench", "training")) for part in info.name.split(".")):
+                continue  # benchmarks and the training pipeline (train extra) may use more
             importlib.import_module(info.name)
     import smartedge.cli
     # what `smartedge edge-agent` loads: the plug-in assembly and the simulated source

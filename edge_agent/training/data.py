@@ -1,5 +1,7 @@
-"""Training data: renders from :class:`simulation.dataset.SampleGenerator`, turned into the
-networks' inputs with the deployed pre-processing (:mod:`edge_agent.crop`).
+"""Training data: labelled renders from a :class:`ViewSource` (the simulation's renderer,
+provided by the top floor: :class:`smartedge.training_views.SimulationViews`; this package
+never imports the simulation), turned into the networks' inputs with the deployed
+pre-processing (:mod:`edge_agent.crop`).
 
 Rendering is the expensive part on a CPU, so :func:`render_set` renders a set of views once,
 in parallel worker processes, into compact shards (detector-sized frames, keypoint crops with
@@ -17,7 +19,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -102,15 +104,33 @@ class RenderedSet:
             return RenderedSet(**{f.name: z[f.name] for f in dataclasses.fields(RenderedSet)})
 
 
-def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
-                 augment_clean: bool) -> RenderedSet:
-    """One rendered :class:`simulation.dataset.Sample` → its rows (photometric augmentation of
-    un-augmented site views when ``augment_clean``)."""
-    from simulation.dataset import augment
+class ViewSource(Protocol):
+    """Where labelled views come from. Sent to the render processes, so it must pickle.
 
+    ``robot_model``: the :class:`protocol.site.RobotModel` whose keypoints are labelled;
+    ``renderer(spec, geometry)``: a function index → sample (``image_rgb`` (H, W, 3) uint8,
+    ``mode``, ``robots[0]`` with ``bbox_xyxy`` (box edges or None), ``keypoints_px``,
+    ``visible``, ``in_image``), the same sample for the same (spec, index);
+    ``augment(image, rng)``: photometric augmentation of a clean image; ``identity()``: what
+    the render cache is of (robot, scenario), as a JSON-able dict."""
+
+    robot_model: Any
+
+    def renderer(self, spec: SetSpec, geometry: Geometry) -> Callable[[int], Any]: ...
+
+    def augment(self, image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray: ...
+
+    def identity(self) -> dict[str, Any]: ...
+
+
+def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
+                 augment: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None
+                 ) -> RenderedSet:
+    """One rendered sample → its rows; ``augment`` (if given) is applied to un-augmented site
+    views."""
     g = geometry
     image = sample.image_rgb
-    if augment_clean and sample.mode == "site":
+    if augment is not None and sample.mode == "site":
         image = augment(image, rng)
     h, w = image.shape[:2]
     det = resize_for_detector(image, g.det_w, g.det_h)
@@ -147,34 +167,28 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(scenario_path: str, robot_model: Any, robot_mesh: Any) -> None:
-    from simulation.scenario import load_scenario
-
-    _WORKER.update(scenario=load_scenario(scenario_path), model=robot_model, mesh=robot_mesh,
-                   gens={})
+def _worker_init(views: ViewSource) -> None:
+    _WORKER.update(views=views, renderers={})
 
 
 def _render_shard(spec: SetSpec, start: int, stop: int, geometry: Geometry,
                   augment_clean: bool) -> RenderedSet:
-    from simulation.dataset import SampleGenerator
-
-    gens = _WORKER["gens"]
-    if spec.name not in gens:
-        gens[spec.name] = SampleGenerator(
-            _WORKER["scenario"], spec.mode, seed=spec.seed, width=geometry.frame_w,
-            height=geometry.frame_h, robot_mesh=_WORKER["mesh"], robot_model=_WORKER["model"])
-    gen = gens[spec.name]
+    views: ViewSource = _WORKER["views"]
+    renderers = _WORKER["renderers"]
+    if spec.name not in renderers:
+        renderers[spec.name] = views.renderer(spec, geometry)
+    render = renderers[spec.name]
     parts = []
     for i in range(start, stop):
         rng = np.random.default_rng(np.random.SeedSequence([spec.seed, i, 4242]))
-        parts.append(view_records(gen(i), geometry, rng, augment_clean))
+        parts.append(view_records(render(i), geometry, rng,
+                                  views.augment if augment_clean else None))
     return RenderedSet.concatenate(parts)
 
 
-def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cache_dir: Path,
-               *, workers: int = 2, augment_clean: bool = True, robot_model: Any = None,
-               robot_mesh: Any = None, progress: Callable[[str], None] | None = None
-               ) -> RenderedSet:
+def render_set(views: ViewSource, specs: Sequence[SetSpec], geometry: Geometry,
+               cache_dir: Path, *, workers: int = 2, augment_clean: bool = True,
+               progress: Callable[[str], None] | None = None) -> RenderedSet:
     """Render (or reuse from ``cache_dir``) every view of ``specs``; returns them concatenated.
 
     Shard files are named by set, range and geometry, so a cache folder can hold several sets
@@ -182,8 +196,7 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
     own GL context."""
     say = progress or (lambda line: log.info("%s", line))
     cache_dir.mkdir(parents=True, exist_ok=True)
-    model = robot_model or scenario.site.robot_model(scenario.robot_id)
-    _check_manifest(cache_dir, scenario, model, robot_mesh)
+    _check_manifest(cache_dir, views.identity())
     tag = (f"d{geometry.det_w}x{geometry.det_h}-c{geometry.crop_w}x{geometry.crop_h}"
            f"-n{geometry.crops_per_robot}{'j' if geometry.crop_jitter else 'e'}"
            f"-f{geometry.frame_w}x{geometry.frame_h}{'-a' if augment_clean else ''}")
@@ -208,14 +221,14 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
             say(f"  rendered {done}/{total} views ({rate:.1f} views/s)")
 
         if workers <= 1:  # in this process (tests, debugging)
-            _WORKER.update(scenario=scenario, model=model, mesh=robot_mesh, gens={})
+            _worker_init(views)
             for spec, a, b, path in todo:
                 finished(_render_shard(spec, a, b, geometry, augment_clean), path)
             return RenderedSet.concatenate([RenderedSet.load(j[3]) for j in jobs])
         ctx = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(
                 max(1, workers), mp_context=ctx, initializer=_worker_init,
-                initargs=(scenario.source_path, model, robot_mesh)) as pool:
+                initargs=(views,)) as pool:
             futures = {pool.submit(_render_shard, spec, a, b, geometry, augment_clean): path
                        for spec, a, b, path in todo}
             for fut in concurrent.futures.as_completed(futures):
@@ -223,20 +236,13 @@ def render_set(scenario: Any, specs: Sequence[SetSpec], geometry: Geometry, cach
     return RenderedSet.concatenate([RenderedSet.load(j[3]) for j in jobs])
 
 
-def _check_manifest(cache_dir: Path, scenario: Any, model: Any, mesh: Any) -> None:
-    """A cache folder holds renders of one robot in one scenario: ``cache.json`` records which,
-    and a run for another robot is refused instead of training on the wrong renders."""
-    import hashlib
+def _check_manifest(cache_dir: Path, identity: dict[str, Any]) -> None:
+    """A cache folder holds renders of one robot in one scenario: ``cache.json`` records which
+    (the view source's identity), and a run for another robot is refused instead of training on
+    the wrong renders."""
     import json
 
-    digest = hashlib.sha256()
-    digest.update(np.ascontiguousarray(model.keypoints_base_m, np.float64).tobytes())
-    if mesh is not None:
-        digest.update(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
-    doc = {"scenario": Path(str(scenario.source_path)).name, "robot_model": model.name,
-           "keypoint_names": list(model.keypoint_names),
-           "robot_mesh": "built-in" if mesh is None else "custom",
-           "fingerprint": digest.hexdigest()[:16]}
+    doc = json.loads(json.dumps(identity))  # as it reads back
     path = cache_dir / "cache.json"
     if path.exists():
         try:

@@ -31,7 +31,7 @@ from edge_agent.models import (
     decode_detections,
     reference_path,
 )
-from edge_agent.training.data import Geometry, RenderedSet, SetSpec, render_set
+from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
 from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector
 from protocol.errors import SmartedgeError
 
@@ -414,22 +414,22 @@ def check_onnxruntime(cfg: TrainConfig, model: torch.nn.Module, path: Path,
 # --------------------------------------------------------------------------------------------
 
 
-def train(cfg: TrainConfig, scenario: Any, out_dir: Path, *, robot_model: Any = None,
-          robot_mesh: Any = None, robot_mesh_name: str = "built-in HSR-like mesh",
+def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
+          robot_mesh_name: str = "built-in HSR-like mesh",
           say: Callable[[str], None] = print) -> Path:
-    """Render, train, validate, export, check, write the model card. Returns the ONNX path."""
+    """Render (from ``views``), train, validate, export, check, write the model card. Returns
+    the ONNX path."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    model_def = robot_model or scenario.site.robot_model(scenario.robot_id)
+    model_def = views.robot_model
     cache = out_dir / "cache"
     t_start = time.perf_counter()
     say(f"{cfg.kind}: training sets {[s.name for s in cfg.train_sets]}, "
         f"held-out {[s.name for s in cfg.val_sets]}")
-    data = render_set(scenario, cfg.train_sets, cfg.geometry, cache, workers=cfg.workers,
-                      robot_model=model_def, robot_mesh=robot_mesh, progress=say)
+    data = render_set(views, cfg.train_sets, cfg.geometry, cache, workers=cfg.workers,
+                      progress=say)
     eval_geom = dataclasses.replace(cfg.geometry, crop_jitter=False)
-    val = {s.name: render_set(scenario, [s], eval_geom, cache, workers=cfg.workers,
-                              augment_clean=False, robot_model=model_def,
-                              robot_mesh=robot_mesh, progress=say)
+    val = {s.name: render_set(views, [s], eval_geom, cache, workers=cfg.workers,
+                              augment_clean=False, progress=say)
            for s in cfg.val_sets}
     render_s = time.perf_counter() - t_start
     torch.manual_seed(cfg.seed)  # the initial weights too

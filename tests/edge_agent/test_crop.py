@@ -230,7 +230,7 @@ def test_training_crops_use_the_deployed_crop() -> None:
         box = robot.bbox_xyxy
         if box is None or (box[2] - box[0]) * (box[3] - box[1]) < 64:
             continue
-        rows = view_records(sample, geometry, np.random.default_rng(0), augment_clean=False)
+        rows = view_records(sample, geometry, np.random.default_rng(0))
         assert len(rows.crops) == 1
         tf = crop_transform(box, CROP_W, CROP_H, padding=CROP_PADDING)
         np.testing.assert_array_equal(rows.crops[0],

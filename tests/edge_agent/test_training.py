@@ -303,6 +303,7 @@ def test_render_cache_refuses_another_robot(tiny_models: Path, tmp_path: Path) -
 
     from protocol.errors import UsageError
     from simulation.scenario import load_scenario
+    from smartedge.training_views import SimulationViews
 
     cache = tmp_path / "cache"
     shutil.copytree(tiny_models / "cache", cache)
@@ -310,4 +311,5 @@ def test_render_cache_refuses_another_robot(tiny_models: Path, tmp_path: Path) -
     model = scenario.site.robot_model(scenario.robot_id)
     other = dataclasses.replace(model, name="other", keypoints_base_m=model.keypoints_base_m * 2)
     with pytest.raises(UsageError, match=r"cache\.json"):
-        render_set(scenario, [TRAIN[0]], TINY, cache, workers=1, robot_model=other)
+        render_set(SimulationViews(str(scenario.source_path), other), [TRAIN[0]], TINY, cache,
+                   workers=1)
