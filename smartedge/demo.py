@@ -193,7 +193,8 @@ class Services:
         detections = ["--detections", mode]
         if mode == "cnn":
             rate = getattr(self.args, "render_rate", DEFAULT_RENDER_RATE_HZ)
-            detections += ["--render-rate", f"{rate:g}"]
+            # four agents share the machine: one onnxruntime thread each
+            detections += ["--render-rate", f"{rate:g}", "--threads", "1"]
         edges = [
             ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *detections,
              *listen_any]
@@ -274,7 +275,7 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
 
 
 #: how the demo's edge agents detect the robot, and the rendered frame rate per camera
-DEFAULT_DETECTIONS = "noise"
+DEFAULT_DETECTIONS = "cnn"
 DEFAULT_RENDER_RATE_HZ = 5.0
 
 

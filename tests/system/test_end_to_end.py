@@ -37,10 +37,17 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     assert result.exit_codes == [0] * 7, result.exit_codes  # 4 edge agents, backend, bridge, viewer
     assert {"backend/main", "robot-bridge/hsr"} <= set(seen.status)
     assert sum(k.startswith("edge-agent/") for k in seen.status) == 4
+    # the default closed loop: rendered images through the shipped ONNX models, keeping up
+    for name, status in seen.status.items():
+        if name.startswith("edge-agent/"):
+            assert "source=sim-render" in status.detail, status.detail
+            assert status.state in ("ok", "stopping"), (name, status.state, status.detail)
+            assert "detector" in status.latency_p50_ms and "render" in status.latency_p50_ms
     # poses came out, accurate against ground truth, and the bridge corrected the robot
-    assert len(seen.camera) > 100 and len(seen.fused) > 100
-    assert result.figures["cameras, 1 frame"] < 0.06
-    assert result.figures["fused (pose graph)"] < 0.06
+    # (CNN keypoints, 5 Hz per camera; measured over 60 s: cameras RMS 2.6 cm, fused 2.5 cm)
+    assert len(seen.camera) > 60 and len(seen.fused) > 100
+    assert result.figures["cameras, 1 frame"] < 0.04
+    assert result.figures["fused (pose graph)"] < 0.04
     assert seen.corrections and all(c.kind == "correction" for c in seen.corrections)
     bridge = seen.status["robot-bridge/hsr"]
     assert (
