@@ -348,11 +348,14 @@ class RobotKeypointPipeline:
         self.times = StageTimes()
 
     @classmethod
-    def for_robot(cls, robot_model: Any, **kwargs: Any) -> RobotKeypointPipeline:
-        """The models a site's :class:`protocol.site.RobotModel` names (default: shipped),
-        checked against its keypoint names."""
-        return cls(robot_model.detector_onnx, robot_model.keypoints_onnx,
-                   keypoint_names=robot_model.keypoint_names, **kwargs)
+    def for_robot(cls, robot_model: Any, model_dir: Path | str | None = None,
+                  **kwargs: Any) -> RobotKeypointPipeline:
+        """The models of ``model_dir`` when given (a ``--model`` override), else those a
+        site's :class:`protocol.site.RobotModel` names (default: shipped); checked against the
+        robot model's keypoint names."""
+        det, kp = (model_files(model_dir) if model_dir else
+                   (robot_model.detector_onnx, robot_model.keypoints_onnx))
+        return cls(det, kp, keypoint_names=robot_model.keypoint_names, **kwargs)
 
     @classmethod
     def from_folder(cls, folder: Path | str | None, **kwargs: Any) -> RobotKeypointPipeline:

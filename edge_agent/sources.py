@@ -162,7 +162,7 @@ class CameraSourcePlugin:
             OpenCVGrabber,
             RealSenseGrabber,
         )
-        from edge_agent.models import RobotKeypointPipeline, model_files, providers_available
+        from edge_agent.models import RobotKeypointPipeline, providers_available
         from edge_agent.pipeline import EdgePipeline
 
         if site is None:
@@ -184,13 +184,8 @@ class CameraSourcePlugin:
         else:
             providers = [p.strip() for p in args.providers.split(",") if p.strip()]
         model = site.robot_model()  # the site's robot (one robot per edge model for now)
-        if args.model:
-            det, kp = model_files(args.model)
-            models = RobotKeypointPipeline(det, kp, threads=args.threads, providers=providers,
-                                           keypoint_names=model.keypoint_names)
-        else:
-            models = RobotKeypointPipeline.for_robot(model, threads=args.threads,
-                                                     providers=providers)
+        models = RobotKeypointPipeline.for_robot(model, args.model, threads=args.threads,
+                                                 providers=providers)
         log.info("%s: models %s and %s, onnxruntime providers %s, %d thread(s)", args.camera,
                  models.detector.path, models.keypoints.path, providers, args.threads)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,

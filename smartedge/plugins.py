@@ -125,18 +125,14 @@ class SimSourcePlugin:
 
     @staticmethod
     def _build_rendered(args: argparse.Namespace, live: Any) -> RenderedCameraSource:
-        from edge_agent.models import RobotKeypointPipeline, model_files
+        from edge_agent.models import RobotKeypointPipeline
         from edge_agent.pipeline import EdgePipeline
         from simulation.live import RenderedCameraFeed
 
         model = live.site.robot_model(live.robot_id)
         threads = getattr(args, "threads", 2)
-        if getattr(args, "model", None):
-            det, kp = model_files(args.model)
-            models = RobotKeypointPipeline(det, kp, threads=threads,
-                                           keypoint_names=model.keypoint_names)
-        else:
-            models = RobotKeypointPipeline.for_robot(model, threads=threads)
+        models = RobotKeypointPipeline.for_robot(model, getattr(args, "model", None),
+                                                 threads=threads)
         feed = RenderedCameraFeed(live, args.camera, rate_hz=args.render_rate)
         camera = live.site.cameras[args.camera]
         pipeline = EdgePipeline(args.camera, models, min_score=getattr(args, "min_score", 0.3),

@@ -9,14 +9,13 @@ sets, export one self-contained ONNX file, check onnxruntime against torch, writ
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Final
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ import torch.nn.functional as F
 from edge_agent.metrics import detection_ap, keypoint_metrics
 from edge_agent.models import (
     CARD_VERSION,
+    KINDS,
     DetectorCard,
     KeypointCard,
     card_path,
@@ -36,9 +36,6 @@ from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector
 from protocol.errors import SmartedgeError
 
 log = logging.getLogger(__name__)
-
-KINDS: Final = ("detector", "keypoints")
-
 
 class TrainingError(SmartedgeError):
     """Training cannot start or its result fails a check (export, onnxruntime mismatch)."""
@@ -495,7 +492,3 @@ def _cpu_count() -> int:
     import os
 
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
-def dump_json(obj: Any) -> str:
-    return json.dumps(obj, indent=2)
