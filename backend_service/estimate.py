@@ -3,7 +3,9 @@
 One frame-set in, one :class:`PoseResult` out. Steps (paper Sec. III-B):
 
 1. validate the observations: unknown cameras, wrong keypoint counts, non-finite keypoints and
-   keypoints below the score threshold are dropped (weights = confidences of the rest);
+   keypoints below the score threshold are dropped; the rest are weighted by the detector's
+   per-keypoint uncertainty where it sends one (w = (floor / max(sigma, floor))^2 with
+   ``SolverConfig.sigma_floor_px``: in (0, 1] like a confidence), else by their confidences;
 2. initialize from the prior or, without one, from per-view PnP (:mod:`.pose_init`);
 3. solve Eq. 2 with the cached CasADi formulation (:mod:`.pose_solver`), optionally with a
    robust loss; if the solve from the prior fails or fits badly, retry from PnP;
@@ -99,11 +101,12 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
 
 
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
-                   min_score: float) -> tuple[list[View], list[str]]:
+                   min_score: float, sigma_floor_px: float = 2.0
+                   ) -> tuple[list[View], list[str]]:
     M = kp_base.shape[0]
     problems: list[str] = []
     seen: set[str] = set()
-    cams, uvs, scores_list = [], [], []
+    cams, uvs, scores_list, weights_list = [], [], [], []
     for obs in frame_set.observations:
         cam = site.cameras.get(obs.camera_id)
         if cam is None:
@@ -118,18 +121,28 @@ def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
             problems.append(f"camera {obs.camera_id!r}: keypoints {uv.shape} / scores "
                             f"{scores.shape}, model has {M}")
             continue
+        sigmas = obs.keypoint_sigmas_px
+        if sigmas is not None:
+            sigmas = np.asarray(sigmas, dtype=np.float64)
+            if sigmas.shape != (M,):
+                problems.append(f"camera {obs.camera_id!r}: keypoint sigmas {sigmas.shape}, "
+                                f"model has {M}; weighting by score")
+                sigmas = None
         seen.add(obs.camera_id)
         cams.append(cam)
         uvs.append(uv)
         scores_list.append(scores)
+        weights_list.append(np.clip(scores, 0.0, 1.0) if sigmas is None else
+                            (sigma_floor_px / np.maximum(sigmas, sigma_floor_px)) ** 2)
     if not cams:
         return [], problems
     # all views at once: one vectorized pass instead of a dozen numpy calls per view
     uv_all = np.stack(uvs)
     scores_all = np.stack(scores_list)
-    finite = np.isfinite(uv_all).all(axis=2) & np.isfinite(scores_all)
-    w_all = np.clip(np.where(finite & (scores_all >= min_score) & (scores_all > 0),
-                             scores_all, 0.0), 0.0, 1.0)
+    weights_all = np.stack(weights_list)
+    finite = (np.isfinite(uv_all).all(axis=2) & np.isfinite(scores_all)
+              & np.isfinite(weights_all))
+    w_all = np.where(finite & (scores_all >= min_score) & (scores_all > 0), weights_all, 0.0)
     uv_all = np.where(finite[:, :, None], uv_all, np.nan)
     usable = (w_all > 0).any(axis=1)
     views: list[View] = []
@@ -151,7 +164,8 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
     kp_base = np.asarray(model.keypoints_base_m, dtype=np.float64)
     min_score = th.min_keypoint_score if config.min_keypoint_score is None \
         else config.min_keypoint_score
-    views, problems = _prepare_views(frame_set, site, kp_base, float(min_score))
+    views, problems = _prepare_views(frame_set, site, kp_base, float(min_score),
+                                     config.sigma_floor_px)
     if not views:
         detail = "; ".join(problems) if problems else "empty frame-set"
         return _fail(f"no usable view: {detail}")

@@ -38,6 +38,8 @@ class CameraObservation:
     ``stamp_ns``: detection stamp already corrected by the camera's clock offset.
     ``keypoints_px``: (M, 2) float64 pixel coordinates (may contain NaN in hand-made frame-sets;
     the solver treats non-finite keypoints as missing). ``keypoint_scores``: (M,) in [0, 1].
+    ``keypoint_sigmas_px``: optional (M,) 1-sigma pixel uncertainties from the detector (the
+    solver then weights by them, see :mod:`backend_service.estimate`).
     """
 
     camera_id: str
@@ -46,6 +48,7 @@ class CameraObservation:
     keypoint_scores: np.ndarray
     bbox_xyxy: np.ndarray | None = None
     score: float = 1.0
+    keypoint_sigmas_px: np.ndarray | None = None
 
     @classmethod
     def from_detection(
@@ -58,6 +61,8 @@ class CameraObservation:
             keypoint_scores=np.asarray(detection.keypoint_scores, dtype=np.float64),
             bbox_xyxy=np.asarray(detection.bbox_xyxy, dtype=np.float64),
             score=float(detection.score),
+            keypoint_sigmas_px=None if detection.keypoint_sigmas_px is None
+            else np.asarray(detection.keypoint_sigmas_px, dtype=np.float64),
         )
 
 

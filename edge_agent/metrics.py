@@ -115,3 +115,41 @@ def _average_ranks(x: np.ndarray) -> np.ndarray:
     _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
     sums = np.bincount(inverse, weights=ranks)
     return sums[inverse] / counts[inverse]
+
+
+def sigma_calibration(err_crop_px: np.ndarray, confidence: np.ndarray, bins: int = 8,
+                      min_per_bin: int = 20) -> dict[str, list[float]]:
+    """How wrong a keypoint is, given its confidence: the RMS error (crop pixels) of the
+    keypoints in each of ``bins`` confidence quantile bins, made non-increasing in confidence
+    (a more confident keypoint is never reported as less certain).
+
+    ``err_crop_px`` / ``confidence``: (N,) over the valid keypoints of held-out crops. Returns
+    ``{"confidence": bin medians (ascending), "sigma_crop_px": RMS per bin}`` for
+    :func:`sigma_from_confidence`; empty lists when there are too few keypoints."""
+    e = np.asarray(err_crop_px, np.float64).reshape(-1)
+    c = np.asarray(confidence, np.float64).reshape(-1)
+    ok = np.isfinite(e) & np.isfinite(c)
+    e, c = e[ok], c[ok]
+    bins = max(1, min(bins, len(e) // max(min_per_bin, 1)))
+    if len(e) < max(min_per_bin, 1):
+        return {"confidence": [], "sigma_crop_px": []}
+    order = np.argsort(c, kind="stable")
+    centres, sigmas = [], []
+    for part in np.array_split(order, bins):
+        centres.append(float(np.median(c[part])))
+        sigmas.append(float(np.sqrt(np.mean(e[part] ** 2))))
+    # non-increasing in confidence: each bin at most the RMS of the bins below it
+    sig = np.minimum.accumulate(np.array(sigmas))
+    return {"confidence": centres, "sigma_crop_px": [float(v) for v in sig]}
+
+
+def sigma_from_confidence(confidence: np.ndarray, calibration: dict[str, list[float]]
+                          ) -> np.ndarray | None:
+    """Per-keypoint 1-sigma error (crop pixels) for ``confidence`` from a
+    :func:`sigma_calibration` table (linear between bin medians, held flat outside); ``None``
+    when the table is empty."""
+    xs = np.asarray(calibration.get("confidence", []), np.float64)
+    ys = np.asarray(calibration.get("sigma_crop_px", []), np.float64)
+    if xs.size == 0 or xs.size != ys.size:
+        return None
+    return np.interp(np.asarray(confidence, np.float64), xs, ys)

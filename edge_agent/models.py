@@ -23,6 +23,7 @@ from typing import Any, ClassVar, Final
 import numpy as np
 
 from edge_agent.crop import CROP_PADDING, crop_transform, extract_crop, resize_for_detector, to_nchw
+from edge_agent.metrics import sigma_from_confidence
 from protocol.errors import SmartedgeError
 
 log = logging.getLogger(__name__)
@@ -81,7 +82,10 @@ class ModelCard:
                              f"this smartedge reads {CARD_VERSION}")
         doc.pop("kind")
         names = {f.name for f in dataclasses.fields(cls)}
-        missing = sorted(names - doc.keys())
+        required = {f.name for f in dataclasses.fields(cls)
+                    if f.default is dataclasses.MISSING
+                    and f.default_factory is dataclasses.MISSING}
+        missing = sorted(required - doc.keys())
         if missing:
             raise ModelError(f"{path}: model card lacks {missing}")
         try:
@@ -148,8 +152,42 @@ class DetectorCard(ModelCard):
 
 @dataclasses.dataclass(frozen=True)
 class KeypointCard(ModelCard):
+    """``sigma_calibration``: confidence → RMS keypoint error in crop pixels, measured on the
+    held-out sets (:func:`edge_agent.metrics.sigma_calibration`); empty: the edge sends no
+    per-keypoint sigmas and the backend weights by confidence."""
+
     KIND: ClassVar[str] = "keypoints"
     crop_padding: float = CROP_PADDING
+    sigma_calibration: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        cal = self.sigma_calibration
+        if not cal:
+            return
+        try:
+            xs = np.asarray(cal["confidence"], np.float64)
+            ys = np.asarray(cal["sigma_crop_px"], np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise ValueError("sigma_calibration needs lists 'confidence' and "
+                             "'sigma_crop_px'") from None
+        if (xs.ndim != 1 or xs.shape != ys.shape or not np.all(np.isfinite(xs))
+                or not np.all(np.isfinite(ys)) or np.any(np.diff(xs) < 0) or np.any(ys <= 0)):
+            raise ValueError("sigma_calibration: equal-length lists, confidences ascending, "
+                             "sigmas > 0")
+
+    def markdown(self) -> str:
+        text = super().markdown()
+        cal = self.sigma_calibration
+        if not cal or not cal.get("confidence"):
+            return text + ("\n## Keypoint uncertainty\n\nNot calibrated: the edge sends "
+                           "confidences only.\n")
+        rows = "\n".join(f"| {c:.3f} | {s:.2f} |" for c, s in
+                         zip(cal["confidence"], cal["sigma_crop_px"], strict=True))
+        return text + (
+            "\n## Keypoint uncertainty\n\nRMS keypoint error (crop pixels) by confidence on "
+            "the held-out sets; the edge sends sigma = this / crop scale (image pixels) with "
+            "every keypoint and the backend weights keypoints by 1/sigma^2.\n\n"
+            "| confidence (bin median) | sigma (crop px) |\n|---|---|\n" + rows + "\n")
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,30 +317,51 @@ class KeypointEstimator:
     def num_keypoints(self) -> int:
         return len(self.card.keypoint_names)
 
+    @property
+    def calibrated(self) -> bool:
+        """Whether the card maps confidences to pixel sigmas."""
+        return bool(self.card.sigma_calibration.get("confidence"))
+
     def estimate(self, image_rgb: np.ndarray, boxes_xyxy: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
         """(n, K, 2) keypoints in frame pixels and (n, K) confidences for (n, 4) boxes."""
+        kp, conf, _ = self.estimate_with_sigma(image_rgb, boxes_xyxy)
+        return kp, conf
+
+    def estimate_with_sigma(self, image_rgb: np.ndarray, boxes_xyxy: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """As :meth:`estimate`, plus (n, K) 1-sigma keypoint errors in frame pixels from the
+        card's calibration (``None`` when the card has none)."""
         c = self.card
         n = len(boxes_xyxy)
         if n == 0:
-            return np.zeros((0, self.num_keypoints, 2)), np.zeros((0, self.num_keypoints))
+            k = self.num_keypoints
+            return (np.zeros((0, k, 2)), np.zeros((0, k)),
+                    np.zeros((0, k)) if self.calibrated else None)
         tfs = [crop_transform(b[:4], c.input_w, c.input_h, padding=c.crop_padding)
                for b in boxes_xyxy]
         crops = np.stack([extract_crop(image_rgb, tf, c.input_w, c.input_h) for tf in tfs])
         kp, conf = self.session.run(None, {"crop": to_nchw(crops)})
         kp_img = np.stack([tf.to_image(k) for tf, k in zip(tfs, kp, strict=True)])
-        return kp_img, conf.astype(np.float64)
+        conf = conf.astype(np.float64)
+        sigma_crop = sigma_from_confidence(conf, c.sigma_calibration)
+        if sigma_crop is None:
+            return kp_img, conf, None
+        scales = np.array([tf.scale for tf in tfs])[:, None]  # crop px per image px
+        return kp_img, conf, sigma_crop / scales
 
 
 @dataclasses.dataclass(frozen=True)
 class RobotObservation:
     """One detected robot: ``bbox_xyxy`` and ``score`` from the detector, ``keypoints_px``
-    (K, 2) raw frame pixels, ``confidence`` (K,)."""
+    (K, 2) raw frame pixels, ``confidence`` (K,), ``sigma_px`` (K,) calibrated 1-sigma errors
+    in frame pixels (``None``: the keypoint model's card has no calibration)."""
 
     bbox_xyxy: np.ndarray
     score: float
     keypoints_px: np.ndarray
     confidence: np.ndarray
+    sigma_px: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -375,8 +434,9 @@ class RobotKeypointPipeline:
         t0 = time.perf_counter()
         boxes = self.detector.detect(image_rgb, min_score, max_robots)
         t1 = time.perf_counter()
-        kp, conf = self.keypoints.estimate(image_rgb, boxes)
+        kp, conf, sigma = self.keypoints.estimate_with_sigma(image_rgb, boxes)
         t2 = time.perf_counter()
         self.times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3)
-        return [RobotObservation(b[:4].copy(), float(b[4]), k, c)
-                for b, k, c in zip(boxes, kp, conf, strict=True)]
+        return [RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
+                                 None if sigma is None else sigma[i])
+                for i, b in enumerate(boxes)]

@@ -19,6 +19,10 @@ from protocol.messages import Detection, RobotDetections
 
 log = logging.getLogger(__name__)
 
+#: range of the per-keypoint sigmas the edge sends (pixels)
+SIGMA_MIN_PX = 0.05
+SIGMA_MAX_PX = 1000.0
+
 
 @dataclasses.dataclass(frozen=True)
 class StageLatency:
@@ -72,12 +76,18 @@ class EdgePipeline:
                 continue
             kp = np.asarray(obs.keypoints_px, np.float64)
             scores = np.clip(np.nan_to_num(obs.confidence, nan=0.0), 0.0, 1.0)
+            sigma = None
+            if obs.sigma_px is not None:
+                sigma = np.asarray(obs.sigma_px, np.float64)
+                # an unusable sigma makes the keypoint uncertain, never the message invalid
+                sigma = np.clip(np.nan_to_num(sigma, nan=SIGMA_MAX_PX, posinf=SIGMA_MAX_PX),
+                                SIGMA_MIN_PX, SIGMA_MAX_PX)
             if not np.all(np.isfinite(kp)):
                 bad = ~np.all(np.isfinite(kp), axis=1)
                 kp[bad] = 0.0
                 scores[bad] = 0.0
             detections.append(Detection(box, float(np.clip(obs.score, 0.0, 1.0)), kp, scores,
-                                        self.robot_id))
+                                        self.robot_id, sigma))
         msg = RobotDetections(self.camera_id, frame.stamp_ns, frame.seq, w, h, self.model_id,
                               tuple(detections))
         t2 = time.perf_counter()

@@ -38,6 +38,7 @@ MAX_DETECTIONS: Final = 64
 MAX_KEYPOINTS: Final = 256
 MAX_CLOUD_POINTS: Final = 2_000_000
 MAX_IMAGE_SIDE_PX: Final = 65_535
+MAX_KEYPOINT_SIGMA_PX: Final = 1.0e4
 
 POSE_SOURCES: Final = ("cameras", "fused", "robot", "ground_truth")
 CORRECTION_KINDS: Final = ("initialization", "correction")
@@ -113,6 +114,11 @@ class Detection(_Record):
     ``keypoint_scores``: (M,) confidences in [0, 1].
     ``bbox_xyxy``: (4,) float64, [u_min, v_min, u_max, v_max] in pixels.
     ``robot_id``: which robot this is, or ``""`` when the detector cannot tell robots apart.
+    ``keypoint_sigmas_px``: optional (M,) float64, the detector's own 1-sigma pixel uncertainty of
+    each keypoint (> 0; the shipped keypoint network derives it from its confidence, calibrated on
+    held-out renders). The backend then weights keypoints by 1/sigma^2 instead of by score.
+    Optional on the wire (added without a version change: older senders omit it, older
+    receivers ignore it).
     """
 
     bbox_xyxy: np.ndarray
@@ -120,6 +126,7 @@ class Detection(_Record):
     keypoints_px: np.ndarray
     keypoint_scores: np.ndarray
     robot_id: str = ""
+    keypoint_sigmas_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         bbox = check_array("bbox_xyxy", self.bbox_xyxy, dtypes=("float64", "float32"), shape=(4,))
@@ -143,6 +150,14 @@ class Detection(_Record):
         _freeze(self, "keypoints_px", kps)
         _freeze(self, "keypoint_scores", scores)
         _freeze(self, "robot_id", check_id("robot_id", self.robot_id, allow_empty=True))
+        if self.keypoint_sigmas_px is not None:
+            sig = check_array("keypoint_sigmas_px", self.keypoint_sigmas_px,
+                              dtypes=("float32", "float64"), shape=(kps.shape[0],))
+            if sig.size and not (np.all(np.isfinite(sig)) and sig.min() > 0.0
+                                 and sig.max() <= MAX_KEYPOINT_SIGMA_PX):
+                raise_field("keypoint_sigmas_px",
+                            f"sigmas must be finite, > 0 and <= {MAX_KEYPOINT_SIGMA_PX:g} px")
+            _freeze(self, "keypoint_sigmas_px", sig.astype(np.float64))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

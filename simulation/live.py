@@ -23,6 +23,7 @@ from protocol.errors import UnknownIdError
 from protocol.messages import RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
+from simulation.site_cameras import SensorNoise, SiteCameraRenderer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,7 +174,8 @@ class CameraFeed:
 
 class RenderedCameraFeed:
     """The images one simulated camera takes: the site rendered from the camera's *true* pose
-    (calibration error included) with the robot at its ground-truth pose at the capture time.
+    (calibration error included) with the robot at its ground-truth pose at the capture time,
+    plus per-frame sensor noise (:mod:`simulation.site_cameras`).
 
     Same capture schedule as :class:`CameraFeed` (the scenario's rate, the camera's phase);
     ``rate_hz`` overrides the rate (a CPU that cannot render and infer every frame). A caller
@@ -181,11 +183,7 @@ class RenderedCameraFeed:
     The GL renderer is created on first use, in the calling process."""
 
     def __init__(self, live: LiveSimulation, camera_id: str, rate_hz: float | None = None,
-                 texture_seed: int = 0) -> None:
-        from simulation.detections import true_cameras
-        from simulation.robot_mesh import hsr_like_mesh
-        from simulation.scenes import site_geometry
-
+                 texture_seed: int = 0, noise: SensorNoise | None = None) -> None:
         if camera_id not in live.site.cameras:
             raise UnknownIdError(
                 f"camera {camera_id!r} is not in the simulated site; known: "
@@ -193,13 +191,14 @@ class RenderedCameraFeed:
             )
         self.live = live
         self.camera_id = camera_id
-        self.camera = true_cameras(live.scenario)[camera_id]
+        self.images = SiteCameraRenderer(live.scenario, texture_seed=texture_seed, noise=noise)
+        self.camera = self.images.camera(camera_id)
         rate = rate_hz or live.scenario.cameras.rate_hz
+        self.rate_hz = float(rate)
         self._period_ns = round(1e9 / rate)
         self._phase_ns = round(live.run.camera_phase_s[camera_id] * 1e9)
-        self._geometry = site_geometry(live.scenario, seed=texture_seed)
-        self._robot_mesh = hsr_like_mesh(live.site.robot_model(live.robot_id))
-        self._renderer: object | None = None
+        index = sorted(live.site.cameras).index(camera_id)
+        self._rng = np.random.default_rng([live.spec.seed, 2000 + index])
         self._next_frame: int | None = None
         self.skipped = 0
         self.seq = 0
@@ -223,10 +222,4 @@ class RenderedCameraFeed:
 
     def render(self, capture_ns: int) -> np.ndarray:
         """(H, W, 3) uint8 RGB image at ``capture_ns``."""
-        from simulation.render_gl import Renderer
-        from simulation.scenes import site_scene
-
-        if self._renderer is None:
-            self._renderer = Renderer(self.camera.width, self.camera.height)
-        scene = site_scene(self._geometry, self._robot_mesh, self.live.ground_truth(capture_ns))
-        return self._renderer.render(scene, self.camera).color_rgb  # type: ignore[attr-defined]
+        return self.images.render(self.camera_id, self.live.ground_truth(capture_ns), self._rng)

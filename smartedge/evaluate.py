@@ -5,12 +5,15 @@
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3] [--feedback-seeds K] [--robustness-runs R]
-    smartedge evaluate keypoints [--model DIR] [--seed S] [--count N]
+                             [--detections noise|cnn] [--camera-rate HZ] [--model DIR]
+    smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
 metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
-(Markdown) and Fig. 6-like plots (PNG) into DIR, then experiment 2 (correction feedback on
-3x Traj. 3, Fig. 7) and experiment 3 (robustness, Table III), and ``report.md`` with all three.
+(Markdown) and Fig. 6-like plots (PNG) into DIR (detections from the noise model, or with
+``--detections cnn`` from rendered images through the edge's ONNX models), then experiment 2
+(correction feedback on 3x Traj. 3, Fig. 7) and experiment 3 (robustness, Table III), and
+``report.md`` with all three.
 ``keypoints`` renders a fresh held-out set (seed S, N views each of randomized scenes and of the
 site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the ONNX models
 (default: the shipped ones), one figure per line with its name.
@@ -22,6 +25,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from protocol.errors import SmartedgeError
 from smartedge.evaluation.metrics import MetricsError, ape, format_stats
 from smartedge.evaluation.trajectory_io import TrajectoryFileError, read_tum
 
@@ -75,10 +79,15 @@ def _paper(args: argparse.Namespace) -> int:
         trajectories=trajectories or None,
         scenario_path=args.scenario,
         stop_s=args.stop_s,
+        detections=args.detections,
+        camera_rate_hz=args.camera_rate,
+        model_dir=args.model,
+        threads=args.threads,
+        sensor_noise_dn=args.sensor_noise,
     )
     try:
         report = run_paper(config, args.out, progress=lambda line: print(line, flush=True))
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, SmartedgeError) as exc:
         print(f"smartedge evaluate paper: {exc}", file=sys.stderr)
         return 1
     for text in (report.table1_markdown, report.table2_markdown, report.feedback_markdown,
@@ -96,6 +105,17 @@ def _keypoints(args: argparse.Namespace) -> int:
     if args.count < 1:
         print("smartedge evaluate keypoints: --count must be >= 1", file=sys.stderr)
         return 2
+    if args.calibrate:
+        from smartedge.evaluation.keypoints import calibrate_keypoints
+
+        try:
+            calibrate_keypoints(args.model, count=args.count, scenario_path=args.scenario,
+                                threads=args.threads,
+                                progress=lambda line: print(line, flush=True))
+        except (ModelError, OSError, ValueError) as exc:
+            print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
+            return 1
+        return 0
     try:
         result = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
                                     scenario_path=args.scenario, threads=args.threads,
@@ -161,6 +181,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--robustness-runs", type=int, default=None,
         help="experiment 3: runs per condition (default: the scenario's, paper: 5)",
     )
+    p_paper.add_argument(
+        "--detections", choices=("noise", "cnn"), default="noise",
+        help="noise: the scenario's detector error model (default); cnn: every camera frame "
+        "rendered and run through the edge's ONNX detector + keypoint models (the closed loop; "
+        "about 20 min for experiment 1 on 2 cores)")
+    p_paper.add_argument(
+        "--camera-rate", type=float, default=None, metavar="HZ",
+        help="camera frame rate (default: the scenario's, 15 Hz; 5 Hz with --detections cnn)")
+    p_paper.add_argument("--model", default=None, metavar="DIR",
+                         help="--detections cnn: a folder with other detector + keypoint models")
+    p_paper.add_argument("--threads", type=int, default=2,
+                         help="--detections cnn: onnxruntime threads (default 2)")
+    p_paper.add_argument("--sensor-noise", type=float, default=None, metavar="DN",
+                         help="--detections cnn: per-frame image noise, digital numbers of "
+                         "0-255 (default 2)")
     p_kp = sub.add_parser("keypoints", help="detector AP and keypoint errors of the ONNX "
                           "models on fresh held-out renders")
     p_kp.add_argument("--model", help="model folder (default: the shipped models)")
@@ -170,6 +205,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="views per set: randomized scenes and the site's cameras (default 300)")
     p_kp.add_argument("--scenario", default=None, help="scenario file (default: the paper's lab)")
     p_kp.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    p_kp.add_argument("--calibrate", action="store_true",
+                      help="instead: measure the confidence -> pixel error table on the "
+                      "validation seeds (1001/1002) and write it into the keypoint model's card "
+                      "(the edge then sends per-keypoint sigmas)")
     return parser
 
 

@@ -139,7 +139,7 @@ class SimSourcePlugin:
                                 expected_size=(camera.width, camera.height))
         log.info("edge agent %s: SIMULATED camera, rendered images through %s at %.1f Hz "
                  "(scenario %s, trajectory %s)", args.camera, models.model_id,
-                 1e9 / feed._period_ns, live.scenario.name, live.spec.trajectory)
+                 feed.rate_hz, live.scenario.name, live.spec.trajectory)
         return RenderedCameraSource(feed, pipeline, live.site)
 
 

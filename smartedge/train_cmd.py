@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
+    p.add_argument("--init-from", metavar="CKPT", help="fine-tune: start from the weights of "
+                   "an earlier run's <kind>.ckpt (same kind and image sizes) with a fresh "
+                   "optimizer and schedule; use a lower --lr")
     p.add_argument("--tiny", action="store_true",
                    help="tiny images (smoke test: checks the whole chain in seconds)")
     return p
@@ -87,11 +90,17 @@ def main(argv: Sequence[str]) -> int:
         batch = args.batch or (16 if args.kind == "detector" else 32)
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
-                          workers=args.workers)
+                          workers=args.workers, init_from=args.init_from)
         mesh_name = Path(args.robot_mesh).name if args.robot_mesh else "built-in HSR-like mesh"
         views = SimulationViews(str(scenario.source_path), model, mesh)
         path = train(cfg, views, Path(args.out), robot_mesh_name=mesh_name,
                      say=lambda line: print(line, flush=True))
+        if args.kind == "keypoints" and not args.tiny and args.robot_mesh is None:
+            from smartedge.evaluation.keypoints import calibrate_keypoints
+
+            calibrate_keypoints(Path(args.out), count=args.val_views,
+                                scenario_path=scenario.source_path, threads=args.threads,
+                                progress=lambda line: print(line, flush=True))
     except SmartedgeError as exc:
         print(f"smartedge train: {exc}", file=sys.stderr)
         return 1

@@ -62,6 +62,9 @@ class TrainConfig:
     sigma_px: float = 1.5
     checkpoint_every: int = 200
     seed: int = 0
+    #: fine-tune: start from the weights of this checkpoint (``<kind>.ckpt`` of an earlier run
+    #: of the same kind and geometry) with a fresh optimizer and schedule
+    init_from: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -222,6 +225,8 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     identity = {"kind": cfg.kind, "geometry": dataclasses.asdict(cfg.geometry)}
     state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": [],
                              "identity": identity, "render_wall_s": render_s}
+    if cfg.init_from and not ckpt.exists():
+        state["history"] = _init_weights(Path(cfg.init_from), model, identity, device, say)
     if ckpt.exists():
         try:
             saved = torch.load(ckpt, map_location=device, weights_only=False)
@@ -288,6 +293,27 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     _save_checkpoint(ckpt, model, opt, state)
     model.eval()
     return state
+
+
+def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
+                  device: torch.device, say: Callable[[str], None]) -> list[str]:
+    """Load the weights of the checkpoint ``path`` (fine-tuning); returns its history lines."""
+    if not path.is_file():
+        raise TrainingError(f"{path}: --init-from checkpoint not found")
+    try:
+        saved = torch.load(path, map_location=device, weights_only=False)
+        other = saved["state"]
+        if other.get("identity", identity) != identity:  # older checkpoints have none
+            raise TrainingError(f"{path}: checkpoint of another configuration "
+                                f"({other.get('identity')}, now {identity})")
+        model.load_state_dict(saved["model"])
+    except TrainingError:
+        raise
+    except Exception as exc:  # torch raises many types for a bad or foreign file
+        raise TrainingError(f"{path}: cannot initialize from this checkpoint ({exc})") from None
+    say(f"initialized from {path.name} ({other['step']} steps)")
+    return [*other.get("history", []),
+            f"fine-tuned from that checkpoint ({other['step']} steps) with a fresh optimizer"]
 
 
 def _save_checkpoint(path: Path, model: torch.nn.Module, opt: Any, state: dict[str, Any]) -> None:

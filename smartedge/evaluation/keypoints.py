@@ -118,3 +118,77 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
         samples = [gen(i) for i in range(count)]
         figures[mode] = evaluate_set(pipeline, samples)
     return KeypointEvaluation(figures, count * len(modes), time.perf_counter() - t0)
+
+
+#: held-out seeds the calibration renders (the training's validation seeds, never the
+#: evaluation's DEFAULT_SEED, so `evaluate keypoints` stays an independent check)
+CALIBRATION_SEEDS = {"randomized": 1001, "site": 1002}
+
+
+def calibration_errors(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
+                       min_score: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """(errors in crop pixels, confidences) of the in-image keypoints of every robot the
+    deployed pipeline finds (IoU >= 0.5 with the true box) in full rendered frames: the
+    conditions the edge runs under, detector box errors included."""
+    from edge_agent.crop import crop_transform
+
+    card = pipeline.keypoints.card
+    errs, confs = [], []
+    for s in samples:
+        robot = s.robots[0]
+        if robot.bbox_xyxy is None:
+            continue
+        found = pipeline(s.image_rgb, min_score=min_score, max_robots=1)
+        if not found or box_iou(found[0].bbox_xyxy, np.asarray(robot.bbox_xyxy)) < 0.5:
+            continue
+        tf = crop_transform(found[0].bbox_xyxy, card.input_w, card.input_h,
+                            padding=card.crop_padding)
+        err = np.linalg.norm(found[0].keypoints_px - robot.keypoints_px, axis=1) * tf.scale
+        valid = np.asarray(robot.in_image, bool)
+        errs.append(err[valid])
+        confs.append(np.asarray(found[0].confidence)[valid])
+    if not errs:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate(errs), np.concatenate(confs)
+
+
+def calibrate_keypoints(model_dir: Path | None = None, *, count: int = 300,
+                        scenario_path: Path | None = None, threads: int = 2,
+                        bins: int = 8, write: bool = True,
+                        progress: Callable[[str], None] | None = None
+                        ) -> dict[str, list[float]]:
+    """Measure the keypoint model's confidence → pixel-error table on ``count`` held-out
+    views of each kind (:data:`CALIBRATION_SEEDS`) through the deployed pipeline, and (with
+    ``write``) store it in the model card (``keypoints.json`` + ``.md``) of ``model_dir``
+    (default: the shipped models; a folder without ``detector.onnx``, e.g. a keypoint training
+    run, is paired with the shipped detector). Returns the table."""
+    from edge_agent.metrics import sigma_calibration
+    from edge_agent.models import KeypointCard, card_path
+    from simulation.dataset import SampleGenerator
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+
+    say = progress or (lambda line: None)
+    scenario = load_scenario(scenario_path or PAPER_SCENARIO)
+    model = scenario.site.robot_model(scenario.robot_id)
+    from edge_agent.models import model_files
+
+    det_path, kp_path = model_files(model_dir)
+    pipeline = RobotKeypointPipeline(det_path if det_path.is_file() else None, kp_path,
+                                     threads=threads, keypoint_names=model.keypoint_names)
+    errs, confs = [], []
+    for mode, seed in CALIBRATION_SEEDS.items():
+        say(f"rendering {count} held-out {mode} views (seed {seed}) for the calibration")
+        gen = SampleGenerator(scenario, mode, seed=seed)
+        e, c = calibration_errors(pipeline, [gen(i) for i in range(count)])
+        errs.append(e)
+        confs.append(c)
+    table = sigma_calibration(np.concatenate(errs), np.concatenate(confs), bins=bins)
+    for c, s in zip(table["confidence"], table["sigma_crop_px"], strict=True):
+        say(f"  confidence {c:.3f}: sigma {s:.2f} crop px")
+    if write:
+        path = card_path(pipeline.keypoints.path)
+        card = KeypointCard.read(path)
+        card = dataclasses.replace(card, sigma_calibration=table)
+        card.write(path.parent)
+        say(f"wrote the calibration into {path}")
+    return table
