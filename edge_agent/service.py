@@ -41,7 +41,8 @@ class EdgeAgentNode(ServiceNode):
     service = "edge-agent"
 
     def __init__(
-        self, site: Site, camera_id: str, source: FrameSource, tick_period_s: float = 0.01
+        self, site: Site, camera_id: str, source: FrameSource, tick_period_s: float = 0.01,
+        preview_rate_hz: float = 0.0,
     ) -> None:
         super().__init__(site.name, camera_id)
         site.camera(camera_id)  # raises a clear KeyError for an unknown camera
@@ -49,6 +50,10 @@ class EdgeAgentNode(ServiceNode):
         self.source = source
         self.tick_period_s = tick_period_s
         self._key = keys.detections_key(site.name, camera_id)
+        self._image_key = keys.image_key(site.name, camera_id)
+        self._preview_period_ns = round(1e9 / preview_rate_hz) if preview_rate_hz > 0 else 0
+        self._last_preview_ns: int | None = None
+        self._last_preview_stamp: int | None = None
         bind = getattr(source, "bind_stats", None)
         if bind is not None:
             bind(self.stats)
@@ -61,7 +66,29 @@ class EdgeAgentNode(ServiceNode):
             self.stats.event("detections")
             self.stats.latency("capture_to_publish", max(0, now_ns - msg.stamp_ns) * 1e-9)
             out.append(Outgoing(self._key, msg, reliable=False))
+        if self._preview_period_ns and out:
+            out.extend(self._preview(now_ns))
         return out
+
+    def _preview(self, now_ns: int) -> list[Outgoing]:
+        """The last processed frame as a JPEG for the viewer, at most at the preview rate."""
+        frame = getattr(self.source, "last_frame", None)
+        if frame is None or frame.stamp_ns == self._last_preview_stamp or (
+                self._last_preview_ns is not None
+                and now_ns - self._last_preview_ns < self._preview_period_ns):
+            return []
+        from edge_agent.preview import encode_preview
+
+        self._last_preview_ns = now_ns
+        self._last_preview_stamp = frame.stamp_ns
+        try:
+            msg = encode_preview(frame, self.camera_id)
+        except (ValueError, TypeError) as exc:  # a preview must never stop the agent
+            self.stats.count("preview_errors")
+            log.warning("%s: no preview: %s", self.camera_id, exc)
+            return []
+        self.stats.count("previews")
+        return [Outgoing(self._image_key, msg, reliable=False)]
 
     def state(self) -> tuple[str, str]:
         health = getattr(self.source, "health", None)
@@ -86,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--site", help="site file (optional with a source that brings its own site, e.g. sim)"
     )
     parser.add_argument("--camera", required=True, help="camera id in the site file")
+    parser.add_argument("--preview-rate", type=float, default=0.0, metavar="HZ",
+                        help="publish the processed frame as a JPEG for the viewer at most this "
+                        "often (default 0: never; images leave the board only when asked for)")
     add_session_arguments(parser)
     add_source_arguments(parser, default="camera")
     return parser
@@ -98,7 +128,9 @@ def build_node(args: argparse.Namespace) -> EdgeAgentNode:
     site = site or getattr(source, "site", None)
     if site is None:
         raise UsageError(f"--site is required with --source {args.source}")
-    return EdgeAgentNode(site, args.camera, source)
+    if not args.preview_rate >= 0:
+        raise UsageError(f"--preview-rate {args.preview_rate}: must be >= 0")
+    return EdgeAgentNode(site, args.camera, source, preview_rate_hz=args.preview_rate)
 
 
 def main(argv: Sequence[str]) -> int:

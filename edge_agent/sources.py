@@ -79,14 +79,17 @@ def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     SOURCES.add_arguments(parser, default)
 
 
-class CameraFrameSource:
-    """A camera (or stream, file, image folder) through the ONNX pipeline: each poll takes the
-    newest frame from the reader thread and turns it into a :class:`RobotDetections`."""
+class PipelineSource:
+    """What every image source shares: frames through the ONNX pipeline
+    (:class:`edge_agent.pipeline.EdgePipeline`), per-stage latencies and skipped frames recorded
+    in the service's stats, and the last processed frame kept for the viewer's preview
+    (:attr:`last_frame`, the frame of the last message :meth:`process` returned)."""
 
-    def __init__(self, reader: Any, pipeline: Any, label: str) -> None:
-        self.reader = reader
+    label = "camera"
+
+    def __init__(self, pipeline: Any) -> None:
         self.pipeline = pipeline
-        self.label = label
+        self.last_frame: Any = None
         self._stats: Any = None
         self._skipped_seen = 0
 
@@ -94,21 +97,40 @@ class CameraFrameSource:
         """Record per-stage latencies and skipped frames in the service's stats."""
         self._stats = stats
 
+    def process(self, frame: Any, now_ns: int, skipped_total: int,
+                extra_latency_s: dict[str, float] | None = None) -> RobotDetections:
+        """``frame`` through the pipeline; ``skipped_total``: frames the source skipped so far;
+        ``extra_latency_s``: more stages to record (e.g. ``render``)."""
+        msg, lat = self.pipeline.process(frame)
+        self.last_frame = frame
+        stats = self._stats
+        if stats is not None:
+            for stage, seconds in (extra_latency_s or {}).items():
+                stats.latency(stage, seconds)
+            stats.latency("detector", lat.detector_s)
+            stats.latency("keypoints", lat.keypoints_s)
+            stats.latency("grab_to_detections", max(0, now_ns - frame.stamp_ns) * 1e-9
+                          + lat.detector_s + lat.keypoints_s)
+            if skipped_total > self._skipped_seen:
+                stats.count("frames_skipped", skipped_total - self._skipped_seen)
+                self._skipped_seen = skipped_total
+        return msg
+
+
+class CameraFrameSource(PipelineSource):
+    """A camera (or stream, file, image folder) through the ONNX pipeline: each poll takes the
+    newest frame from the reader thread and turns it into a :class:`RobotDetections`."""
+
+    def __init__(self, reader: Any, pipeline: Any, label: str) -> None:
+        super().__init__(pipeline)
+        self.reader = reader
+        self.label = label
+
     def poll(self, now_ns: int) -> list[RobotDetections]:
         frame = self.reader.take()
         if frame is None:
             return []
-        msg, lat = self.pipeline.process(frame)
-        if self._stats is not None:
-            self._stats.latency("detector", lat.detector_s)
-            self._stats.latency("keypoints", lat.keypoints_s)
-            self._stats.latency("grab_to_detections", max(0, now_ns - frame.stamp_ns) * 1e-9
-                                + lat.detector_s + lat.keypoints_s)
-            skipped = self.reader.status().skipped
-            if skipped > self._skipped_seen:
-                self._stats.count("frames_skipped", skipped - self._skipped_seen)
-                self._skipped_seen = skipped
-        return [msg]
+        return [self.process(frame, now_ns, self.reader.status().skipped)]
 
     def health(self) -> tuple[str, str]:
         st = self.reader.status()

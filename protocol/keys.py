@@ -4,6 +4,7 @@
 
     smartedge/<site>/edge/<camera_id>/detections     RobotDetections
     smartedge/<site>/edge/<camera_id>/cloud          SemanticCloud
+    smartedge/<site>/edge/<camera_id>/image          CameraImage (preview for the viewer)
     smartedge/<site>/robot/<robot_id>/odom           Odometry
     smartedge/<site>/robot/<robot_id>/cloud          SemanticCloud
     smartedge/<site>/robot/<robot_id>/pose           PoseEstimate (fused)
@@ -22,6 +23,7 @@ from typing import Final
 
 from protocol.errors import ValidationError
 from protocol.messages import (
+    CameraImage,
     Message,
     Odometry,
     PoseCorrection,
@@ -38,6 +40,7 @@ ROOT: Final = "smartedge"
 TOPIC_TYPES: Final[dict[tuple[str, str], type[Message]]] = {
     ("edge", "detections"): RobotDetections,
     ("edge", "cloud"): SemanticCloud,
+    ("edge", "image"): CameraImage,
     ("robot", "odom"): Odometry,
     ("robot", "cloud"): SemanticCloud,
     ("robot", "pose"): PoseEstimate,
@@ -75,6 +78,10 @@ def detections_key(site: str, camera_id: str) -> str:
 
 def edge_cloud_key(site: str, camera_id: str) -> str:
     return edge_key(site, camera_id, "cloud")
+
+
+def image_key(site: str, camera_id: str) -> str:
+    return edge_key(site, camera_id, "image")
 
 
 def odom_key(site: str, robot_id: str) -> str:

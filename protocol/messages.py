@@ -39,6 +39,8 @@ MAX_KEYPOINTS: Final = 256
 MAX_CLOUD_POINTS: Final = 2_000_000
 MAX_IMAGE_SIDE_PX: Final = 65_535
 MAX_KEYPOINT_SIGMA_PX: Final = 1.0e4
+MAX_IMAGE_BYTES: Final = 8 * 1024 * 1024
+IMAGE_ENCODINGS: Final = ("jpeg",)
 
 POSE_SOURCES: Final = ("cameras", "fused", "robot", "ground_truth")
 CORRECTION_KINDS: Final = ("initialization", "correction")
@@ -420,8 +422,46 @@ class ServiceStatus(Message):
         _freeze(self, "detail", check_text("detail", self.detail))
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraImage(Message):
+    """A preview of one camera frame for people (the viewer), not for the pipeline: the frame a
+    :class:`RobotDetections` with the same ``camera_id`` and ``stamp_ns`` came from.
+
+    ``encoding``: ``"jpeg"``; ``data``: (N,) uint8, the encoded image (at most
+    :data:`MAX_IMAGE_BYTES`); ``image_width`` / ``image_height``: its size in pixels (the
+    detections' pixel coordinates refer to it).
+    """
+
+    SCHEMA: ClassVar[str] = "CameraImage"
+    VERSION: ClassVar[int] = 1
+
+    camera_id: str
+    stamp_ns: int
+    seq: int
+    image_width: int
+    image_height: int
+    encoding: str
+    data: np.ndarray
+
+    def __post_init__(self) -> None:
+        _freeze(self, "camera_id", check_id("camera_id", self.camera_id))
+        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
+        _freeze(self, "seq", check_int("seq", self.seq))
+        _freeze(self, "image_width",
+                check_int("image_width", self.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX))
+        _freeze(self, "image_height",
+                check_int("image_height", self.image_height, lo=1, hi=MAX_IMAGE_SIDE_PX))
+        _freeze(self, "encoding", check_choice("encoding", self.encoding, IMAGE_ENCODINGS))
+        data = check_array("data", self.data, dtypes=("uint8",), shape=(None,),
+                           max_elems=MAX_IMAGE_BYTES)
+        if data.size == 0:
+            raise_field("data", "empty image")
+        _freeze(self, "data", data)
+
+
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     RobotDetections,
+    CameraImage,
     SemanticCloud,
     Odometry,
     PoseEstimate,

@@ -194,7 +194,8 @@ class Services:
         if mode == "cnn":
             rate = getattr(self.args, "render_rate", DEFAULT_RENDER_RATE_HZ)
             # four agents share the machine: one onnxruntime thread each
-            detections += ["--render-rate", f"{rate:g}", "--threads", "1"]
+            detections += ["--render-rate", f"{rate:g}", "--threads", "1",
+                           "--preview-rate", f"{DEMO_PREVIEW_RATE_HZ:g}"]
         edges = [
             ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *detections,
              *listen_any]
@@ -277,6 +278,9 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
 #: how the demo's edge agents detect the robot, and the rendered frame rate per camera
 DEFAULT_DETECTIONS = "cnn"
 DEFAULT_RENDER_RATE_HZ = 5.0
+#: the demo's edge agents send the viewer one camera image per second (the Rerun view shows
+#: each camera's image with its detected box and keypoints)
+DEMO_PREVIEW_RATE_HZ = 1.0
 
 
 def build_parser() -> argparse.ArgumentParser:

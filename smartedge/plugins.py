@@ -24,6 +24,7 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+from edge_agent.sources import PipelineSource
 from protocol.messages import RobotDetections
 from protocol.site import Site
 
@@ -47,21 +48,16 @@ class SimulatedCameraSource:
         return self._feed.poll(now_ns)
 
 
-class RenderedCameraSource:
+class RenderedCameraSource(PipelineSource):
     """One simulated camera's rendered images through the edge's ONNX pipeline (the closed
     loop: the same models and code as on a real camera); the site comes with it."""
 
     label = "sim-render"
 
     def __init__(self, feed: Any, pipeline: Any, site: Site) -> None:
+        super().__init__(pipeline)
         self._feed = feed
-        self._pipeline = pipeline
         self.site = site
-        self._stats: Any = None
-        self._skipped_seen = 0
-
-    def bind_stats(self, stats: Any) -> None:
-        self._stats = stats
 
     def poll(self, now_ns: int) -> list[RobotDetections]:
         from edge_agent.frames import Frame
@@ -72,15 +68,8 @@ class RenderedCameraSource:
         t0 = time.perf_counter()
         image = self._feed.render(capture_ns)
         render_s = time.perf_counter() - t0
-        msg, lat = self._pipeline.process(Frame(image, capture_ns, self._feed.seq))
-        if self._stats is not None:
-            self._stats.latency("render", render_s)
-            self._stats.latency("detector", lat.detector_s)
-            self._stats.latency("keypoints", lat.keypoints_s)
-            if self._feed.skipped > self._skipped_seen:
-                self._stats.count("frames_skipped", self._feed.skipped - self._skipped_seen)
-                self._skipped_seen = self._feed.skipped
-        return [msg]
+        frame = Frame(image, capture_ns, self._feed.seq)
+        return [self.process(frame, now_ns, self._feed.skipped, {"render": render_s})]
 
     def health(self) -> tuple[str, str]:
         detail = f"source={self.label} frames={self._feed.seq} skipped={self._feed.skipped}"

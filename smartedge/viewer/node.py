@@ -21,6 +21,7 @@ from protocol import keys
 from protocol.errors import UsageError
 from protocol.geometry import se2_matrix
 from protocol.messages import (
+    CameraImage,
     Message,
     Odometry,
     PoseCorrection,
@@ -62,6 +63,7 @@ class ViewerNode(ServiceNode):
         s = self.site
         return [
             Subscription(keys.detections_key(s, "*"), RobotDetections, capacity=4096),
+            Subscription(keys.image_key(s, "*"), CameraImage, capacity=16),
             Subscription(keys.odom_key(s, "*"), Odometry, capacity=4096),
             Subscription(keys.localization_key(s, "*"), PoseEstimate, capacity=256),
             Subscription(keys.camera_pose_key(s, "*"), PoseEstimate, capacity=1024),
@@ -74,6 +76,8 @@ class ViewerNode(ServiceNode):
         self.stats.event(type(message).__name__)
         if isinstance(message, RobotDetections):
             self.view.detections(message)
+        elif isinstance(message, CameraImage):
+            self.view.image(message)
         elif isinstance(message, Odometry):
             self._on_odometry(message)
         elif isinstance(message, PoseEstimate):

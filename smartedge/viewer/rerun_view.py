@@ -3,7 +3,8 @@
 Entity layout (world frame = site world frame, z up):
 
 - ``world/cameras/<camera_id>``: camera pose (Transform3D) and ``.../image`` Pinhole; per-frame
-  ``.../image/detections`` (boxes) and ``.../image/keypoints`` (2D keypoints)
+  ``.../image/detections`` (boxes) and ``.../image/keypoints`` (2D keypoints); ``.../image``
+  also gets the camera's JPEG preview when its edge agent sends one (``--preview-rate``)
 - ``world/robots/<robot_id>/camera``: camera-only estimate (Transform3D) with ``.../keypoints``
   (3D keypoints of the robot model at that pose)
 - ``world/robots/<robot_id>/fused``, ``.../odometry``, ``.../ground_truth``: poses
@@ -32,7 +33,13 @@ from protocol.geometry import (
     yaw_from_rotation,
     yaw_to_quaternion,
 )
-from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
+from protocol.messages import (
+    CameraImage,
+    Odometry,
+    PoseEstimate,
+    RobotDetections,
+    ServiceStatus,
+)
 from protocol.site import Site
 
 log = logging.getLogger(__name__)
@@ -201,6 +208,17 @@ class RerunView:
         else:
             self.rec.log(f"{base}/detections", rr.Clear(recursive=False))
             self.rec.log(f"{base}/keypoints", rr.Clear(recursive=False))
+
+    def image(self, msg: CameraImage) -> None:
+        """A camera's preview frame (JPEG, logged as is: Rerun decodes it)."""
+        self._guard("image", self._image, msg)
+
+    def _image(self, msg: CameraImage) -> None:
+        if msg.camera_id not in self.site.cameras:
+            return
+        self._time(msg.stamp_ns)
+        self.rec.log(f"world/cameras/{msg.camera_id}/image",
+                     rr.EncodedImage(contents=msg.data.tobytes(), media_type="image/jpeg"))
 
     def pose(self, est: PoseEstimate, kind: str | None = None) -> None:
         """A camera-only (``kind='camera'``) or fused (``'fused'``) estimate."""

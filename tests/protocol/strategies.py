@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from protocol.messages import (
+    CameraImage,
     Detection,
     Odometry,
     PoseCorrection,
@@ -51,6 +52,8 @@ def detections(draw) -> Detection:
         keypoints_px=draw(_float_arrays(draw(st.sampled_from(["float32", "float64"])), (m, 2))),
         keypoint_scores=draw(_float_arrays("float32", (m,), 0.0, 1.0)),
         robot_id=draw(st.one_of(st.just(""), ids)),
+        keypoint_sigmas_px=draw(st.one_of(
+            st.none(), _float_arrays("float64", (m,), 0.5, 500.0))),
     )
 
 
@@ -64,6 +67,19 @@ def robot_detections(draw) -> RobotDetections:
         image_height=draw(st.integers(1, 65535)),
         model_id=draw(st.text(max_size=40)),
         detections=tuple(draw(st.lists(detections(), max_size=4))),
+    )
+
+
+@st.composite
+def camera_images(draw) -> CameraImage:
+    return CameraImage(
+        camera_id=draw(ids),
+        stamp_ns=draw(stamps),
+        seq=draw(seqs),
+        image_width=draw(st.integers(1, 65535)),
+        image_height=draw(st.integers(1, 65535)),
+        encoding="jpeg",
+        data=draw(hnp.arrays("uint8", st.integers(1, 4096))),
     )
 
 

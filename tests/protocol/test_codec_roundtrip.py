@@ -21,6 +21,7 @@ _SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[Heal
     "strategy",
     [
         S.robot_detections(),
+        S.camera_images(),
         S.semantic_clouds(),
         S.odometries(),
         S.pose_estimates(),
