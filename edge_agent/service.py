@@ -123,13 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def build_node(args: argparse.Namespace) -> EdgeAgentNode:
     """The edge agent for ``args``: the chosen source plug-in builds the frame source."""
+    if not args.preview_rate >= 0:
+        raise UsageError(f"--preview-rate {args.preview_rate}: must be >= 0")
     site = load_site(args.site) if args.site else None
     source = get_source(args.source).build(args, site)
     site = site or getattr(source, "site", None)
     if site is None:
         raise UsageError(f"--site is required with --source {args.source}")
-    if not args.preview_rate >= 0:
-        raise UsageError(f"--preview-rate {args.preview_rate}: must be >= 0")
     return EdgeAgentNode(site, args.camera, source, preview_rate_hz=args.preview_rate)
 
 
