@@ -25,6 +25,11 @@ Options:
   --with FILE            another file the site file refers to (calibration_file), copied next
                          to it; repeatable
   --source camera|sim    SMARTEDGE_SOURCE for a new smartedge.env (default: camera)
+  --device CAMERA=URI    the camera's OpenCV input (V4L2 index or path, RTSP/HTTP URL, video
+                         file): writes $ETC/edge-agent@CAMERA.env with
+                         SMARTEDGE_EDGE_AGENT_ARGS=--device URI; repeatable; with one
+                         CAMERA_ID, --device URI is enough. For a RealSense or an image folder,
+                         edit that file (docs/deployment.md)
   --jetson auto|yes|no   install the Jetson GPU drop-in (default auto: if /etc/nv_tegra_release)
   --package SPEC         wheel file or source directory to pip install with [edge]
                          (default: the checkout this script is in)
@@ -38,7 +43,8 @@ Options:
   -h, --help             this help
 
 Example:
-  sudo deploy/install-edge.sh --site lab.yaml --backend-host backend.lab cam_sw cam_se
+  sudo deploy/install-edge.sh --site lab.yaml --backend-host backend.lab \
+      --device cam_sw=/dev/video0 --device cam_se=/dev/video2 cam_sw cam_se
 USAGE
 }
 
@@ -48,6 +54,7 @@ TLS_DIR=""
 SOURCE=camera
 JETSON=auto
 EXTRA_FILES=()
+DEVICES=()
 CAMERAS=()
 while [ $# -gt 0 ]; do
   if common_option "$@"; then shift "$SHIFT_BY"; continue; fi
@@ -58,6 +65,7 @@ while [ $# -gt 0 ]; do
     --tls) TLS_DIR="${2:?--tls needs a directory}"; shift 2 ;;
     --with) EXTRA_FILES+=("${2:?--with needs a file}"); shift 2 ;;
     --source) SOURCE="${2:?--source needs camera or sim}"; shift 2 ;;
+    --device) DEVICES+=("${2:?--device needs CAMERA=URI}"); shift 2 ;;
     --jetson) JETSON="${2:?--jetson needs auto, yes or no}"; shift 2 ;;
     -*) usage >&2; die "unknown option $1" ;;
     *) CAMERAS+=("$1"); shift ;;
@@ -73,6 +81,25 @@ for cam in "${CAMERAS[@]}"; do
   [[ "$cam" =~ ^[A-Za-z0-9_.-]+$ ]] || die "camera id $cam: only [A-Za-z0-9_.-] allowed"
 done
 case "$SOURCE" in camera | sim) ;; *) die "--source $SOURCE: expected camera or sim" ;; esac
+# --device CAMERA=URI (or URI alone for a single camera) → DEVICE_OF[CAMERA]=URI
+declare -A DEVICE_OF=()
+for spec in ${DEVICES[@]+"${DEVICES[@]}"}; do
+  if [[ "$spec" == *=* && "${spec%%=*}" =~ ^[A-Za-z0-9_.-]+$ ]]; then
+    cam="${spec%%=*}" uri="${spec#*=}"
+  elif [ ${#CAMERAS[@]} -eq 1 ]; then
+    cam="${CAMERAS[0]}" uri="$spec"
+  else
+    die "--device $spec: write CAMERA=URI when installing several cameras"
+  fi
+  in_list=0
+  for c in "${CAMERAS[@]}"; do [ "$c" = "$cam" ] && in_list=1; done
+  [ "$in_list" = 1 ] || die "--device $spec: camera $cam is not among the cameras installed (${CAMERAS[*]})"
+  [ -n "$uri" ] || die "--device $spec: empty URI"
+  [[ "$uri" =~ ^[A-Za-z0-9_.:/@%?\&=+~,-]+$ ]] || \
+    die "--device $spec: the URI may not contain spaces, quotes, \$ or backslashes"
+  [ -z "${DEVICE_OF[$cam]+x}" ] || die "--device: camera $cam given twice"
+  DEVICE_OF[$cam]="$uri"
+done
 case "$JETSON" in
   auto) if [ -f /etc/nv_tegra_release ]; then JETSON=yes; else JETSON=no; fi ;;
   yes | no) ;;
@@ -113,6 +140,22 @@ else
 fi
 install_if_missing 0640 "$DEPLOY_DIR/smartedge.env.example" "$ETC/smartedge.env" \
   "s/^SMARTEDGE_SOURCE=.*/SMARTEDGE_SOURCE=$SOURCE/"
+
+# the camera inputs: one env file per camera given with --device
+for cam in "${CAMERAS[@]}"; do
+  env_file="$ETC/edge-agent@$cam.env"
+  if [ -n "${DEVICE_OF[$cam]+x}" ]; then
+    tmp_env="$(mktemp)"
+    printf '%s\n' "# camera $cam: written by install-edge.sh --device (re-running with --device rewrites it)" \
+      "SMARTEDGE_EDGE_AGENT_ARGS=--device ${DEVICE_OF[$cam]}" > "$tmp_env"
+    install_rendered 0640 "$tmp_env" "$env_file"
+    rm -f "$tmp_env"
+  elif [ "$SOURCE" = camera ] && [ ! -e "$(staged "$env_file")" ]; then
+    log "WARNING: camera $cam has no input yet: its agent exits with status 78 until you set"
+    log "  SMARTEDGE_EDGE_AGENT_ARGS=--device URI (or --images DIR, --realsense) in $env_file"
+    log "  or re-run with --device $cam=URI"
+  fi
+done
 
 # 4. systemd units
 system_dir "$UNIT_DIR"

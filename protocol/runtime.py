@@ -471,6 +471,10 @@ def run_node(
     return runner.run()
 
 
+#: exit status of a service that cannot start with its configuration (sysexits.h EX_CONFIG)
+EXIT_CONFIG: Final = 78
+
+
 def service_main(
     name: str,
     argv: Sequence[str],
@@ -478,9 +482,11 @@ def service_main(
     build_node: Callable[[Any], ServiceNode],
 ) -> int:
     """The ``main`` of a service: parse ``argv``, build the node and the Zenoh config, run until
-    SIGINT/SIGTERM. A bad site file, id or option (a :class:`~protocol.errors.SmartedgeError`)
-    is reported on stderr with exit code 1; anything else is a bug and surfaces with its
-    traceback (non-zero exit, so systemd restarts the service)."""
+    SIGINT/SIGTERM. A bad site file, id, model or option (a
+    :class:`~protocol.errors.SmartedgeError`) is reported on stderr with exit code
+    :data:`EXIT_CONFIG` (78), which the systemd units list in ``RestartPreventExitStatus``: a
+    configuration error waits for a person instead of restarting every few seconds. Anything
+    else is a bug and surfaces with its traceback (exit 1, so systemd restarts the service)."""
     import sys
 
     from protocol.errors import SmartedgeError
@@ -492,5 +498,5 @@ def service_main(
         config = make_config(options_from_args(args))
     except SmartedgeError as exc:
         print(f"smartedge {name}: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_CONFIG
     return run_node(node, config)

@@ -41,18 +41,19 @@ def test_site_check_ok_and_error_names_file_and_key(tmp_path) -> None:
 
 def test_edge_agent_camera_source_needs_an_input() -> None:
     """``--source camera`` (the default) without --device/--images/--realsense exits at start
-    with a message naming the options (not a restart loop of tracebacks)."""
+    with a message naming the options and exit status 78 (EX_CONFIG), which the systemd unit
+    does not restart on (not a restart loop of tracebacks)."""
     proc = _run("edge-agent", "--site", str(EXAMPLE_SITE), "--camera", "cam_sw")
-    assert proc.returncode == 1
+    assert proc.returncode == 78
     assert "--device" in proc.stderr and "--images" in proc.stderr
     assert "Traceback" not in proc.stderr
 
 
 def test_services_reject_unknown_site_ids() -> None:
     proc = _run("edge-agent", "--camera", "cam_nope", "--source", "sim")
-    assert proc.returncode == 1 and "cam_nope" in proc.stderr
+    assert proc.returncode == 78 and "cam_nope" in proc.stderr
     proc = _run("robot-bridge", "--site", str(EXAMPLE_SITE), "--robot", "r2d2")
-    assert proc.returncode == 1 and "r2d2" in proc.stderr
+    assert proc.returncode == 78 and "r2d2" in proc.stderr
 
 
 def test_simulation_plugin_registers_twice_harmlessly() -> None:

@@ -641,6 +641,52 @@ def test_edge_install_refuses_unknown_camera_before_configuring(tmp_path: Path) 
     assert not (root / "etc").exists()
 
 
+def test_edge_install_device_writes_each_cameras_input(tmp_path: Path) -> None:
+    """``--device CAMERA=URI`` writes the camera's env file with its --device argument (the
+    unit passes $SMARTEDGE_EDGE_AGENT_ARGS to the agent); a camera without an input is warned
+    about; with one camera ``--device URI`` is enough; bad specs are refused before anything
+    is installed."""
+    root = tmp_path / "root"
+    _fake_venv(root)
+    base = ("--root", str(root), "--skip-pip", "--site", str(EXAMPLE_SITE),
+            "--backend-host", "backend.lab", "--no-start")
+    proc = _run_script("install-edge.sh", *base, "--device", "cam_sw=/dev/video0",
+                       "--device", "cam_se=rtsp://u:p@10.0.0.5:554/s1", "cam_sw", "cam_se",
+                       "cam_nw")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    etc = root / "etc" / "smartedge"
+    sw = (etc / "edge-agent@cam_sw.env").read_text()
+    assert "SMARTEDGE_EDGE_AGENT_ARGS=--device /dev/video0\n" in sw
+    se = etc / "edge-agent@cam_se.env"
+    assert "SMARTEDGE_EDGE_AGENT_ARGS=--device rtsp://u:p@10.0.0.5:554/s1\n" in se.read_text()
+    assert stat.S_IMODE(se.stat().st_mode) == 0o640  # a stream URL may hold a password
+    assert not (etc / "edge-agent@cam_nw.env").exists()
+    out = proc.stdout + proc.stderr
+    assert "cam_nw has no input yet" in out and "78" in out
+    unit = (root / "etc" / "systemd" / "system" / "smartedge-edge-agent@.service").read_text()
+    assert "EnvironmentFile=-/etc/smartedge/edge-agent@%i.env" in unit
+    assert "$SMARTEDGE_EDGE_AGENT_ARGS" in unit and "RestartPreventExitStatus=2 78" in unit
+
+    one = tmp_path / "one"
+    _fake_venv(one)
+    proc = _run_script("install-edge.sh", "--root", str(one), "--skip-pip", "--site",
+                       str(EXAMPLE_SITE), "--backend-host", "b", "--no-start", "--device", "2",
+                       "cam_sw")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "--device 2\n" in (one / "etc" / "smartedge" / "edge-agent@cam_sw.env").read_text()
+
+    for bad, why in ((["--device", "/dev/video0", "cam_sw", "cam_se"], "CAMERA=URI"),
+                     (["--device", "cam_xx=/dev/video0", "cam_sw"], "cam_xx"),
+                     (["--device", "cam_sw=/dev/video0 x", "cam_sw"], "spaces"),
+                     (["--device", "cam_sw=a", "--device", "cam_sw=b", "cam_sw"], "twice")):
+        fresh = tmp_path / f"bad_{why}"
+        _fake_venv(fresh)
+        proc = _run_script("install-edge.sh", "--root", str(fresh), "--skip-pip", "--site",
+                           str(EXAMPLE_SITE), "--backend-host", "b", *bad)
+        assert proc.returncode != 0 and why in proc.stdout + proc.stderr, bad
+        assert not (fresh / "etc").exists(), bad
+
+
 def test_backend_staged_install_router_modes_and_tls(tmp_path: Path) -> None:
     zenoh = pytest.importorskip("zenoh")
     root = tmp_path / "root"
