@@ -190,7 +190,7 @@ def test_card_without_a_calibration_reads_as_uncalibrated(tmp_path: Path) -> Non
 
 def test_card_calibration_survives_write_and_read(tmp_path: Path) -> None:
     doc = _shipped_card_doc()
-    table = {"confidence": [0.4, 0.7, 0.7, 0.95], "sigma_crop_px": [9.0, 3.0, 3.0, 0.8]}
+    table = {"confidence": [0.4, 0.7, 0.8, 0.95], "sigma_crop_px": [9.0, 3.0, 3.0, 0.8]}
     doc["sigma_calibration"] = table
     card = KeypointCard.read(_write_card(tmp_path, doc))
     assert card.sigma_calibration == table
