@@ -101,7 +101,7 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
 
 
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
-                   min_score: float, sigma_floor_px: float = 2.0
+                   min_score: float, sigma_floor_px: float = 1.5
                    ) -> tuple[list[View], list[str]]:
     M = kp_base.shape[0]
     problems: list[str] = []
@@ -133,7 +133,9 @@ def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
         uvs.append(uv)
         scores_list.append(scores)
         weights_list.append(np.clip(scores, 0.0, 1.0) if sigmas is None else
-                            (sigma_floor_px / np.maximum(sigmas, sigma_floor_px)) ** 2)
+                            np.where(sigmas > 0.0,  # a sigma <= 0 is nonsense: drop it
+                                     (sigma_floor_px / np.maximum(sigmas, sigma_floor_px)) ** 2,
+                                     0.0))
     if not cams:
         return [], problems
     # all views at once: one vectorized pass instead of a dozen numpy calls per view

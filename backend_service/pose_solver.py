@@ -97,9 +97,9 @@ class SolverConfig:
     ``sigma_floor_px``: keypoints that come with the detector's pixel sigma are weighted
     (floor / max(sigma, floor))^2: at or below the floor they weigh 1 (like a confidence of 1),
     above it 1/sigma^2. The floor hedges against a network that is surer than it should be: on
-    the paper lab's waypoints with the shipped CNN, floors of 0.25 / 1 / 2 / 3 px gave mean
-    heading errors of 2.25 / 2.28 / 2.10 / 2.07 deg, confidence weights 2.39 deg
-    (docs/evaluation.md).
+    32 frame-sets of the paper lab's 2-camera waypoints with the shipped CNN, floors of
+    0.25 / 0.5 / 1 / 1.5 / 2 / 3 px gave mean heading errors of 2.25 / 2.26 / 2.18 / 2.09 /
+    2.07 / 2.10 deg, confidence weights 2.39 deg (docs/pose_estimation.md).
     """
 
     method: str = DEFAULT_METHOD
@@ -111,7 +111,7 @@ class SolverConfig:
     max_iterations: int = 100
     covariance_floor_px: float = 1.0
     try_pnp_fallback: bool = True
-    sigma_floor_px: float = 2.0
+    sigma_floor_px: float = 1.5
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

@@ -119,11 +119,13 @@ def _average_ranks(x: np.ndarray) -> np.ndarray:
 
 def sigma_calibration(err_crop_px: np.ndarray, confidence: np.ndarray, bins: int = 8,
                       min_per_bin: int = 20) -> dict[str, list[float]]:
-    """How wrong a keypoint is, given its confidence: the RMS error (crop pixels) of the
-    keypoints in each of ``bins`` confidence quantile bins, made non-increasing in confidence
-    (a more confident keypoint is never reported as less certain).
+    """How wrong a keypoint is, given its confidence: the per-axis 1-sigma error (crop pixels)
+    of the keypoints in each of ``bins`` confidence quantile bins, ``sqrt(mean(|e|^2) / 2)``
+    (``|e|`` the 2-D distance, so u and v each have this RMS), made non-increasing in
+    confidence (a more confident keypoint is never reported as less certain).
 
-    ``err_crop_px`` / ``confidence``: (N,) over the valid keypoints of held-out crops. Returns
+    ``err_crop_px`` / ``confidence``: (N,) 2-D distance errors and confidences over the valid
+    keypoints of held-out crops. Returns
     ``{"confidence": bin medians (ascending), "sigma_crop_px": RMS per bin}`` for
     :func:`sigma_from_confidence`; empty lists when there are too few keypoints."""
     e = np.asarray(err_crop_px, np.float64).reshape(-1)
@@ -137,7 +139,7 @@ def sigma_calibration(err_crop_px: np.ndarray, confidence: np.ndarray, bins: int
     centres, sigmas = [], []
     for part in np.array_split(order, bins):
         centres.append(float(np.median(c[part])))
-        sigmas.append(float(np.sqrt(np.mean(e[part] ** 2))))
+        sigmas.append(float(np.sqrt(np.mean(e[part] ** 2) / 2.0)))
     # non-increasing in confidence: each bin at most the RMS of the bins below it
     sig = np.minimum.accumulate(np.array(sigmas))
     return {"confidence": centres, "sigma_crop_px": [float(v) for v in sig]}

@@ -51,6 +51,15 @@ def _freeze(obj: Any, name: str, value: Any) -> None:
     object.__setattr__(obj, name, value)
 
 
+def _readonly_f64(arr: np.ndarray) -> np.ndarray:
+    """``arr`` as read-only float64 (a frozen message never hands out writeable arrays)."""
+    out = arr if arr.dtype == np.float64 else arr.astype(np.float64)
+    if out.flags.writeable:
+        out = out.copy() if out is arr else out
+        out.flags.writeable = False
+    return out
+
+
 def _check_planar_pose(msg: Any) -> None:
     """The fields every planar pose message shares: robot id, stamp, seq, pose, covariance."""
     _freeze(msg, "robot_id", check_id("robot_id", msg.robot_id))
@@ -134,7 +143,7 @@ class Detection(_Record):
         bbox = check_array("bbox_xyxy", self.bbox_xyxy, dtypes=("float64", "float32"), shape=(4,))
         if bbox[2] < bbox[0] or bbox[3] < bbox[1]:
             raise_field("bbox_xyxy", "max corner is smaller than min corner")
-        _freeze(self, "bbox_xyxy", bbox.astype(np.float64))
+        _freeze(self, "bbox_xyxy", _readonly_f64(bbox))
         _freeze(self, "score", check_float("score", self.score, lo=0.0, hi=1.0))
         kps = check_array(
             "keypoints_px", self.keypoints_px, dtypes=("float32", "float64"), shape=(None, 2)
@@ -159,7 +168,7 @@ class Detection(_Record):
                                  and sig.max() <= MAX_KEYPOINT_SIGMA_PX):
                 raise_field("keypoint_sigmas_px",
                             f"sigmas must be finite, > 0 and <= {MAX_KEYPOINT_SIGMA_PX:g} px")
-            _freeze(self, "keypoint_sigmas_px", sig.astype(np.float64))
+            _freeze(self, "keypoint_sigmas_px", _readonly_f64(sig))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

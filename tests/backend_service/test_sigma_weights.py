@@ -183,8 +183,8 @@ def test_sigmas_travel_from_the_detection_to_the_observation() -> None:
     assert CameraObservation.from_detection("cam_ne", 5, plain).keypoint_sigmas_px is None
 
 
-def test_default_floor_is_two_pixels() -> None:
-    assert SolverConfig().sigma_floor_px == 2.0
+def test_default_floor_is_one_and_a_half_pixels() -> None:
+    assert SolverConfig().sigma_floor_px == 1.5
 
 
 @pytest.mark.parametrize("floor", [0.0, -1.0, math.nan, math.inf])

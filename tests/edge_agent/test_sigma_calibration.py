@@ -25,11 +25,12 @@ def _true_sigma(c: np.ndarray) -> np.ndarray:
 
 
 def _synthetic(n: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(errors, confidences): confidence uniform in [0, 1], error ~ N(0, sigma(c)) (absolute
-    value, like a pixel distance)."""
+    """(errors, confidences): confidence uniform in [0, 1], u and v errors each ~ N(0, sigma(c));
+    the error is their 2-D distance, as the calibration measures it (per-axis sigma out)."""
     rng = np.random.default_rng(seed)
     c = rng.uniform(0.0, 1.0, n)
-    e = np.abs(rng.normal(0.0, _true_sigma(c)))
+    s = _true_sigma(c)
+    e = np.hypot(rng.normal(0.0, s), rng.normal(0.0, s))
     return e, c
 
 
@@ -93,7 +94,7 @@ def test_a_more_confident_bin_is_never_less_certain() -> None:
     np.testing.assert_array_equal(sig, np.full(6, sig[0]))
     order = np.argsort(c)
     first = order[: len(order) // 6 + (len(order) % 6 > 0)]
-    assert sig[0] == pytest.approx(math.sqrt(float(np.mean(e[first] ** 2))))
+    assert sig[0] == pytest.approx(math.sqrt(float(np.mean(e[first] ** 2)) / 2.0))
 
 
 def test_too_few_points_give_an_empty_table() -> None:
