@@ -97,3 +97,30 @@ def best_detection(msg: RobotDetections, robot_id: str = "") -> Detection | None
         return None
     named = [d for d in candidates if d.robot_id == robot_id and robot_id]
     return max(named or candidates, key=lambda d: d.score)
+
+
+def image_scale(width: int, height: int, calibrated_width: int, calibrated_height: int
+                ) -> float | None:
+    """Calibrated pixels per message pixel when a ``width`` x ``height`` image is an exact scale
+    of the ``calibrated_width`` x ``calibrated_height`` calibration (same aspect ratio to the
+    pixel: a binned or resized stream); ``None`` when it is not (a crop, another camera mode).
+    """
+    if width <= 0 or height <= 0:
+        return None
+    if (width, height) == (calibrated_width, calibrated_height):
+        return 1.0
+    if width * calibrated_height != height * calibrated_width:
+        return None
+    return calibrated_width / width
+
+
+def scale_detection(det: Detection, scale: float) -> Detection:
+    """``det`` of an image scaled by 1/``scale`` in calibrated pixels (pixel centres at integer
+    coordinates: ``u_cal = (u + 0.5) * scale - 0.5``); sigmas scale with it."""
+    def to_cal(a: np.ndarray) -> np.ndarray:
+        return (np.asarray(a, np.float64) + 0.5) * scale - 0.5
+
+    sig = det.keypoint_sigmas_px
+    return Detection(to_cal(det.bbox_xyxy), det.score, to_cal(det.keypoints_px),
+                     np.asarray(det.keypoint_scores, np.float64), det.robot_id,
+                     None if sig is None else np.asarray(sig, np.float64) * scale)

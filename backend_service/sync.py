@@ -14,6 +14,9 @@ Windows are emitted in stamp order; a message for a window that is already emitt
 ``late`` and dropped, so output stamps never go backwards. Other counters: ``duplicate`` (same
 camera, same stamp), ``future`` (stamp more than ``max_future_ms`` ahead of ``now_ns``),
 ``unknown_camera``, ``bad_keypoints`` (keypoint count differs from the robot model),
+``image_size`` (the message's image size is not the camera's calibrated size nor an exact
+scale of it; an exact scale, e.g. a 424x240 stream of an 848x480 calibration, is converted to
+calibrated pixels, see :func:`~backend_service.frame_set.image_scale`),
 ``not_seen`` (message without this robot), ``replaced`` (a camera sent two frames within one
 window; the one closer to the anchor is kept), ``overflow`` (too many open windows: the oldest is
 emitted early), ``empty`` (a window closed with no detection), ``emitted``. Memory is bounded by
@@ -30,7 +33,13 @@ import dataclasses
 import logging
 from typing import Final
 
-from backend_service.frame_set import CameraObservation, FrameSet, best_detection
+from backend_service.frame_set import (
+    CameraObservation,
+    FrameSet,
+    best_detection,
+    image_scale,
+    scale_detection,
+)
 from protocol.messages import RobotDetections
 from protocol.site import Site
 
@@ -38,7 +47,7 @@ log = logging.getLogger(__name__)
 
 COUNTER_NAMES: Final = (
     "received", "emitted", "late", "duplicate", "future", "unknown_camera", "bad_keypoints",
-    "not_seen", "replaced", "overflow", "empty",
+    "image_size", "not_seen", "replaced", "overflow", "empty",
 )
 
 
@@ -79,6 +88,7 @@ class FrameSetSynchronizer:
         self._emitted_anchor: dict[str, int | None] = dict.fromkeys(self.robot_ids)
         self._last_seen_ns: dict[str, int] = {}  # camera -> arrival time (now_ns)
         self._last_stamp: dict[str, collections.deque[int]] = {}  # camera -> recent stamps
+        self._size_warned: set[str] = set()
 
     # -- input -------------------------------------------------------------------------------
 
@@ -97,6 +107,16 @@ class FrameSetSynchronizer:
         if cam is None:
             self.counters["unknown_camera"] += 1
             return self.poll(now_ns)
+        scale = image_scale(msg.image_width, msg.image_height, cam.width, cam.height)
+        if scale is None:
+            self.counters["image_size"] += 1
+            if msg.camera_id not in self._size_warned:
+                self._size_warned.add(msg.camera_id)
+                log.warning("camera %s: detections for %dx%d images, calibrated %dx%d (not an "
+                            "exact scale): dropped (counter image_size; warned once)",
+                            msg.camera_id, msg.image_width, msg.image_height, cam.width,
+                            cam.height)
+            return self.poll(now_ns)
         stamp = int(msg.stamp_ns) + int(cam.clock_offset_ns)
         if stamp - now_ns > self.max_future_ns:
             self.counters["future"] += 1
@@ -109,10 +129,11 @@ class FrameSetSynchronizer:
         self._last_seen_ns[msg.camera_id] = max(now_ns, self._last_seen_ns.get(msg.camera_id,
                                                                               now_ns))
         for robot_id in self.robot_ids:
-            self._add(robot_id, msg, stamp, now_ns)
+            self._add(robot_id, msg, stamp, now_ns, scale)
         return self.poll(now_ns)
 
-    def _add(self, robot_id: str, msg: RobotDetections, stamp: int, now_ns: int) -> None:
+    def _add(self, robot_id: str, msg: RobotDetections, stamp: int, now_ns: int,
+             scale: float = 1.0) -> None:
         emitted = self._emitted_anchor[robot_id]
         if emitted is not None and stamp <= emitted + self.window_ns:
             self.counters["late"] += 1
@@ -138,6 +159,8 @@ class FrameSetSynchronizer:
         if det.keypoints_px.shape[0] != self._num_keypoints.get(robot_id, -1):
             self.counters["bad_keypoints"] += 1
             return
+        if scale != 1.0:
+            det = scale_detection(det, scale)
         obs = CameraObservation.from_detection(msg.camera_id, stamp, det)
         old = win.observations.get(msg.camera_id)
         if old is not None:
