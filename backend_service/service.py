@@ -26,8 +26,6 @@ from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 
-#: the service's robust loss unless the site file or a flag says otherwise
-SERVICE_ROBUST_LOSS = "huber"
 
 
 class BackendNode(ServiceNode):
@@ -132,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--robust-loss",
         choices=("none", "huber", "cauchy"),
         help="robust loss against keypoint outliers (default: the site file's "
-        "pose.robust_loss, else huber)",
+        "pose.robust_loss, else the solver's default, cauchy)",
     )
     add_session_arguments(parser)
     return parser
@@ -144,8 +142,6 @@ def build_node(args: argparse.Namespace) -> BackendNode:
     solver = config.solver
     if args.robust_loss is not None:
         solver = dataclasses.replace(solver, robust_loss=args.robust_loss)
-    elif "robust_loss" not in site.section("pose"):
-        solver = dataclasses.replace(solver, robust_loss=SERVICE_ROBUST_LOSS)
     if args.solver is not None:
         solver = dataclasses.replace(solver, method=args.solver)
     return BackendNode(site, args.id, config=dataclasses.replace(config, solver=solver),
