@@ -20,6 +20,7 @@ _LAZY = {
     "PoseResult": "backend_service.estimate",
     "SolverConfig": "backend_service.estimate",
     "estimate_pose": "backend_service.estimate",
+    "estimate_from_detections": "backend_service.estimate",
     "FrameSetSynchronizer": "backend_service.sync",
     "MultiFrameAverager": "backend_service.multi_frame",
     "FusionConfig": "backend_service.fusion",

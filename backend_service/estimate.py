@@ -25,11 +25,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Sequence
 from typing import Final
 
 import numpy as np
 
-from backend_service.frame_set import FrameSet, PlanarPose
+from backend_service.frame_set import FrameSet, PlanarPose, frame_set_from_detections
 from backend_service.pose_init import View, init_from_prior, init_without_prior
 from backend_service.pose_solver import (
     PoseProblem,
@@ -42,12 +43,12 @@ from backend_service.pose_solver import (
 from backend_service.single_camera import apply_single_camera_heuristic
 from protocol.camera import CameraModel
 from protocol.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
-from protocol.messages import PoseEstimate
+from protocol.messages import PoseEstimate, RobotDetections
 from protocol.site import Site
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PoseResult", "SolverConfig", "estimate_pose"]
+__all__ = ["PoseResult", "SolverConfig", "estimate_from_detections", "estimate_pose"]
 
 #: A keypoint this close to (or behind) a camera's image plane makes the solution impossible.
 MIN_DEPTH_M: Final = 0.05
@@ -93,11 +94,48 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
     PnP initialization). ``config``: solver options (defaults: :class:`SolverConfig`);
     thresholds come from ``site.thresholds``. Never raises on bad input.
     """
+    if not isinstance(frame_set, FrameSet):
+        raise TypeError(f"frame_set: expected backend_service.FrameSet, got "
+                        f"{type(frame_set).__name__} (for RobotDetections messages use "
+                        "estimate_from_detections)")
     try:
         return _estimate(frame_set, site, prior, config or SolverConfig())
     except Exception as exc:  # a service-facing function must not raise
         log.exception("pose estimation failed unexpectedly")
         return _fail(f"internal error: {type(exc).__name__}: {exc}")
+
+
+def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] | RobotDetections,
+                             prior: PlanarPose | None = None,
+                             config: SolverConfig | None = None,
+                             robot_id: str | None = None) -> PoseResult:
+    """The robot's pose from camera messages taken at (about) the same time: the entry point for
+    code that has :class:`~protocol.messages.RobotDetections` rather than a frame-set.
+
+    ``detections``: one message per camera (a single message is accepted); ``prior``: the
+    robot's current world pose, or ``None`` (PnP initialization); ``robot_id``: which robot
+    (needed only when the site has several). The messages get the synchronizer's checks
+    (:func:`backend_service.frame_set.frame_set_from_detections`); what was dropped is in
+    ``PoseResult.reason`` when nothing usable remains, else logged at debug level. For a stream
+    of messages use :class:`backend_service.sync.FrameSetSynchronizer` and
+    :func:`estimate_pose` (or the whole :class:`backend_service.pipeline.BackendPipeline`).
+    ``TypeError`` for arguments of the wrong type (naming what was expected); bad data never
+    raises.
+    """
+    if not isinstance(site, Site):
+        raise TypeError(f"site: expected protocol.site.Site (load_site(path)), got "
+                        f"{type(site).__name__}")
+    if prior is not None and not isinstance(prior, PlanarPose):
+        raise TypeError(f"prior: expected backend_service.PlanarPose or None, got "
+                        f"{type(prior).__name__}")
+    if config is not None and not isinstance(config, SolverConfig):
+        raise TypeError(f"config: expected SolverConfig or None, got {type(config).__name__}")
+    frame_set, problems = frame_set_from_detections(site, detections, robot_id)
+    if not frame_set.observations:
+        return _fail("no usable detection: " + ("; ".join(problems) or "no messages"))
+    if problems:
+        log.debug("estimate_from_detections: dropped %s", "; ".join(problems))
+    return estimate_pose(frame_set, site, prior, config)
 
 
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,

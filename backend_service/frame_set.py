@@ -8,6 +8,8 @@ arrays (simulation, tests).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -124,3 +126,75 @@ def scale_detection(det: Detection, scale: float) -> Detection:
     return Detection(to_cal(det.bbox_xyxy), det.score, to_cal(det.keypoints_px),
                      np.asarray(det.keypoint_scores, np.float64), det.robot_id,
                      None if sig is None else np.asarray(sig, np.float64) * scale)
+
+
+def observation_for_robot(msg: RobotDetections, robot_id: str, num_keypoints: int,
+                          attribute_unnamed: bool, stamp_ns: int, scale: float = 1.0
+                          ) -> CameraObservation | str:
+    """The observation of ``robot_id`` in ``msg`` (stamp already on the common clock, keypoints
+    converted by ``scale`` to calibrated pixels), or why there is none: ``"not_seen"`` or
+    ``"bad_keypoints"`` (the synchronizer's counter names)."""
+    det = best_detection(msg, robot_id)
+    if det is not None and det.robot_id == "" and not attribute_unnamed:
+        det = None
+    if det is None:
+        return "not_seen"
+    if det.keypoints_px.shape[0] != num_keypoints:
+        return "bad_keypoints"
+    if scale != 1.0:
+        det = scale_detection(det, scale)
+    return CameraObservation.from_detection(msg.camera_id, stamp_ns, det)
+
+
+def frame_set_from_detections(site: Any, detections: Sequence[RobotDetections],
+                              robot_id: str | None = None) -> tuple[FrameSet, list[str]]:
+    """One :class:`FrameSet` from camera messages that belong together (one per camera, the
+    caller's synchronization), with the checks the synchronizer applies: camera known, image
+    size the calibrated one or an exact scale of it (converted), the robot's detection (for
+    ``robot_id``; unidentified detections count when the site has one robot), keypoint count.
+    Stamps are corrected by each camera's clock offset. Returns the frame-set and what was
+    dropped and why. ``TypeError`` if ``detections`` is not a sequence of
+    :class:`RobotDetections`.
+    """
+    if isinstance(detections, RobotDetections):
+        detections = [detections]
+    if not isinstance(detections, Sequence) or isinstance(detections, (str, bytes)):
+        raise TypeError(f"detections: expected a sequence of RobotDetections, got "
+                        f"{type(detections).__name__}")
+    for i, msg in enumerate(detections):
+        if not isinstance(msg, RobotDetections):
+            raise TypeError(f"detections[{i}]: expected RobotDetections, got "
+                            f"{type(msg).__name__}")
+    robots = list(site.robots)
+    if robot_id is None:
+        if len(robots) != 1:
+            raise ValueError(f"the site has robots {robots}: say which one (robot_id=...)")
+        robot_id = robots[0]
+    model = site.robot_model(robot_id)
+    attribute_unnamed = len(robots) == 1
+    problems: list[str] = []
+    observations: dict[str, CameraObservation] = {}
+    for msg in detections:
+        cam = site.cameras.get(msg.camera_id)
+        if cam is None:
+            problems.append(f"unknown camera {msg.camera_id!r}")
+            continue
+        if msg.camera_id in observations:
+            problems.append(f"camera {msg.camera_id!r} given twice; the first is used")
+            continue
+        scale = image_scale(msg.image_width, msg.image_height, cam.width, cam.height)
+        if scale is None:
+            problems.append(f"camera {msg.camera_id!r}: {msg.image_width}x{msg.image_height} "
+                            f"images, calibrated {cam.width}x{cam.height} (not an exact scale)")
+            continue
+        stamp = int(msg.stamp_ns) + int(cam.clock_offset_ns)
+        obs = observation_for_robot(msg, robot_id, model.num_keypoints, attribute_unnamed,
+                                    stamp, scale)
+        if obs == "not_seen":
+            problems.append(f"camera {msg.camera_id!r}: robot {robot_id!r} not seen")
+        elif obs == "bad_keypoints":
+            problems.append(f"camera {msg.camera_id!r}: keypoint count differs from robot "
+                            f"model {model.name!r} ({model.num_keypoints})")
+        elif isinstance(obs, CameraObservation):
+            observations[msg.camera_id] = obs
+    return FrameSet.from_observations(robot_id, list(observations.values())), problems

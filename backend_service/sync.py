@@ -36,9 +36,8 @@ from typing import Final
 from backend_service.frame_set import (
     CameraObservation,
     FrameSet,
-    best_detection,
     image_scale,
-    scale_detection,
+    observation_for_robot,
 )
 from protocol.messages import RobotDetections
 from protocol.site import Site
@@ -150,18 +149,11 @@ class FrameSetSynchronizer:
             windows.append(win)
             windows.sort(key=lambda w: w.anchor_ns)
         win.reported.add(msg.camera_id)
-        det = best_detection(msg, robot_id)
-        if det is not None and det.robot_id == "" and not self._attribute_unnamed:
-            det = None
-        if det is None:
-            self.counters["not_seen"] += 1
+        obs = observation_for_robot(msg, robot_id, self._num_keypoints.get(robot_id, -1),
+                                    self._attribute_unnamed, stamp, scale)
+        if isinstance(obs, str):
+            self.counters[obs] += 1
             return
-        if det.keypoints_px.shape[0] != self._num_keypoints.get(robot_id, -1):
-            self.counters["bad_keypoints"] += 1
-            return
-        if scale != 1.0:
-            det = scale_detection(det, scale)
-        obs = CameraObservation.from_detection(msg.camera_id, stamp, det)
         old = win.observations.get(msg.camera_id)
         if old is not None:
             self.counters["replaced"] += 1
