@@ -7,6 +7,7 @@
                              [--experiments 1,2,3] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate]
+    smartedge evaluate compare NAME=DIR [NAME=DIR ...]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
 metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
@@ -95,6 +96,26 @@ def _paper(args: argparse.Namespace) -> int:
         if text:
             print(text)
     print(f"wrote {args.out}")
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from smartedge.experiments import compare_markdown
+
+    runs = []
+    for spec in args.runs:
+        name, sep, folder = spec.partition("=")
+        if not sep:
+            name, folder = Path(spec).name, spec
+        if not (Path(folder) / "results.json").exists() and \
+                not (Path(folder) / "feedback_results.json").exists():
+            print(f"smartedge evaluate compare: {folder}: no results.json or "
+                  "feedback_results.json (an `evaluate paper --out` folder?)", file=sys.stderr)
+            return 1
+        runs.append((name, folder))
+    print(compare_markdown(runs, with_paper=not args.no_paper), end="")
     return 0
 
 
@@ -209,6 +230,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="instead: measure the confidence -> pixel error table on the "
                       "validation seeds (1001/1002) and write it into the keypoint model's card "
                       "(the edge then sends per-keypoint sigmas)")
+    p_cmp = sub.add_parser("compare", help="side-by-side headline figures of finished "
+                           "`evaluate paper` runs (Markdown)")
+    p_cmp.add_argument("runs", nargs="+", metavar="NAME=DIR",
+                       help="a column: its name and an `evaluate paper --out` folder")
+    p_cmp.add_argument("--no-paper", action="store_true", help="omit the paper's column")
     return parser
 
 
@@ -218,6 +244,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _ate(args)
     if args.what == "keypoints":
         return _keypoints(args)
+    if args.what == "compare":
+        return _compare(args)
     if args.runs < 1 or args.feedback_seeds < 1 or (
             args.robustness_runs is not None and args.robustness_runs < 1):
         print("smartedge evaluate paper: --runs, --feedback-seeds and --robustness-runs must "

@@ -1017,3 +1017,90 @@ def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
         say(f"[exp3 {k + 1}/{2 * n}] {r.name}: {r.outcome}{where} "
             f"({r.travelled_m:.1f} m, {r.wall_s:.1f} s)")
     return runs
+
+
+# --------------------------------------------------------------------------------------------
+# side-by-side comparison of finished runs (smartedge evaluate compare)
+# --------------------------------------------------------------------------------------------
+
+#: the paper's figures (ICRA 2023, Table I average row / per camera count, Table II, exp. 2/3)
+PAPER_FIGURES: dict[str, str] = {
+    "Robot (avg)": "19.1 cm / 1.11°",
+    "Cameras (raw), 1 cam": "13.8 cm / 3.39°",
+    "Cameras (raw), 2 cams": "2.59 cm / 0.97°",
+    "Cameras (raw), 4 cams": "2.88 cm / 1.02°",
+    "Cameras (5 frames), 1 cam": "7.77 cm",
+    "Cameras (5 frames), >= 2 cams": "2.58 cm / 0.86°",
+    "Fused (avg)": "2.93 cm / 0.88°",
+    "Table II Fused Avg.": "n/a",
+    "Exp. 2 robot w/o / w/ feedback": "17.5 / 5.51 cm",
+    "Exp. 2 fused": "3.34 cm",
+    "Table III w/ feedback success": "5 / 5",
+}
+
+
+def _cell_cm_deg(group: dict[str, float] | None) -> str:
+    if not group or not group.get("count"):
+        return "n/a"
+    return f"{group['t_mean_cm']:.2f} cm / {group['r_mean_deg']:.2f}°"
+
+
+def _multi_camera(t1: dict[str, dict[str, dict[str, float]]], source: str) -> str:
+    """Mean over the 2- and 4-camera groups, weighted by their counts."""
+    groups = [t1.get(source, {}).get(k) for k in ("2", "4")]
+    groups = [g for g in groups if g and g.get("count")]
+    n = sum(g["count"] for g in groups)
+    if not n:
+        return "n/a"
+    t = sum(g["t_mean_cm"] * g["count"] for g in groups) / n
+    r = sum(g["r_mean_deg"] * g["count"] for g in groups) / n
+    return f"{t:.2f} cm / {r:.2f}°"
+
+
+def compare_rows(run_dir: str | Path) -> dict[str, str]:
+    """The comparison rows of one finished ``evaluate paper`` output folder."""
+    folder = Path(run_dir)
+    rows: dict[str, str] = {}
+    res_path = folder / "results.json"
+    if res_path.exists():
+        res = json.loads(res_path.read_text(encoding="utf-8"))
+        t1, t2 = res.get("table1", {}), res.get("table2", {})
+        rows["Robot (avg)"] = _cell_cm_deg(t1.get("robot", {}).get("average"))
+        for n, label in (("1", "1 cam"), ("2", "2 cams"), ("4", "4 cams")):
+            rows[f"Cameras (raw), {label}"] = _cell_cm_deg(t1.get("raw", {}).get(n))
+        for src, name in (("one_frame", "Cameras (1 frame)"), ("five_frames",
+                                                                "Cameras (5 frames)")):
+            rows[f"{name}, 1 cam"] = _cell_cm_deg(t1.get(src, {}).get("1"))
+            rows[f"{name}, >= 2 cams"] = _multi_camera(t1, src)
+        rows["Fused, >= 2 cams"] = _multi_camera(t1, "fused")
+        rows["Fused (avg)"] = _cell_cm_deg(t1.get("fused", {}).get("average"))
+        avg = t2.get("fused", {}).get("average")
+        rows["Table II Fused Avg."] = "n/a" if avg is None else f"{avg:.2f} cm"
+    fb_path = folder / "feedback_results.json"
+    if fb_path.exists():
+        fb = json.loads(fb_path.read_text(encoding="utf-8"))
+        e2 = fb.get("experiment2") or {}
+        if e2:
+            rows["Exp. 2 robot w/o / w/ feedback"] = (
+                f"{e2['robot_without_feedback_cm']:.1f} / {e2['robot_with_feedback_cm']:.1f} cm")
+            rows["Exp. 2 fused"] = f"{e2['fused_cm']:.2f} cm"
+        e3 = (fb.get("experiment3") or {}).get("with_feedback")
+        if e3:
+            rows["Table III w/ feedback success"] = f"{e3['success']} / {e3['runs']}"
+    return rows
+
+
+def compare_markdown(runs: Sequence[tuple[str, str | Path]], with_paper: bool = True) -> str:
+    """A Markdown table with one column per ``(name, folder)`` of finished runs (and the
+    paper's figures), one row per headline figure."""
+    columns = [(name, compare_rows(folder)) for name, folder in runs]
+    order: list[str] = []
+    for _, rows in columns:
+        order += [k for k in rows if k not in order]
+    head = ["figure", *(["paper"] if with_paper else []), *(name for name, _ in columns)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for key in order:
+        cells = [key, *([PAPER_FIGURES.get(key, "")] if with_paper else []),
+                 *(rows.get(key, "") for _, rows in columns)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
