@@ -54,6 +54,9 @@ __all__ = ["PoseResult", "SolverConfig", "estimate_from_detections", "estimate_p
 MIN_DEPTH_M: Final = 0.05
 #: Minimum number of usable keypoints over all views (3 unknowns need >= 4 equations).
 MIN_TOTAL_KEYPOINTS: Final = 2
+#: Under a robust loss, a solution that fewer than this share of the keypoints fit (within
+#: ``_INLIER_SCALES`` robust scales) is a wrong minimum, not an estimate.
+MIN_INLIER_SHARE: Final = 0.5
 #: Inlier threshold (multiples of the robust scale) for the RMSE reported under a robust loss.
 _INLIER_SCALES: Final = 3.0
 #: Methods solved by a CasADi ``nlpsol`` (with the LM path as their fallback).
@@ -257,7 +260,11 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
         elif best is None or outcome[1] < best[1]:
             best = (*outcome, init_flag)
         good = best is not None and best[1] <= th.max_reprojection_rmse_px
-        if not good and not tried_pnp and config.try_pnp_fallback:
+        # one view under a robust loss has far-away wrong minima that fit "well enough" (the
+        # robot shrunk to a dot, half its keypoints inside the loss's inlier band): always
+        # compare with the PnP start there and keep the better fit
+        single_robust = len(views) == 1 and config.robust_loss != "none"
+        if (not good or single_robust) and not tried_pnp and config.try_pnp_fallback:
             tried_pnp = True
             nxt = pnp_attempt()
             if nxt is not None:
@@ -338,6 +345,17 @@ def _T_from_q(q: np.ndarray, dof: int) -> np.ndarray:
     return T
 
 
+def _inlier_share(r: np.ndarray, w: np.ndarray, config: SolverConfig) -> float:
+    """Share of the valid keypoints within ``_INLIER_SCALES`` robust scales."""
+    s = r[0::2] ** 2 + r[1::2] ** 2
+    wf = w.reshape(-1)
+    valid = wf > 0
+    if not valid.any():
+        return 0.0
+    e = np.sqrt(s[valid] / wf[valid])
+    return float(np.mean(e <= _INLIER_SCALES * config.robust_scale_px))
+
+
 def _weighted_rmse(r: np.ndarray, w: np.ndarray, config: SolverConfig) -> float:
     """sqrt(sum w e^2 / sum w) over valid keypoints; under a robust loss only over keypoints
     within a few robust scales (the outliers the loss ignored would dominate otherwise)."""
@@ -383,6 +401,13 @@ def _solve_with(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: Sol
         return "robot behind a camera: no solution in front of every camera that sees it"
     if not np.all(np.isfinite(r)):
         return "non-finite reprojection residuals"
+    if config.robust_loss != "none":
+        share = _inlier_share(r, w, config)
+        if share < MIN_INLIER_SHARE:
+            # a robust loss can make a wrong minimum look good (e.g. the robot slid far away
+            # along the viewing ray, every keypoint an "outlier"): most keypoints must fit
+            return (f"only {share:.0%} of the keypoints fit this solution (robust loss): "
+                    "a wrong minimum")
     return q, _weighted_rmse(r, w, config), out.iterations, out.success
 
 
