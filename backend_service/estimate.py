@@ -257,7 +257,7 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
         outcome = _solve_once(problem, p, q0, config, th.max_reprojection_rmse_px)
         if isinstance(outcome, str):
             last_reason = outcome
-        elif best is None or outcome[1] < best[1]:
+        elif best is None or outcome[1] < best[1] - 1e-6:  # a tie keeps the prior start
             best = (*outcome, init_flag)
         good = best is not None and best[1] <= th.max_reprojection_rmse_px
         # one view under a robust loss has far-away wrong minima that fit "well enough" (the
