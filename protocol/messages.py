@@ -60,6 +60,17 @@ def _readonly_f64(arr: np.ndarray) -> np.ndarray:
     return out
 
 
+def _check_image_header(msg: Any) -> None:
+    """The fields every per-image message shares: camera id, stamp, seq, image size."""
+    _freeze(msg, "camera_id", check_id("camera_id", msg.camera_id))
+    _freeze(msg, "stamp_ns", check_int("stamp_ns", msg.stamp_ns))
+    _freeze(msg, "seq", check_int("seq", msg.seq))
+    _freeze(msg, "image_width",
+            check_int("image_width", msg.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX))
+    _freeze(msg, "image_height",
+            check_int("image_height", msg.image_height, lo=1, hi=MAX_IMAGE_SIDE_PX))
+
+
 def _check_planar_pose(msg: Any) -> None:
     """The fields every planar pose message shares: robot id, stamp, seq, pose, covariance."""
     _freeze(msg, "robot_id", check_id("robot_id", msg.robot_id))
@@ -191,19 +202,7 @@ class RobotDetections(Message):
     detections: tuple[Detection, ...] = ()
 
     def __post_init__(self) -> None:
-        _freeze(self, "camera_id", check_id("camera_id", self.camera_id))
-        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
-        _freeze(self, "seq", check_int("seq", self.seq))
-        _freeze(
-            self,
-            "image_width",
-            check_int("image_width", self.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX),
-        )
-        _freeze(
-            self,
-            "image_height",
-            check_int("image_height", self.image_height, lo=1, hi=MAX_IMAGE_SIDE_PX),
-        )
+        _check_image_header(self)
         _freeze(self, "model_id", check_text("model_id", self.model_id, max_len=128))
         dets = self.detections
         if isinstance(dets, Detection) or not isinstance(dets, (list, tuple)):
@@ -453,13 +452,7 @@ class CameraImage(Message):
     data: np.ndarray
 
     def __post_init__(self) -> None:
-        _freeze(self, "camera_id", check_id("camera_id", self.camera_id))
-        _freeze(self, "stamp_ns", check_int("stamp_ns", self.stamp_ns))
-        _freeze(self, "seq", check_int("seq", self.seq))
-        _freeze(self, "image_width",
-                check_int("image_width", self.image_width, lo=1, hi=MAX_IMAGE_SIDE_PX))
-        _freeze(self, "image_height",
-                check_int("image_height", self.image_height, lo=1, hi=MAX_IMAGE_SIDE_PX))
+        _check_image_header(self)
         _freeze(self, "encoding", check_choice("encoding", self.encoding, IMAGE_ENCODINGS))
         data = check_array("data", self.data, dtypes=("uint8",), shape=(None,),
                            max_elems=MAX_IMAGE_BYTES)
