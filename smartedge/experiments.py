@@ -152,6 +152,8 @@ class StopSample:
     stamp_ns: int
     ground_truth: np.ndarray
     estimates: dict[str, np.ndarray | None]
+    #: (3, 3) reported covariance per source (for NEES), where the source reports one
+    covariances: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -185,6 +187,49 @@ def _to_pose(value: object) -> np.ndarray | None:
         return value.as_array()
     arr = np.asarray(value, dtype=np.float64).reshape(-1)
     return arr[:3] if arr.size >= 3 and np.all(np.isfinite(arr[:3])) else None
+
+
+def _keep_covariance(sample: StopSample, source: str, est: object) -> None:
+    cov = getattr(est, "covariance", None)
+    if cov is not None:
+        arr = np.asarray(cov, dtype=np.float64)
+        if arr.shape == (3, 3) and np.all(np.isfinite(arr)):
+            sample.covariances[source] = arr
+
+
+def nees_table(results: Sequence[RunResult]) -> tuple[str, dict[str, dict[str, float]]]:
+    """Mean normalized estimation error squared (3 DoF: consistent = 3) of each camera source
+    per number of cameras: e^T C^-1 e with e = estimate - truth (heading wrapped) and C the
+    covariance the source reported."""
+    numbers: dict[str, dict[str, float]] = {}
+    for source in ("raw", "one_frame", "five_frames", "fused"):
+        per: dict[str, list[float]] = {}
+        for res in results:
+            for smp in res.samples:
+                est, cov = smp.estimates.get(source), smp.covariances.get(source)
+                if est is None or cov is None:
+                    continue
+                e = np.asarray(est, np.float64) - smp.ground_truth
+                e[2] = math.remainder(float(e[2]), 2 * math.pi)
+                try:
+                    value = float(e @ np.linalg.solve(cov, e))
+                except np.linalg.LinAlgError:
+                    continue
+                for key in (str(smp.num_cameras), "all"):
+                    per.setdefault(key, []).append(value)
+        numbers[source] = {k: float(np.mean(v)) for k, v in per.items()}
+        numbers[source].update({f"n_{k}": float(len(v)) for k, v in per.items()})
+    groups = [str(c) for c in CAMERA_GROUPS] + ["all"]
+    lines = ["**NEES**: mean normalized estimation error squared of the reported covariances "
+             "(3 degrees of freedom: 3 is consistent, larger is overconfident).", "",
+             "| Pose Estimation | " + " | ".join(
+                 f"{g} camera{'s' if g != '1' else ''}" if g != "all" else "all"
+                 for g in groups) + " |",
+             "|---|" + "---|" * len(groups)]
+    for source, row in numbers.items():
+        cells = [f"{row[g]:.1f}" if g in row else "n/a" for g in groups]
+        lines.append(f"| {ROW_NAMES[source]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n", numbers
 
 
 def paper_pipeline_config(site: Site, heuristic: bool = True, frames: int | None = None,
@@ -257,11 +302,14 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
                 continue
             if "one_frame" not in sample.estimates:
                 sample.estimates["one_frame"] = _to_pose(rec.result.pose)
+                _keep_covariance(sample, "one_frame", rec.result.estimate)
                 # the ablation: the same frame-set from the same prior, heuristic off
                 raw = estimate_pose(rec.frame_set, site, rec.prior, raw_solver)
                 sample.estimates["raw"] = _to_pose(raw.pose) if raw.ok else None
-            if rec.averaged is not None:
-                sample.estimates.setdefault("five_frames", _to_pose(rec.averaged))
+                _keep_covariance(sample, "raw", raw.estimate)
+            if rec.averaged is not None and "five_frames" not in sample.estimates:
+                sample.estimates["five_frames"] = _to_pose(rec.averaged)
+                _keep_covariance(sample, "five_frames", rec.averaged)
 
     for tm in sim.messages(localization_rate_hz=LOCALIZATION_RATE_HZ):
         take(pipeline.step(tm.message, tm.arrival_ns))
@@ -277,7 +325,9 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
             if p is not None:
                 fused[i] = p
         for s in samples.values():
-            s.estimates["fused"] = _to_pose(fusion.pose_at(int(s.stamp_ns)))
+            at = fusion.pose_at(int(s.stamp_ns))
+            s.estimates["fused"] = _to_pose(at)
+            _keep_covariance(s, "fused", at)
     ordered = [samples[k] for k in sorted(samples)]
     return RunResult(
         name=name, trajectory=trajectory, reverse=reverse, iteration=iteration,
@@ -553,7 +603,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     detector = make_detector(sc, world, config)
     say(f"detections: {describe_detections(config, detector)}, cameras at {rate:g} Hz")
     results: list[RunResult] = []
-    t1_md = t2_md = ""
+    t1_md = t2_md = nees_md = ""
     t1: dict[str, dict[str, dict[str, float]]] = {}
     t2: dict[str, dict[str, float]] = {}
     files: list[Path] = []
@@ -572,8 +622,15 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
                 say(f"  images so far: {detector.stats.line()}")
         t1_md, t1 = table1(results, fusion_available, config.align)
         t2_md, t2 = table2(results, fusion_available, config.align)
+        nees_md, nees = nees_table(results)
         files += _write_experiment1(out, sc, config, results, t1_md, t2_md, t1, t2,
                                     fusion_available, detector)
+        (out / "nees.md").write_text(nees_md, encoding="utf-8")
+        files.append(out / "nees.md")
+        res_json = json.loads((out / "results.json").read_text(encoding="utf-8"))
+        res_json["nees"] = nees
+        (out / "results.json").write_text(json.dumps(res_json, indent=2, default=float),
+                                          encoding="utf-8")
     fb_runs: list[FeedbackRun] = []
     fb_md = ""
     fb_numbers: dict[str, float] = {}
@@ -609,7 +666,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     sections = ["# Paper experiments on the simulated lab\n"]
     if 1 in config.experiments:
         sections += ["## Experiment 1: pose accuracy (Sec. IV-B, Table I/II, Fig. 6)\n", t1_md,
-                     t2_md]
+                     t2_md, nees_md]
     if 2 in config.experiments:
         sections += ["## Experiment 2: correction feedback (Sec. IV-B, Fig. 7)\n", fb_md,
                      "![Fig. 7](fig7_feedback_error_over_distance.png)\n"]
