@@ -412,12 +412,44 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         f"  status messages received: {seen.status_count} from "
         f"{', '.join(sorted(seen.status)) or 'nobody'}"
     )
+    tum = write_trajectories(seen, live, out_dir / "tum")
     rrd_path = Path(rrd[5:]) if rrd.startswith("save:") else None
+    if tum:
+        print(f"\ntrajectories (TUM): {out_dir / 'tum'}/{{{','.join(tum)}}}.tum  (e.g. "
+              f"evo_ape tum {out_dir / 'tum' / 'ground_truth.tum'} "
+              f"{out_dir / 'tum' / 'fused.tum'}, or smartedge evaluate ate ...)")
     if rrd_path is not None:
         print(f"\nRerun recording: {rrd_path}  (open with: rerun {rrd_path})")
     if args.processes:
         print(f"service logs: {out_dir}/*.log; exit codes {codes}")
     return DemoResult(seen, figures, codes, rrd_path, out_dir, live)
+
+
+def write_trajectories(seen: Observed, live: Any, folder: Path) -> list[str]:
+    """TUM files of every pose source the demo saw (``camera`` = single-frame camera
+    estimates, ``camera_averaged``, ``fused``, ``localization``) and ``ground_truth`` at the
+    fused stamps (the densest source). Returns the names written."""
+    from smartedge.evaluation.trajectory_io import write_estimates_tum
+
+    sources = {
+        "camera": [e for e in seen.camera if "multi_frame" not in e.flags],
+        "camera_averaged": [e for e in seen.camera if "multi_frame" in e.flags],
+        "fused": seen.fused,
+        "localization": seen.localization,
+    }
+    written = []
+    for name, estimates in sources.items():
+        if estimates:
+            write_estimates_tum(folder / f"{name}.tum", estimates)
+            written.append(name)
+    reference = seen.fused or seen.camera or seen.localization
+    if reference:
+        truth = [dataclasses.replace(e, x=float(g[0]), y=float(g[1]), theta=float(g[2]))
+                 for e in reference
+                 for g in [live.ground_truth(e.stamp_ns)]]
+        write_estimates_tum(folder / "ground_truth.tum", truth)
+        written.append("ground_truth")
+    return written
 
 
 def _progress(seen: Observed, live: Any, epoch_ns: int) -> None:

@@ -737,7 +737,36 @@ def _write_experiment1(out: Path, sc: Scenario, config: PaperConfig,
                             f"{s.ground_truth[2]:.5f},{src},{e[0]:.5f},{e[1]:.5f},{e[2]:.5f}\n")
     plot_map(sc, detector, files[4])
     files += plot_runs(results, sc, out)
+    files += write_run_trajectories(results, out / "tum")
     return files
+
+
+def write_run_trajectories(results: Sequence[RunResult], folder: Path) -> list[Path]:
+    """TUM files per run (``<folder>/<run>/``): ``ground_truth``, ``robot`` (its own
+    localization) and ``fused`` over the whole run, and the camera estimates at the stops
+    (``cameras_1frame``, ``cameras_5frames``), for evo or ``smartedge evaluate ate``."""
+    from smartedge.evaluation.trajectory_io import write_tum_planar
+
+    written: list[Path] = []
+    for r in results:
+        run_dir = folder / r.name
+        t_s = r.stamps_ns * 1e-9
+        tracks = {"ground_truth": (t_s, r.ground_truth), "robot": (t_s, r.robot)}
+        ok = np.all(np.isfinite(r.fused), axis=1)
+        if ok.any():
+            tracks["fused"] = (t_s[ok], r.fused[ok])
+        for source, name in (("one_frame", "cameras_1frame"), ("five_frames", "cameras_5frames")):
+            rows = [(s.stamp_ns, s.estimates[source]) for s in r.samples
+                    if s.estimates.get(source) is not None]
+            if rows:
+                rows.sort(key=lambda row: row[0])
+                tracks[name] = (np.array([row[0] for row in rows]) * 1e-9,
+                                np.array([row[1] for row in rows]))
+        for name, (stamps, poses) in tracks.items():
+            path = run_dir / f"{name}.tum"
+            write_tum_planar(path, np.asarray(stamps), np.asarray(poses))
+            written.append(path)
+    return written
 
 
 # --------------------------------------------------------------------------------------------

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -78,3 +80,14 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
 def write_tum_planar(path: str | Path, stamps_s: np.ndarray, xytheta: np.ndarray) -> None:
     """Write planar poses (N, 3) (x, y, theta) at z = 0 as a TUM file."""
     write_tum(path, Trajectory.from_planar(stamps_s, xytheta))
+
+
+def write_estimates_tum(path: str | Path, estimates: Sequence[Any]) -> int:
+    """Write pose messages (anything with ``stamp_ns``, ``x``, ``y``, ``theta``, e.g.
+    :class:`protocol.messages.PoseEstimate`) as a planar TUM file, sorted by stamp, one line per
+    stamp (the last message of a stamp wins). Returns the number of poses written."""
+    by_stamp = {int(e.stamp_ns): (float(e.x), float(e.y), float(e.theta)) for e in estimates}
+    stamps = np.array(sorted(by_stamp), dtype=np.int64)
+    poses = np.array([by_stamp[int(s)] for s in stamps], dtype=np.float64).reshape(-1, 3)
+    write_tum_planar(path, stamps * 1e-9, poses)
+    return len(stamps)

@@ -54,6 +54,17 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
         bridge.counters.get("bridge.corrections_accepted", 0) >= 1
         or bridge.counters.get("corrections_correction", 0) >= 1
     )
+    # TUM files per source; the fused track's APE against the ground-truth track is the
+    # demo's own fused RMS (same stamps, same truth)
+    from smartedge.evaluation.metrics import ape
+    from smartedge.evaluation.trajectory_io import read_tum
+
+    tum = tmp_path / "tum"
+    for name in ("camera", "fused", "localization", "ground_truth"):
+        assert (tum / f"{name}.tum").exists(), name
+    rmse = ape(read_tum(tum / "ground_truth.tum"), read_tum(tum / "fused.tum")
+               ).translation_stats.rmse
+    assert abs(rmse - result.figures["fused (pose graph)"]) < 0.02 * rmse + 1e-4
     # the recording opens with rerun's own tooling and holds what a user wants to see
     assert result.rrd_path is not None and result.rrd_path.exists()
     entities = _rrd_entities(result.rrd_path)
