@@ -28,6 +28,9 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "render": ("smartedge.render_cmd", "main", "rendered camera images with exact labels"),
     "train": ("smartedge.train_cmd", "main", "train the detector / keypoint CNN on renders"),
     "site": ("smartedge.site_tool", "main", "check a site file or a camera calibration file"),
+    "status": ("smartedge.introspect", "status_main", "the live services: state, rates, "
+               "latencies, problem counters"),
+    "echo": ("smartedge.introspect", "echo_main", "print every message on a key, decoded"),
 }
 
 

@@ -1,0 +1,91 @@
+"""``smartedge status`` and ``smartedge echo`` against a real edge agent over loopback Zenoh."""
+
+from __future__ import annotations
+
+import io
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
+from smartedge.introspect import echo_main, format_table, status_main, status_rows, summarize
+from tests.conftest import free_tcp_port
+
+
+@pytest.fixture(scope="module")
+def agent(tmp_path_factory: pytest.TempPathFactory):
+    """An edge agent (simulated camera, noise model) listening on a free loopback port."""
+    port = free_tcp_port()
+    log = tmp_path_factory.mktemp("agent") / "agent.log"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "smartedge", "edge-agent", "--camera", "cam1", "--source", "sim",
+         "--listen", f"tcp/127.0.0.1:{port}", "--connect", f"tcp/127.0.0.1:{port}",
+         "--no-multicast-scouting"],
+        stdout=log.open("w"), stderr=subprocess.STDOUT)
+    time.sleep(3.0)  # session open, simulation epoch 2 s ahead
+    yield port
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    assert proc.returncode == 0, Path(log).read_text()[-2000:]
+
+
+def _session_args(port: int) -> list[str]:
+    return ["--mode", "client", "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+
+
+def test_status_once_shows_the_live_agent(agent: int) -> None:
+    out = io.StringIO()
+    assert status_main(["--once", "--wait", "3", *_session_args(agent)], out) == 0
+    text = out.getvalue()
+    assert "edge-agent/cam1" in text and "yes" in text, text
+    row = next(ln for ln in text.splitlines() if ln.startswith("edge-agent/cam1"))
+    assert " ok " in row or " starting " in row, row
+    assert "detections" in row  # its message rate
+
+
+def test_status_once_without_anybody_exits_1() -> None:
+    port = free_tcp_port()
+    out = io.StringIO()
+    assert status_main(["--once", "--wait", "0.5", "--listen", f"tcp/127.0.0.1:{port}",
+                        "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"],
+                       out) == 1
+
+
+def test_echo_prints_decoded_detections(agent: int) -> None:
+    out = io.StringIO()
+    assert echo_main(["smartedge/paper_lab/edge/cam1/detections", "--count", "3",
+                      "--duration", "10", *_session_args(agent)], out) == 0
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 3
+    for line in lines:
+        assert line.startswith("smartedge/paper_lab/edge/cam1/detections: RobotDetections cam1")
+        assert "848x480 sim-noise-v1" in line
+
+
+def test_echo_refuses_foreign_keys(capsys) -> None:
+    assert echo_main(["rt/chatter"]) == 2
+    assert "not a smartedge key" in capsys.readouterr().err
+
+
+def test_summaries_and_table() -> None:
+    det = Detection(np.array([1.0, 2.0, 30.0, 60.0]), 0.9, np.zeros((12, 2)),
+                    np.r_[np.ones(10), np.zeros(2)], "hsr", np.full(12, 0.7))
+    line = summarize(RobotDetections("cam1", 2_500_000_000, 4, 848, 480, "hsr/models", (det,)))
+    assert "stamp 2.500" in line and "10/12 keypoints" in line and "sigma median 0.70" in line
+    pose = PoseEstimate("hsr", 1, 0, 1.0, 2.0, 0.5, np.diag([1e-4, 4e-4, 1e-4]), "fused")
+    assert "x 1.000 y 2.000 theta 28.6 deg (std 1.0/2.0 cm, 0.57 deg)" in summarize(pose)
+    st = ServiceStatus("backend", "main", 1, 0, "degraded", 12.0, {"frame_sets": 5.0},
+                       {"solve": 1.5}, {}, {"dropped": 3, "received": 100}, (), "slow")
+    rows = status_rows({"backend/main": (st, 10.0)}, {"edge-agent/cam2"}, 12.0)
+    table = format_table(rows)
+    assert "backend/main" in table and "NO" in table and "dropped=3" in table
+    assert "received" not in table  # not a problem counter
+    assert "edge-agent/cam2  yes    ?" in table  # alive, no status yet
