@@ -31,6 +31,8 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "status": ("smartedge.introspect", "status_main", "the live services: state, rates, "
                "latencies, problem counters"),
     "echo": ("smartedge.introspect", "echo_main", "print every message on a key, decoded"),
+    "record": ("smartedge.record", "record_main", "capture the traffic into an MCAP file"),
+    "replay": ("smartedge.record", "replay_main", "publish an MCAP recording back"),
 }
 
 
