@@ -91,6 +91,7 @@ class RerunView:
         self.rec = rr.RecordingStream(app_id)
         self._trails: dict[tuple[str, str], collections.deque[tuple[float, float]]] = {}
         self._failed: set[str] = set()
+        self._styled: set[str] = set()
         self.url: str | None = None
         if target.kind == "save":
             Path(target.arg).parent.mkdir(parents=True, exist_ok=True)
@@ -172,10 +173,6 @@ class RerunView:
                     radii=0.01,
                 ),
                 static=True,
-            )
-        for name, color in COLORS.items():
-            rec.log(
-                f"metrics/series/{name}", rr.SeriesLines(colors=[color], names=[name]), static=True
             )
 
     # ---------------------------------------------------------------------------------------
@@ -286,8 +283,13 @@ class RerunView:
 
     def error(self, robot_id: str, stamp_ns: int, kind: str, error_m: float) -> None:
         def fn() -> None:
+            path = f"metrics/{robot_id}/error_cm/{kind}"
+            if path not in self._styled:  # the series style goes on the series' own path
+                self._styled.add(path)
+                self.rec.log(path, rr.SeriesLines(colors=[COLORS.get(kind, (255, 255, 255))],
+                                                  names=[kind]), static=True)
             self._time(stamp_ns)
-            self.rec.log(f"metrics/{robot_id}/error_cm/{kind}", rr.Scalars([100.0 * error_m]))
+            self.rec.log(path, rr.Scalars([100.0 * error_m]))
 
         self._guard(f"error.{kind}", fn)
 
