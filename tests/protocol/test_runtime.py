@@ -96,4 +96,4 @@ def test_zenoh_runner_survives_garbage_and_publishes_status() -> None:
         thread.join(10)
         assert not thread.is_alive()
         assert wait_until(lambda: any("DELETE" in a for a in alive), 10)
-        assert any(s.state == "stopping" for s in statuses)
+        assert wait_until(lambda: any(s.state == "stopping" for s in statuses), 5)
