@@ -184,9 +184,10 @@ class KeypointCard(ModelCard):
         rows = "\n".join(f"| {c:.3f} | {s:.2f} |" for c, s in
                          zip(cal["confidence"], cal["sigma_crop_px"], strict=True))
         return text + (
-            "\n## Keypoint uncertainty\n\nRMS keypoint error (crop pixels) by confidence on "
-            "the held-out sets; the edge sends sigma = this / crop scale (image pixels) with "
-            "every keypoint and the backend weights keypoints by 1/sigma^2.\n\n"
+            "\n## Keypoint uncertainty\n\nPer-axis RMS keypoint error (crop pixels) by "
+            "confidence through the deployed pipeline on the held-out sets; the edge sends "
+            "sigma = this / crop scale (image pixels) with every keypoint and the backend "
+            "weights keypoints by it (docs/pose_estimation.md).\n\n"
             "| confidence (bin median) | sigma (crop px) |\n|---|---|\n" + rows + "\n")
 
 
