@@ -60,8 +60,6 @@ def _ate(args: argparse.Namespace) -> int:
 
 
 def _paper(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from smartedge.experiments import PaperConfig, run_paper
 
     trajectories = tuple(t.strip() for t in args.trajectories.split(",") if t.strip())
@@ -93,9 +91,7 @@ def _paper(args: argparse.Namespace) -> int:
     except (ValueError, OSError, SmartedgeError) as exc:
         print(f"smartedge evaluate paper: {exc}", file=sys.stderr)
         return 1
-    nees = Path(args.out) / "nees.md"
-    for text in (report.table1_markdown, report.table2_markdown,
-                 nees.read_text(encoding="utf-8") if nees.exists() else "",
+    for text in (report.table1_markdown, report.table2_markdown, report.nees_markdown,
                  report.feedback_markdown, report.robustness_markdown):
         if text:
             print(text)

@@ -573,6 +573,7 @@ class PaperReport:
     robustness_runs: list[FeedbackRun] = dataclasses.field(default_factory=list)
     feedback_markdown: str = ""
     robustness_markdown: str = ""
+    nees_markdown: str = ""
 
 
 def run_paper(config: PaperConfig, out_dir: str | Path,
@@ -624,13 +625,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
         t2_md, t2 = table2(results, fusion_available, config.align)
         nees_md, nees = nees_table(results)
         files += _write_experiment1(out, sc, config, results, t1_md, t2_md, t1, t2,
-                                    fusion_available, detector)
-        (out / "nees.md").write_text(nees_md, encoding="utf-8")
-        files.append(out / "nees.md")
-        res_json = json.loads((out / "results.json").read_text(encoding="utf-8"))
-        res_json["nees"] = nees
-        (out / "results.json").write_text(json.dumps(res_json, indent=2, default=float),
-                                          encoding="utf-8")
+                                    fusion_available, detector, nees_md, nees)
     fb_runs: list[FeedbackRun] = []
     fb_md = ""
     fb_numbers: dict[str, float] = {}
@@ -677,7 +672,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     files.append(out / "report.md")
     say(f"done in {wall:.1f} s; wrote {out}")
     return PaperReport(results, t1_md, t2_md, t1, t2, fusion_available, files, wall,
-                       fb_runs, rb_runs, fb_md, rb_md)
+                       fb_runs, rb_runs, fb_md, rb_md, nees_md)
 
 
 def make_detector(sc: Scenario, world: World, config: PaperConfig) -> DetectionSimulator:
@@ -714,16 +709,18 @@ def _write_experiment1(out: Path, sc: Scenario, config: PaperConfig,
                        results: list[RunResult], t1_md: str, t2_md: str,
                        t1: dict[str, dict[str, dict[str, float]]],
                        t2: dict[str, dict[str, float]], fusion_available: bool,
-                       detector: DetectionSimulator) -> list[Path]:
+                       detector: DetectionSimulator, nees_md: str,
+                       nees: dict[str, dict[str, float]]) -> list[Path]:
     files = [out / "table1.md", out / "table2.md", out / "results.json", out / "samples.csv",
-             out / "fig6_map.png"]
+             out / "fig6_map.png", out / "nees.md"]
     files[0].write_text(t1_md, encoding="utf-8")
     files[1].write_text(t2_md, encoding="utf-8")
     files[2].write_text(json.dumps({
         "scenario": sc.name, "runs": len(results), "seed": config.seed, "align": config.align,
-        "fusion_available": fusion_available, "table1": t1, "table2": t2,
+        "fusion_available": fusion_available, "table1": t1, "table2": t2, "nees": nees,
         "simulated_s": sum(r.simulated_s for r in results),
     }, indent=2, default=float), encoding="utf-8")
+    files[5].write_text(nees_md, encoding="utf-8")
     with files[3].open("w", encoding="utf-8") as f:
         f.write("run,waypoint,num_cameras,stamp_ns,gt_x,gt_y,gt_theta,source,x,y,theta\n")
         for r in results:
