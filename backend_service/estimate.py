@@ -11,11 +11,16 @@ One frame-set in, one :class:`PoseResult` out. Steps (paper Sec. III-B):
    robust loss; if the solve from the prior fails or fits badly, retry from PnP;
 4. reject impossible solutions (keypoints behind a camera, reprojection RMSE above
    ``thresholds.max_reprojection_rmse_px``);
-5. single camera with a prior: the bearing-only heuristic (:mod:`.single_camera`);
-6. covariance = s^2 (J^T W J)^-1: the Gauss-Newton information of the weighted reprojection
-   errors scaled by the residual variance s^2 (floored at ``covariance_floor_px``^2). The
-   information sums over all views, so the covariance shrinks inversely with the number of
-   cameras and grows with the residual, as the paper prescribes for the pose-graph weights.
+5. covariance (:mod:`.covariance`): s^2 (J^T W J)^-1, the Gauss-Newton covariance of the
+   weighted reprojection errors scaled by the residual variance s^2 (floored at
+   ``covariance_floor_px``^2), plus the correlated errors the residuals cannot show (a
+   detection's common shift and scale, the cameras' calibration error) propagated through the
+   solve; it shrinks with more cameras and grows with the residual, as the paper prescribes
+   for the pose-graph weights, and it is consistent (docs/pose_estimation.md, NEES);
+6. single camera with a prior (``SolverConfig.single_camera``): ``"map"`` combines the solve
+   and a prior that comes with its own covariance by information, weak along the viewing
+   ray (:func:`.covariance.fuse_with_prior`); ``"paper"`` the bearing-only heuristic
+   (:mod:`.single_camera`).
 
 Bad input never raises: the result then has ``estimate=None`` and a ``reason``.
 """
@@ -30,6 +35,12 @@ from typing import Final
 
 import numpy as np
 
+from backend_service.covariance import (
+    CovarianceParts,
+    fuse_with_prior,
+    propagate_correlated,
+    valid_covariance,
+)
 from backend_service.frame_set import FrameSet, PlanarPose, frame_set_from_detections
 from backend_service.pose_init import View, init_from_prior, init_without_prior
 from backend_service.pose_solver import (
@@ -71,7 +82,8 @@ class PoseResult:
     publisher sets it) or ``None``. ``pose``: the same planar pose (world frame) for in-process
     callers. ``reason``: ``""`` when ok, else why there is no estimate. ``T_world_robot``:
     (4, 4) robot base -> world of the solution (full 6-DoF for ``dof=6``). ``iterations``:
-    solver iterations.
+    solver iterations. ``covariance_parts``: the estimate's covariance split into the part new
+    in every frame and the systematic part (what averaging frames cannot reduce).
     """
 
     estimate: PoseEstimate | None
@@ -79,6 +91,7 @@ class PoseResult:
     reason: str = ""
     T_world_robot: np.ndarray | None = None
     iterations: int = 0
+    covariance_parts: CovarianceParts | None = None
 
     @property
     def ok(self) -> bool:
@@ -90,19 +103,23 @@ def _fail(reason: str) -> PoseResult:
 
 
 def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = None,
-                  config: SolverConfig | None = None) -> PoseResult:
+                  config: SolverConfig | None = None,
+                  prior_covariance: np.ndarray | None = None) -> PoseResult:
     """Estimate the robot's planar pose (world frame) from one synchronized frame-set.
 
     ``prior``: the robot's current pose in the world (map) frame, or ``None`` (kidnapped robot:
-    PnP initialization). ``config``: solver options (defaults: :class:`SolverConfig`);
-    thresholds come from ``site.thresholds``. Never raises on bad input.
+    PnP initialization). ``prior_covariance``: (3, 3) of the prior (x, y, theta), when it is
+    independent of the cameras (e.g. the robot's own localization): a single-camera solve is
+    then combined with it (``SolverConfig.single_camera``). ``config``: solver options
+    (defaults: :class:`SolverConfig`); thresholds come from ``site.thresholds``. Never raises
+    on bad input.
     """
     if not isinstance(frame_set, FrameSet):
         raise TypeError(f"frame_set: expected backend_service.FrameSet, got "
                         f"{type(frame_set).__name__} (for RobotDetections messages use "
                         "estimate_from_detections)")
     try:
-        return _estimate(frame_set, site, prior, config or SolverConfig())
+        return _estimate(frame_set, site, prior, config or SolverConfig(), prior_covariance)
     except Exception as exc:  # a service-facing function must not raise
         log.exception("pose estimation failed unexpectedly")
         return _fail(f"internal error: {type(exc).__name__}: {exc}")
@@ -111,13 +128,15 @@ def estimate_pose(frame_set: FrameSet, site: Site, prior: PlanarPose | None = No
 def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] | RobotDetections,
                              prior: PlanarPose | None = None,
                              config: SolverConfig | None = None,
-                             robot_id: str | None = None) -> PoseResult:
+                             robot_id: str | None = None,
+                             prior_covariance: np.ndarray | None = None) -> PoseResult:
     """The robot's pose from camera messages taken at (about) the same time: the entry point for
     code that has :class:`~protocol.messages.RobotDetections` rather than a frame-set.
 
     ``detections``: one message per camera (a single message is accepted); ``prior``: the
-    robot's current world pose, or ``None`` (PnP initialization); ``robot_id``: which robot
-    (needed only when the site has several). The messages get the synchronizer's checks
+    robot's current world pose, or ``None`` (PnP initialization), with ``prior_covariance``
+    as in :func:`estimate_pose`; ``robot_id``: which robot (needed only when the site has
+    several). The messages get the synchronizer's checks
     (:func:`backend_service.frame_set.frame_set_from_detections`); what was dropped is in
     ``PoseResult.reason`` when nothing usable remains, else logged at debug level. For a stream
     of messages use :class:`backend_service.sync.FrameSetSynchronizer` and
@@ -138,7 +157,7 @@ def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] |
         return _fail("no usable detection: " + ("; ".join(problems) or "no messages"))
     if problems:
         log.debug("estimate_from_detections: dropped %s", "; ".join(problems))
-    return estimate_pose(frame_set, site, prior, config)
+    return estimate_pose(frame_set, site, prior, config, prior_covariance)
 
 
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
@@ -198,7 +217,7 @@ def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,
 
 
 def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
-              config: SolverConfig) -> PoseResult:
+              config: SolverConfig, prior_covariance: np.ndarray | None = None) -> PoseResult:
     th = site.thresholds
     try:
         model = site.robot_model(frame_set.robot_id or None)
@@ -280,22 +299,33 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
     if config.dof == 6:
         flags.append("6dof")
 
-    cov_q = _covariance(problem, p, q, config)
-    if cov_q is None:
+    parts_q = _covariance(problem, p, q, config, cameras, kp_base, w)
+    if parts_q is None:
         return _fail("degenerate geometry: the information matrix is singular")
     idx = [0, 1, 2] if config.dof == 3 else [0, 1, 5]
-    cov = cov_q[np.ix_(idx, idx)]
+    parts = parts_q.sub(idx)
     pose = PlanarPose(float(q[idx[0]]), float(q[idx[1]]), wrap_angle(float(q[idx[2]])))
     T_world_robot = _T_from_q(q, config.dof)
 
     if len(views) == 1:
         flags.append("single_camera")
-        if prior is not None and config.use_single_camera_heuristic:
-            stacked = StackedCameras.from_cameras(cameras)
+        stacked = StackedCameras.from_cameras(cameras)
 
-            def residual_fn(qb: np.ndarray) -> np.ndarray:
-                return weighted_residuals(stacked, kp_base, qb, uv, w)
+        def residual_fn(qb: np.ndarray) -> np.ndarray:
+            return weighted_residuals(stacked, kp_base, qb, uv, w)
 
+        prior_cov = valid_covariance(prior_covariance)
+        if prior is not None and config.single_camera == "map" and prior_cov is not None:
+            fused = fuse_with_prior(pose.as_array(), parts, prior.as_array(), prior_cov)
+            if fused.used:
+                flags.append("map_prior")
+                pose = PlanarPose(*(float(v) for v in fused.q))
+                parts = fused.parts
+                T_world_robot = pose.T()
+                rmse = _weighted_rmse(residual_fn(pose.as_array()[None])[0], w, config)
+            else:
+                flags.append("prior_rejected")
+        elif prior is not None and config.single_camera == "paper":
             outcome = apply_single_camera_heuristic(
                 cameras[0], prior, pose, math.radians(th.single_camera_max_dtheta_deg),
                 th.single_camera_max_ddepth_m, residual_fn)
@@ -303,11 +333,13 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
                 flags.append("lateral_only")
                 pose = outcome.pose
                 T_world_robot = pose.T()
-                cov = _lateral_only_covariance(cameras[0], pose, cov,
+                cov = _lateral_only_covariance(cameras[0], pose, parts.total,
                                                th.single_camera_max_ddepth_m,
                                                math.radians(th.single_camera_max_dtheta_deg))
+                parts = CovarianceParts(cov - parts.systematic, parts.systematic)
                 rmse = _weighted_rmse(residual_fn(pose.as_array()[None])[0], w, config)
 
+    cov = parts.total
     cov = 0.5 * (cov + cov.T)
     estimate = PoseEstimate(
         robot_id=frame_set.robot_id or next(iter(site.robots)),
@@ -323,7 +355,7 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
         flags=tuple(flags),
         frame_id=site.world_frame,
     )
-    return PoseResult(estimate, pose, "", T_world_robot, iterations)
+    return PoseResult(estimate, pose, "", T_world_robot, iterations, parts)
 
 
 def _q0(start: np.ndarray, T_world_robot: np.ndarray | None, dof: int) -> np.ndarray:
@@ -411,9 +443,14 @@ def _solve_with(problem: PoseProblem, p: np.ndarray, q0: np.ndarray, config: Sol
     return q, _weighted_rmse(r, w, config), out.iterations, out.success
 
 
-def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray,
-                config: SolverConfig) -> np.ndarray | None:
+def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray, config: SolverConfig,
+                cameras: Sequence[CameraModel], kp_base: np.ndarray,
+                w: np.ndarray) -> CovarianceParts | None:
+    """Covariance of the solution ``q`` in its own parameters: s^2 (J^T W J)^-1 for the
+    independent keypoint noise (s^2 the residual variance, floored) plus the correlated errors
+    of ``config.error_model`` propagated through the solve (:mod:`.covariance`)."""
     r, J, _ = problem.evaluate(q, p)
+    sw = np.ones_like(r)
     if config.robust_loss != "none":
         s = r[0::2] ** 2 + r[1::2] ** 2
         sw = np.repeat(np.sqrt(robust_weights(s, config.robust_loss, config.robust_scale_px)), 2)
@@ -426,9 +463,21 @@ def _covariance(problem: PoseProblem, p: np.ndarray, q: np.ndarray,
     try:
         if np.linalg.cond(H) > 1e12:
             return None
-        return s2 * np.linalg.inv(H)
+        H_inv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return None
+    frame = s2 * H_inv
+    systematic = np.zeros_like(frame)
+    model = config.error_model
+    if model.any:
+        # sensitivity to the raw pixel errors: dq = -H^-1 J^T (sqrt(w) * robust sqrt-weight) de
+        a = np.repeat(np.sqrt(np.clip(w.reshape(-1), 0.0, None)), 2) * sw
+        A = H_inv @ (J.T * a[None, :])
+        T = _T_from_q(q, config.dof)
+        pts_world = kp_base @ T[:3, :3].T + T[:3, 3]
+        extra_frame, systematic = propagate_correlated(A, cameras, pts_world, w, model)
+        frame = frame + extra_frame
+    return CovarianceParts(0.5 * (frame + frame.T), 0.5 * (systematic + systematic.T))
 
 
 def _lateral_only_covariance(camera: CameraModel, pose: PlanarPose, cov: np.ndarray,

@@ -6,7 +6,10 @@ from the current window (more than ``max_jump_m`` / ``max_jump_rad`` from its me
 after a gap longer than ``max_gap_s`` means the robot moved: the window restarts with it. Once
 ``k`` results agree it returns their average (mean position, circular-mean yaw, covariance of
 the mean) flagged ``multi_frame``; after that every new agreeing result returns the average of
-the last ``k``. Callers that know the robot moved (odometry) call :meth:`reset`.
+the last ``k``. Callers that know the robot moved (odometry) call :meth:`reset`. The average's
+covariance keeps the estimates' systematic part (camera calibration, a shared prior) whole and
+shrinks their per-frame part only as far as consecutive frames are independent
+(``frame_correlation``).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import math
 
 import numpy as np
 
+from backend_service.covariance import CovarianceParts
 from backend_service.estimate import PoseResult
 from backend_service.frame_set import PlanarPose
 from backend_service.pose_init import circular_mean
@@ -30,13 +34,19 @@ class MultiFrameConfig:
     restarts the window. ``once_per_stop``: one average per stop (the paper's "sparsely at
     waypoints"); further averages of the same stop see the same robot from the same cameras,
     so their errors are not independent and fusing each would make the pose graph
-    overconfident."""
+    overconfident. ``frame_correlation``: how alike the per-frame errors of consecutive frames
+    of a static robot are, 0 (independent draws) to 1 (the same error every frame: a
+    deterministic detector on a still image sees the same pixels). The average's covariance is
+    the frames' systematic part plus their per-frame part times
+    ``frame_correlation + (1 - frame_correlation) / count``; 1 (the default) claims nothing
+    from averaging, which is what the shipped CNN measures (docs/pose_estimation.md)."""
 
     count: int = 5
     max_jump_m: float = 0.15
     max_jump_deg: float = 5.0
     max_gap_s: float = 5.0
     once_per_stop: bool = True
+    frame_correlation: float = 1.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.count, int) and self.count >= 1):
@@ -45,6 +55,9 @@ class MultiFrameConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"MultiFrameConfig.{name} must be > 0, got {value!r}")
+        if not (math.isfinite(self.frame_correlation) and 0.0 <= self.frame_correlation <= 1.0):
+            raise ValueError("MultiFrameConfig.frame_correlation must be within [0, 1], got "
+                             f"{self.frame_correlation!r}")
 
 
 class MultiFrameAverager:
@@ -53,12 +66,13 @@ class MultiFrameAverager:
     @classmethod
     def from_config(cls, config: MultiFrameConfig) -> MultiFrameAverager:
         return cls(config.count, config.max_jump_m, math.radians(config.max_jump_deg),
-                   config.max_gap_s)
+                   config.max_gap_s, config.frame_correlation)
 
     def __init__(self, k: int, max_jump_m: float = 0.15, max_jump_rad: float = math.radians(5.0),
-                 max_gap_s: float = 5.0) -> None:
+                 max_gap_s: float = 5.0, frame_correlation: float = 1.0) -> None:
         if k < 1:
             raise ValueError("k must be >= 1")
+        self.frame_correlation = float(frame_correlation)
         self.k = int(k)
         self.max_jump_m = float(max_jump_m)
         self.max_jump_rad = float(max_jump_rad)
@@ -103,8 +117,13 @@ class MultiFrameAverager:
         newest = items[-1].estimate
         assert newest is not None
         covs = np.stack([r.estimate.covariance for r in items])  # type: ignore[union-attr]
-        # Covariance of the mean of k independent estimates.
-        cov = covs.mean(axis=0) / len(items)
+        systematic = np.stack([r.covariance_parts.systematic if r.covariance_parts is not None
+                               else np.zeros((3, 3)) for r in items]).mean(axis=0)
+        per_frame = covs.mean(axis=0) - systematic
+        # the per-frame part averages down only as far as the frames' errors are independent
+        rho = self.frame_correlation
+        shrink = rho + (1.0 - rho) / len(items)
+        cov = systematic + per_frame * shrink
         rmse = float(np.sqrt(np.mean([r.estimate.reprojection_rmse_px**2  # type: ignore[union-attr]
                                       for r in items])))
         cams = tuple(sorted({c for r in items for c in r.estimate.camera_ids}))  # type: ignore[union-attr]
@@ -112,4 +131,6 @@ class MultiFrameAverager:
                                     + ["multi_frame"]))
         est = dataclasses.replace(newest, x=mean.x, y=mean.y, theta=mean.theta, covariance=cov,
                                   camera_ids=cams, reprojection_rmse_px=rmse, flags=flags)
-        return dataclasses.replace(items[-1], estimate=est, pose=mean, T_world_robot=None)
+        parts = CovarianceParts(per_frame * shrink, systematic)
+        return dataclasses.replace(items[-1], estimate=est, pose=mean, T_world_robot=None,
+                                   covariance_parts=parts)

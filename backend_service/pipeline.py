@@ -37,6 +37,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Final, Protocol
 
+import numpy as np
+
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
@@ -137,7 +139,8 @@ class SolveRecord:
     ``prior``: the pose the solve started from (``None``: PnP) and ``prior_source`` which one
     (``fused``, ``localization``, ``camera`` or ``none``); ``result``: the solver's outcome;
     ``static``: the robot stood still at the frame-set's stamp; ``averaged``: the multi-frame
-    average this solve completed (or ``None``); ``solve_s``: wall time of the solve.
+    average this solve completed (or ``None``); ``solve_s``: wall time of the solve;
+    ``prior_covariance``: the prior's covariance the solve was given (or ``None``).
     """
 
     robot_id: str
@@ -148,6 +151,7 @@ class SolveRecord:
     static: bool
     averaged: PoseEstimate | None
     solve_s: float
+    prior_covariance: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -233,16 +237,20 @@ class RobotTrack:
             return None
         return self.fusion.pose_at(stamp_ns) or self.fusion.latest()
 
-    def prior(self, stamp_ns: int) -> tuple[PlanarPose | None, str]:
-        """The pose a solve at ``stamp_ns`` starts from and its source (the one prior rule)."""
+    def prior(self, stamp_ns: int) -> tuple[PlanarPose | None, str, np.ndarray | None]:
+        """The pose a solve at ``stamp_ns`` starts from, its source (the one prior rule) and
+        its covariance where the prior is independent of the cameras (the robot's own
+        localization; ``None`` for the pose graph, which already holds the camera estimates
+        and does the combining itself, and for the last camera estimate)."""
         lookups = {"fused": self._fused_at, "localization": self._localization_at,
                    "camera": self._camera_at}
         other = next(s for s in PRIOR_SOURCES if s != self.config.prior)
         for source in (self.config.prior, "camera", other):
             est = lookups[source](stamp_ns)
             if est is not None:
-                return PlanarPose(est.x, est.y, est.theta), source
-        return None, "none"
+                cov = est.covariance if source == "localization" else None
+                return PlanarPose(est.x, est.y, est.theta), source, cov
+        return None, "none", None
 
     def _camera_at(self, stamp_ns: int) -> PoseEstimate | None:
         last = self.last_camera
@@ -359,9 +367,9 @@ class BackendPipeline:
         track = self._track(fs.robot_id) if fs.robot_id else next(iter(self.tracks.values()))
         if track is None:
             return out
-        prior, source = track.prior(fs.stamp_ns)
+        prior, source, prior_cov = track.prior(fs.stamp_ns)
         t0 = time.perf_counter()
-        result = estimate_pose(fs, self.site, prior, self.config.solver)
+        result = estimate_pose(fs, self.site, prior, self.config.solver, prior_cov)
         solve_s = time.perf_counter() - t0
         static = track.static_at(fs.stamp_ns)
         averaged: PoseEstimate | None = None
@@ -388,7 +396,7 @@ class BackendPipeline:
                 if self.config.fuse_while_moving:
                     out.fused.extend(self._fuse(track, out.camera[-1]))
         out.solves.append(SolveRecord(track.robot_id, fs, prior, source, result, static,
-                                      averaged, solve_s))
+                                      averaged, solve_s, prior_cov))
         return out
 
     def _fuse(self, track: RobotTrack, est: PoseEstimate) -> list[PoseEstimate]:

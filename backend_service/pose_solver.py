@@ -55,6 +55,7 @@ from typing import Final
 import casadi as ca
 import numpy as np
 
+from backend_service.covariance import ErrorModel
 from protocol.camera import CameraModel
 from protocol.geometry import distort_normalized
 
@@ -62,6 +63,10 @@ log = logging.getLogger(__name__)
 
 METHODS: Final = ("ipopt", "sqpmethod", "lm", "gauss_newton")
 LOSSES: Final = ("none", "huber", "cauchy")
+#: single-camera treatments (SolverConfig.single_camera)
+SINGLE_CAMERA: Final = ("map", "paper", "plain")
+#: covariance models (SolverConfig.covariance_model)
+COVARIANCE_MODELS: Final = ("propagated", "residual")
 #: Chosen by ``smartedge bench pose``: the fastest method at every camera count, converging to
 #: the same minimum as IPOPT (see docs/pose_estimation.md and docs/benchmarks.md).
 DEFAULT_METHOD: Final = "gauss_newton"
@@ -95,10 +100,21 @@ class SolverConfig:
     ``"cauchy"`` (default, :data:`DEFAULT_ROBUST_LOSS`) with ``robust_scale_px`` (pixel error
     where the loss turns sub-quadratic).
     ``min_keypoint_score``: keypoints below are ignored (``None``: the site's threshold).
-    ``use_single_camera_heuristic``: apply the paper's bearing-only heuristic when one camera
-    sees the robot and a prior exists. ``dof``: 3 (planar, the paper) or 6.
+    ``single_camera``: what a single-camera solve does with a prior (:data:`SINGLE_CAMERA`):
+    ``"map"`` (default) combines the plain solve and the prior by their covariances when the
+    prior comes with one (:func:`backend_service.covariance.fuse_with_prior`), else keeps the
+    plain solve; ``"paper"`` the paper's bearing-only heuristic; ``"plain"`` never uses the
+    prior. ``dof``: 3 (planar, the paper) or 6.
     ``max_iterations``: solver iteration cap. ``covariance_floor_px``: the residual scale used
     for the covariance never goes below this (a perfect fit is not infinitely certain).
+    ``covariance_model``: ``"propagated"`` (default) adds the correlated errors below to the
+    Gauss-Newton covariance (:mod:`backend_service.covariance`); ``"residual"`` is the
+    Gauss-Newton covariance alone (independent keypoint errors; overconfident).
+    ``detection_shift_sigma_px`` / ``detection_scale_sigma``: per-detection error that moves
+    all keypoints of one robot together (crop offset, px) or scales them about their centroid
+    (relative); defaults measured for the shipped CNN (docs/pose_estimation.md).
+    ``extrinsic_sigma_m`` / ``extrinsic_sigma_deg``: accuracy of the cameras' calibrated poses
+    (position, orientation), the error no averaging removes.
     ``try_pnp_fallback``: when the solve from the prior fails or fits badly, retry from PnP.
     ``sigma_floor_px``: keypoints that come with the detector's pixel sigma are weighted
     (floor / max(sigma, floor))^2: at or below the floor they weigh 1 (like a confidence of 1),
@@ -112,12 +128,17 @@ class SolverConfig:
     robust_loss: str = DEFAULT_ROBUST_LOSS
     robust_scale_px: float = 5.0
     min_keypoint_score: float | None = None
-    use_single_camera_heuristic: bool = True
+    single_camera: str = "map"
     dof: int = 3
     max_iterations: int = 100
     covariance_floor_px: float = 1.0
     try_pnp_fallback: bool = True
     sigma_floor_px: float = 1.5
+    covariance_model: str = "propagated"
+    detection_shift_sigma_px: float = 0.5
+    detection_scale_sigma: float = 0.02
+    extrinsic_sigma_m: float = 0.01
+    extrinsic_sigma_deg: float = 0.1
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -132,6 +153,25 @@ class SolverConfig:
             raise ValueError("SolverConfig.max_iterations must be >= 1")
         if not (math.isfinite(self.sigma_floor_px) and self.sigma_floor_px > 0):
             raise ValueError("SolverConfig.sigma_floor_px must be > 0")
+        if self.single_camera not in SINGLE_CAMERA:
+            raise ValueError(f"SolverConfig.single_camera {self.single_camera!r} not in "
+                             f"{SINGLE_CAMERA}")
+        if self.covariance_model not in COVARIANCE_MODELS:
+            raise ValueError(f"SolverConfig.covariance_model {self.covariance_model!r} not in "
+                             f"{COVARIANCE_MODELS}")
+        for name in ("detection_shift_sigma_px", "detection_scale_sigma", "extrinsic_sigma_m",
+                     "extrinsic_sigma_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"SolverConfig.{name} must be >= 0, got {value!r}")
+
+    @property
+    def error_model(self) -> ErrorModel:
+        """The correlated errors the covariance accounts for (none for ``"residual"``)."""
+        if self.covariance_model == "residual":
+            return ErrorModel()
+        return ErrorModel(self.detection_shift_sigma_px, self.detection_scale_sigma,
+                          self.extrinsic_sigma_m, self.extrinsic_sigma_deg)
 
 
 @dataclasses.dataclass(frozen=True)

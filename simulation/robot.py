@@ -244,6 +244,10 @@ class SimulatedRobot:
         # Localization error in the world frame (dx, dy, dtheta), OU over travelled distance.
         self._err = np.array([*rng.normal(0.0, lc.init_sigma_m, 2),
                               rng.normal(0.0, math.radians(lc.init_sigma_deg))])
+        self._init_var = np.array([lc.init_sigma_m ** 2] * 2
+                                  + [math.radians(lc.init_sigma_deg) ** 2])
+        # the variance of that error, as a well-tuned particle filter would report it
+        self._err_var = self._init_var.copy()
         self.travelled_m = 0.0
         self.corrections_applied = 0
         self.corrections_refused = 0
@@ -266,6 +270,12 @@ class SimulatedRobot:
         """(3,) the robot's internal localization (map frame) at the current time."""
         return np.array([self._gt[0] + self._err[0], self._gt[1] + self._err[1],
                          wrap_angle(self._gt[2] + self._err[2])])
+
+    def localization_covariance(self) -> np.ndarray:
+        """(3, 3) the variance of the localization error (x, y, theta), as the robot's own
+        localization reports it: the error process's variance given the travelled distance
+        since the start or the last correction."""
+        return np.diag(self._err_var)
 
     def odometry_pose(self) -> np.ndarray:
         """(3,) integrated wheel odometry (odom frame) at the current time."""
@@ -308,6 +318,7 @@ class SimulatedRobot:
                 # LiDAR localization degrades where clutter hides the mapped walls
                 sig = sig * self.scenario.localization_sigma_factor_at(self._gt[:2])
             self._err = self._err * decay + sig * diffuse * rng.normal(size=3)
+            self._err_var = self._err_var * decay ** 2 + (sig * diffuse) ** 2
             self.travelled_m += ds
         self._gt = gt_new
         self._t_s = t_s
@@ -339,5 +350,6 @@ class SimulatedRobot:
         p = np.asarray(pose, dtype=np.float64).reshape(3)
         self._err = np.array([p[0] - self._gt[0], p[1] - self._gt[1],
                               angle_diff(p[2], self._gt[2])])
+        self._err_var = self._init_var.copy()
         self.corrections_applied += 1
         return True

@@ -191,7 +191,7 @@ class SimulationRun:
     def _localization_message(self, stamp_ns: int, seq: int) -> PoseEstimate:
         x, y, theta = (float(v) for v in self.robot.localization_pose())
         return PoseEstimate(self.scenario.robot_id, stamp_ns, seq, x, y, theta,
-                            np.diag([1e-2, 1e-2, 1e-3]), "robot",
+                            self.robot.localization_covariance(), "robot",
                             frame_id=self.scenario.site.world_frame)
 
     def _record(self, t_s: float) -> None:

@@ -8,9 +8,11 @@ the robot's localization, camera estimates fused as the averages taken while sta
 waypoint, once the robot has been static for ``dwell_s``, one sample per pose source is taken:
 
 - Robot: the robot's internal localization (no corrections are fed back, as in the paper);
-- Cameras (raw): the first solved frame-set, solved again from the same prior without the
-  single-camera heuristic (the ablation);
-- Cameras (1 frame): the pipeline's estimate of that frame-set (heuristic on);
+- Cameras (raw): the first solved frame-set, solved again from the same prior without any
+  single-camera treatment (the ablation);
+- Cameras (paper heuristic): the same, with the paper's bearing-only heuristic;
+- Cameras (1 frame): the pipeline's estimate of that frame-set (single camera: the MAP
+  combination with the localization and its covariance);
 - Cameras (5 frames): the pipeline's first average of ``frames`` estimates while static;
 - Fused: the pipeline's pose graph, smoothed, at that stamp (after the run).
 
@@ -37,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.estimate import SolverConfig, estimate_pose
+from backend_service.estimate import estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.pipeline import (
     BackendPipeline,
@@ -63,10 +65,11 @@ from smartedge.evaluation.metrics import (
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("robot", "raw", "one_frame", "five_frames", "fused")
+SOURCES = ("robot", "raw", "paper", "one_frame", "five_frames", "fused")
 ROW_NAMES = {
     "robot": "Robot",
     "raw": "Cameras (raw)",
+    "paper": "Cameras (paper heuristic)",
     "one_frame": "Cameras (1 frame)",
     "five_frames": "Cameras (5 frames)",
     "fused": "Fused",
@@ -202,7 +205,7 @@ def nees_table(results: Sequence[RunResult]) -> tuple[str, dict[str, dict[str, f
     per number of cameras: e^T C^-1 e with e = estimate - truth (heading wrapped) and C the
     covariance the source reported."""
     numbers: dict[str, dict[str, float]] = {}
-    for source in ("raw", "one_frame", "five_frames", "fused"):
+    for source in ("raw", "paper", "one_frame", "five_frames", "fused"):
         per: dict[str, list[float]] = {}
         for res in results:
             for smp in res.samples:
@@ -232,19 +235,27 @@ def nees_table(results: Sequence[RunResult]) -> tuple[str, dict[str, dict[str, f
     return "\n".join(lines) + "\n", numbers
 
 
-def paper_pipeline_config(site: Site, heuristic: bool = True, frames: int | None = None,
+def paper_pipeline_config(site: Site, single_camera: str = "map", frames: int | None = None,
+                          scenario: Scenario | None = None, detections: str = "cnn",
                           ) -> PipelineConfig:
     """The deployed pipeline set up for the paper's protocol: the prior is the robot's own
     localization, and camera estimates go into the pose graph only as the averages taken at
-    static waypoints. ``heuristic``: the single-camera heuristic (off for "Cameras (raw)");
-    ``frames``: estimates averaged while static (default: the site's)."""
-    config = PipelineConfig.from_site(
-        site, prior="localization", fuse_while_moving=False,
-        solver=SolverConfig(use_single_camera_heuristic=heuristic))
+    static waypoints. ``single_camera``: the single-camera treatment (``SolverConfig``);
+    ``frames``: estimates averaged while static (default: the site's). With ``detections``
+    ``"noise"`` and the ``scenario``, the covariance's detector error model is the scenario's
+    (its per-detection shift and scale, drawn independently every frame), as a detector card
+    would state it; with ``"cnn"`` the defaults measured for the shipped CNN apply."""
+    config = PipelineConfig.from_site(site, prior="localization", fuse_while_moving=False)
+    solver = dataclasses.replace(config.solver, single_camera=single_camera)
+    multi_frame = config.multi_frame
     if frames is not None:
-        config = dataclasses.replace(
-            config, multi_frame=dataclasses.replace(config.multi_frame, count=int(frames)))
-    return config
+        multi_frame = dataclasses.replace(multi_frame, count=int(frames))
+    if detections == "noise" and scenario is not None:
+        solver = dataclasses.replace(
+            solver, detection_shift_sigma_px=scenario.noise.sigma_shift_px,
+            detection_scale_sigma=scenario.noise.sigma_scale)
+        multi_frame = dataclasses.replace(multi_frame, frame_correlation=0.0)
+    return dataclasses.replace(config, solver=solver, multi_frame=multi_frame)
 
 
 def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
@@ -263,10 +274,13 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
                         seed=run_seed(scenario, trajectory, reverse, iteration, config.seed),
                         world=world, detector=detector)
     name = f"{trajectory}{'r' if reverse else ''}_{iteration + 1}"
-    pipeline = BackendPipeline(site, paper_pipeline_config(site, frames=config.frames),
+    pipeline = BackendPipeline(site, paper_pipeline_config(site, frames=config.frames,
+                                                           scenario=scenario,
+                                                           detections=config.detections),
                                fusion_factory=fusion_factory,
                                with_fusion=fusion_factory is not None)
-    raw_solver = SolverConfig(use_single_camera_heuristic=False)
+    ablations = {name: dataclasses.replace(pipeline.config.solver, single_camera=mode)
+                 for name, mode in (("raw", "plain"), ("paper", "paper"))}
     start_ns = scenario.start_stamp_ns
     counters = {"frame_sets": 0, "solved": 0, "failed": 0}
     samples: dict[int, StopSample] = {}
@@ -303,10 +317,12 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
             if "one_frame" not in sample.estimates:
                 sample.estimates["one_frame"] = _to_pose(rec.result.pose)
                 _keep_covariance(sample, "one_frame", rec.result.estimate)
-                # the ablation: the same frame-set from the same prior, heuristic off
-                raw = estimate_pose(rec.frame_set, site, rec.prior, raw_solver)
-                sample.estimates["raw"] = _to_pose(raw.pose) if raw.ok else None
-                _keep_covariance(sample, "raw", raw.estimate)
+                # the ablations: the same frame-set from the same prior, other treatments
+                for name, solver in ablations.items():
+                    res = estimate_pose(rec.frame_set, site, rec.prior, solver,
+                                        rec.prior_covariance)
+                    sample.estimates[name] = _to_pose(res.pose) if res.ok else None
+                    _keep_covariance(sample, name, res.estimate)
             if rec.averaged is not None and "five_frames" not in sample.estimates:
                 sample.estimates["five_frames"] = _to_pose(rec.averaged)
                 _keep_covariance(sample, "five_frames", rec.averaged)
@@ -864,7 +880,11 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
     robot = sim.robot
     world_ = sim.world
     run_name = name or f"{route}_{'fb' if feedback else 'nofb'}"
-    pipeline = BackendPipeline(site, pipeline_config or paper_pipeline_config(site),
+    if pipeline_config is None:
+        # the simulator's own error model unless a rendering detector stands in for it
+        mode = "noise" if detector is None or type(detector) is DetectionSimulator else "cnn"
+        pipeline_config = paper_pipeline_config(site, scenario=scenario, detections=mode)
+    pipeline = BackendPipeline(site, pipeline_config,
                                fusion_factory=fusion_factory,
                                with_fusion=fusion_factory is not None)
     bridge = RobotBridge(BridgeConfig.from_site(site, scenario.robot_id)) if feedback else None
@@ -1068,6 +1088,8 @@ def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
             r = run_feedback(sc, config.long_route, fb, seed,
                              name=f"{config.long_route}_{'fb' if fb else 'nofb'}_{k + 1}",
                              fusion_factory=factory, world=world, detector=detector,
+                             pipeline_config=paper_pipeline_config(
+                                 sc.site, scenario=sc, detections=config.detections),
                              fused_trajectory_step=config.fused_trajectory_step)
             runs.append(r)
             say(f"[exp2 {len(runs)}/{total}] {r.name}: robot RMS {r.robot_rms_m() * 100:.1f} cm"
@@ -1092,6 +1114,8 @@ def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
                          name=f"{config.robustness_route}_{'fb' if fb else 'nofb'}_{k % n + 1}",
                          fusion_factory=factory, failure=model, world=world,
                          detector=detector,
+                         pipeline_config=paper_pipeline_config(
+                             sc.site, scenario=sc, detections=config.detections),
                          fused_trajectory_step=config.fused_trajectory_step)
         runs.append(r)
         where = "" if r.outcome == SUCCESS else (

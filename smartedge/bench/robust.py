@@ -79,7 +79,7 @@ def run(trials: int, sigma_px: float = 1.0, seed: int = 0,
                                    truth.theta + math.radians(6.0) * sign[2])
                 cases.append((truth, crlb, FrameSet.from_observations(model.name, obs), prior))
             for loss in LOSSES:
-                config = SolverConfig(robust_loss=loss, use_single_camera_heuristic=False)
+                config = SolverConfig(robust_loss=loss, single_camera="plain")
                 pos_ratio, head_ratio, gross, failed = [], [], 0, 0
                 for truth, crlb, fs, prior in cases:
                     res = estimate_pose(fs, site, prior, config)

@@ -52,7 +52,7 @@ def test_pose_from_messages_with_and_without_prior() -> None:
 
 def test_single_message_and_named_robot() -> None:
     res = estimate_from_detections(SITE, _message("cam_ne", robot_id=ROBOT), robot_id=ROBOT,
-                                   config=SolverConfig(use_single_camera_heuristic=False))
+                                   config=SolverConfig(single_camera="plain"))
     assert res.ok, res.reason
 
 

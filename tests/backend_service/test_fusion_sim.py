@@ -28,7 +28,7 @@ def _run(trajectory: str, seed: int) -> dict[str, object]:
     sim = SimulationRun(sc, trajectory, seed=seed)
     sync = FrameSetSynchronizer(sc.site, sc.robot_id)
     fusion = PoseGraphFusion(sc.robot_id)
-    cfg = SolverConfig(use_single_camera_heuristic=True)
+    cfg = SolverConfig(single_camera="paper")
     averagers: dict[int, MultiFrameAverager] = {}
     camera: dict[int, tuple[int, np.ndarray]] = {}
     odom: list[tuple[int, np.ndarray]] = []

@@ -35,7 +35,7 @@ def test_single_camera_from_a_poor_prior_never_lands_on_a_far_minimum() -> None:
         s = rng.choice([-1, 1], 3)
         prior = PlanarPose(truth.x + 0.3 * s[0], truth.y + 0.3 * s[1], truth.theta + 0.3 * s[2])
         res = estimate_pose(fs, site, prior, SolverConfig(robust_loss="cauchy",
-                                                          use_single_camera_heuristic=False))
+                                                          single_camera="plain"))
         assert res.ok, res.reason
         errors.append(math.hypot(res.pose.x - truth.x, res.pose.y - truth.y))
     assert max(errors) < 0.05, max(errors)
