@@ -112,7 +112,8 @@ class SolverConfig:
     Gauss-Newton covariance alone (independent keypoint errors; overconfident).
     ``detection_shift_sigma_px`` / ``detection_scale_sigma``: per-detection error that moves
     all keypoints of one robot together (crop offset, px) or scales them about their centroid
-    (relative); defaults measured for the shipped CNN (docs/pose_estimation.md).
+    (relative); defaults measured for the shipped CNN (``smartedge evaluate keypoints
+    --calibrate`` prints them; docs/pose_estimation.md).
     ``extrinsic_sigma_m`` / ``extrinsic_sigma_deg``: accuracy of the cameras' calibrated poses
     (position, orientation), the error no averaging removes.
     ``try_pnp_fallback``: when the solve from the prior fails or fits badly, retry from PnP.
@@ -135,8 +136,8 @@ class SolverConfig:
     try_pnp_fallback: bool = True
     sigma_floor_px: float = 1.5
     covariance_model: str = "propagated"
-    detection_shift_sigma_px: float = 0.5
-    detection_scale_sigma: float = 0.02
+    detection_shift_sigma_px: float = 0.3
+    detection_scale_sigma: float = 0.013
     extrinsic_sigma_m: float = 0.01
     extrinsic_sigma_deg: float = 0.1
 

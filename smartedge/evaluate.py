@@ -71,6 +71,17 @@ def _paper(args: argparse.Namespace) -> int:
         print("smartedge evaluate paper: --experiments takes a list of 1, 2, 3",
               file=sys.stderr)
         return 2
+    calibration_seeds = None
+    if args.calibration_seeds:
+        try:
+            calibration_seeds = tuple(int(v) for v in args.calibration_seeds.split(",")
+                                      if v.strip())
+        except ValueError:
+            calibration_seeds = ()
+        if not calibration_seeds:
+            print("smartedge evaluate paper: --calibration-seeds takes a list of integers",
+                  file=sys.stderr)
+            return 2
     config = PaperConfig(
         experiments=experiments,
         feedback_seeds=args.feedback_seeds,
@@ -85,6 +96,7 @@ def _paper(args: argparse.Namespace) -> int:
         model_dir=args.model,
         threads=args.threads,
         sensor_noise_dn=args.sensor_noise,
+        calibration_seeds=calibration_seeds,
     )
     try:
         report = run_paper(config, args.out, progress=lambda line: print(line, flush=True))
@@ -217,6 +229,11 @@ def build_parser() -> argparse.ArgumentParser:
     p_paper.add_argument("--sensor-noise", type=float, default=None, metavar="DN",
                          help="--detections cnn: per-frame image noise, digital numbers of "
                          "0-255 (default 2)")
+    p_paper.add_argument(
+        "--calibration-seeds", default=None, metavar="S1,S2,...",
+        help="experiment 1: draw the cameras' calibration error with each seed and pool the "
+        "runs (default: the scenario's one draw); the NEES of a covariance with a calibration "
+        "term is an expectation over such draws")
     p_kp = sub.add_parser("keypoints", help="detector AP and keypoint errors of the ONNX "
                           "models on fresh held-out renders")
     p_kp.add_argument("--model", help="model folder (default: the shipped models)")

@@ -14,6 +14,8 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "codec": ("smartedge.bench.codec", "main", "encode+decode throughput of detections and clouds"),
     "pose": ("smartedge.bench.pose", "main", "pose solve latency vs pyceres and scipy"),
     "robust": ("smartedge.bench.robust", "main", "robust losses: MSE vs the Cramer-Rao bound"),
+    "single-camera": ("smartedge.bench.single_camera", "main",
+                      "single-camera treatments and covariance consistency (NEES)"),
     "sim": ("smartedge.bench.sim", "main", "simulated seconds per wall second"),
     "fusion": ("smartedge.bench.fusion", "main", "ISAM2 latency and memory over 1 h"),
     "backend": ("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),

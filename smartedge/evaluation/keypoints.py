@@ -11,6 +11,7 @@ separately, and whether a low confidence means a worse keypoint.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -126,10 +127,13 @@ CALIBRATION_SEEDS = {"randomized": 1001, "site": 1002}
 
 
 def calibration_errors(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
-                       min_score: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+                       min_score: float = 0.3,
+                       correlated: list[np.ndarray] | None = None,
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """(errors in crop pixels, confidences) of the in-image keypoints of every robot the
     deployed pipeline finds (IoU >= 0.5 with the true box) in full rendered frames: the
-    conditions the edge runs under, detector box errors included."""
+    conditions the edge runs under, detector box errors included. ``correlated``: when given,
+    each found robot's common error is appended to it (:func:`detection_common_error`)."""
     from edge_agent.crop import crop_transform
 
     card = pipeline.keypoints.card
@@ -147,9 +151,56 @@ def calibration_errors(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
         valid = np.asarray(robot.in_image, bool)
         errs.append(err[valid])
         confs.append(np.asarray(found[0].confidence)[valid])
+        if correlated is not None and valid.sum() >= 3:
+            correlated.append(detection_common_error(found[0].keypoints_px[valid],
+                                                     np.asarray(robot.keypoints_px)[valid]))
     if not errs:
         return np.zeros(0), np.zeros(0)
     return np.concatenate(errs), np.concatenate(confs)
+
+
+def detection_common_error(found_px: np.ndarray, true_px: np.ndarray) -> np.ndarray:
+    """(4,) the part of one detection's keypoint errors that all its keypoints share: the
+    least-squares shift (dx, dy in image px) and relative scale about the true centroid, and
+    the RMS per-axis error left after removing them: ``e_k ~ t + s (p_k - c)``. Gross
+    keypoint errors (beyond 3 px and 3x the median rest) are left out of a second fit, as the
+    backend's robust loss leaves them out of the pose."""
+    c = true_px.mean(axis=0)
+    d = true_px - c
+    e = (found_px - true_px).reshape(-1)
+    m = len(true_px)
+    A = np.zeros((2 * m, 3))
+    A[0::2, 0] = 1.0
+    A[1::2, 1] = 1.0
+    A[0::2, 2] = d[:, 0]
+    A[1::2, 2] = d[:, 1]
+    keep = np.ones(m, bool)
+    x = np.zeros(3)
+    for _ in range(2):
+        rows = np.repeat(keep, 2)
+        x, *_ = np.linalg.lstsq(A[rows], e[rows], rcond=None)
+        rest = np.linalg.norm((e - A @ x).reshape(m, 2), axis=1)
+        new_keep = rest <= max(3.0, 3.0 * float(np.median(rest)))
+        if new_keep.sum() < 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    rest = (e - A @ x).reshape(m, 2)[keep]
+    return np.array([x[0], x[1], x[2], math.sqrt(float(np.mean(rest ** 2)))])
+
+
+def common_error_summary(rows: Sequence[np.ndarray]) -> dict[str, float]:
+    """Robust spread (1.4826 x median absolute deviation from 0) of the per-detection shift
+    (both axes pooled, image px) and scale, and the median rest, over
+    :func:`detection_common_error` rows: the figures ``SolverConfig.detection_shift_sigma_px``
+    and ``detection_scale_sigma`` take. (Robust: a missed or swapped detection is a gross
+    error the robust loss and the gates handle, not part of the Gaussian model.)"""
+    arr = np.asarray(rows, np.float64).reshape(-1, 4)
+    if not len(arr):
+        return {}
+    return {"shift_px": float(1.4826 * np.median(np.abs(arr[:, :2]))),
+            "scale": float(1.4826 * np.median(np.abs(arr[:, 2]))),
+            "rest_px": float(np.median(arr[:, 3])),
+            "detections": float(len(arr))}
 
 
 def calibrate_keypoints(model_dir: Path | None = None, *, count: int = 300,
@@ -176,15 +227,24 @@ def calibrate_keypoints(model_dir: Path | None = None, *, count: int = 300,
     pipeline = RobotKeypointPipeline(det_path if det_path.is_file() else None, kp_path,
                                      threads=threads, keypoint_names=model.keypoint_names)
     errs, confs = [], []
+    common: dict[str, list[np.ndarray]] = {}
     for mode, seed in CALIBRATION_SEEDS.items():
         say(f"rendering {count} held-out {mode} views (seed {seed}) for the calibration")
         gen = SampleGenerator(scenario, mode, seed=seed)
-        e, c = calibration_errors(pipeline, [gen(i) for i in range(count)])
+        e, c = calibration_errors(pipeline, [gen(i) for i in range(count)],
+                                  correlated=common.setdefault(mode, []))
         errs.append(e)
         confs.append(c)
     table = sigma_calibration(np.concatenate(errs), np.concatenate(confs), bins=bins)
     for c, s in zip(table["confidence"], table["sigma_crop_px"], strict=True):
         say(f"  confidence {c:.3f}: sigma {s:.2f} crop px")
+    for mode, rows in common.items():
+        summary = common_error_summary(rows)
+        if summary:
+            say(f"  {mode} views: per-detection shift {summary['shift_px']:.2f} px, scale "
+                f"{summary['scale']:.4f}, rest {summary['rest_px']:.2f} px per axis "
+                f"({summary['detections']:.0f} detections): SolverConfig."
+                "detection_shift_sigma_px / detection_scale_sigma")
     if write:
         path = card_path(pipeline.keypoints.path)
         card = KeypointCard.read(path)
