@@ -110,3 +110,25 @@ def test_fuse_while_moving_off_fuses_only_averages(stream) -> None:
 def test_bad_config_is_a_clear_error() -> None:
     with pytest.raises(ValueError, match="prior"):
         PipelineConfig(prior="gps")
+
+
+def test_prior_covariance_is_passed_only_for_the_robots_localization(stream) -> None:
+    sc, messages = stream
+    site = sc.site
+    for prior in ("fused", "localization"):
+        pipeline = BackendPipeline(site, PipelineConfig.from_site(site, prior=prior))
+        records = []
+        for tm in messages:
+            records += pipeline.step(tm.message, tm.arrival_ns).solves
+        by_source = {r.prior_source for r in records}
+        assert prior in by_source
+        for r in records:
+            if r.prior_source == "localization":
+                # the simulated localization reports its own covariance: it reaches the solve
+                assert r.prior_covariance is not None and r.prior_covariance.shape == (3, 3)
+                assert np.all(np.linalg.eigvalsh(r.prior_covariance) > 0)
+            else:  # the pose graph combines camera estimates itself: no double counting
+                assert r.prior_covariance is None
+            if r.result.ok and "map_prior" in r.result.estimate.flags:
+                assert r.prior_source == "localization"
+                assert "single_camera" in r.result.estimate.flags
