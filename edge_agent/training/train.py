@@ -29,6 +29,7 @@ from edge_agent.models import (
     KeypointCard,
     card_path,
     decode_detections,
+    export_differences,
     reference_path,
 )
 from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
@@ -423,8 +424,9 @@ def check_onnxruntime(cfg: TrainConfig, model: torch.nn.Module, path: Path,
     diffs = {}
     for name, r, o in zip(names, ref, got, strict=True):
         diffs[name] = float(np.max(np.abs(r - o))) if r.size else 0.0
-    tol = {"peaks": 1e-3, "size": 1e-2, "offset": 1e-3, "keypoints": 0.05, "confidence": 1e-3}
-    bad = {k: v for k, v in diffs.items() if v > tol.get(k, 1e-3)}
+    ratios = export_differences({**dict(zip(names, ref, strict=True)), **extra},
+                                dict(zip(names, got, strict=True)))
+    bad = {k: diffs[k] for k, v in ratios.items() if v > 1.0}
     if bad:
         raise TrainingError(f"{path}: onnxruntime differs from torch: {bad}")
     np.savez_compressed(reference_path(path), inputs=np.asarray(samples, np.uint8),

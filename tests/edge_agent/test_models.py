@@ -27,6 +27,7 @@ from edge_agent.models import (
     RobotObservation,
     card_path,
     default_model_dir,
+    export_differences,
     model_files,
     reference_path,
 )
@@ -34,10 +35,6 @@ from protocol.errors import SmartedgeError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 K = 12  # the paper robot's keypoints
-
-#: max abs difference allowed between onnxruntime and the stored torch outputs
-TOLERANCE = {"peaks": 1e-3, "size": 1e-2, "offset": 1e-3, "keypoints": 0.05,
-             "confidence": 1e-3}
 
 
 @pytest.fixture
@@ -143,18 +140,13 @@ def test_onnxruntime_reproduces_the_stored_reference(tiny_models: Path, kind: st
     with np.load(reference_path(onnx)) as ref:
         inputs = ref["inputs"]
         expected = {name: ref[name] for name in ref.files if name != "inputs"}
-    ambiguous = expected.pop("peaks_ambiguous", None)
     session = model.session
     got = session.run(None, {session.get_inputs()[0].name: to_nchw(inputs)})
     names = [o.name for o in session.get_outputs()]
-    assert set(names) == set(expected)
-    assert (ambiguous is not None) == (kind == "detector")
-    for name, out in zip(names, got, strict=True):
-        if name == "peaks":  # a cell at the tie threshold may go either way
-            out = np.where(ambiguous, expected[name], out)
-        assert out.shape == expected[name].shape
-        diff = float(np.max(np.abs(out - expected[name])))
-        assert diff <= TOLERANCE[name], f"{kind} {name}: max abs diff {diff}"
+    assert set(names) | ({"peaks_ambiguous"} if kind == "detector" else set()) == set(expected)
+    ratios = export_differences(expected, dict(zip(names, got, strict=True)))
+    assert set(ratios) == set(names)
+    assert max(ratios.values()) <= 1.0, f"{kind}: differences / tolerance {ratios}"
 
 
 def test_pipeline_runs_without_torch(tiny_models: Path) -> None:
@@ -322,3 +314,23 @@ def test_invalid_image_input(tiny_models: Path, image: np.ndarray) -> None:
     pipe = RobotKeypointPipeline.from_folder(tiny_models, threads=1)
     with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
         pipe(image)
+
+
+def test_export_differences_allow_a_window_shift_only_where_the_best_bins_tie() -> None:
+    """A keypoint may move by up to half a bin where its decode window moved (its confidence
+    differs beyond float noise); everywhere else the tight tolerance holds."""
+    rng = np.random.default_rng(0)
+    want = {"keypoints": rng.uniform(0, 192, (2, K, 2)).astype(np.float32),
+            "confidence": rng.uniform(0.8, 1.0, (2, K)).astype(np.float32)}
+    same = {k: v.copy() for k, v in want.items()}
+    assert max(export_differences(want, same).values()) == 0.0
+    moved = {k: v.copy() for k, v in want.items()}
+    moved["keypoints"][1, 1, 1] += 0.06  # past 0.05 with the window where it was: fails
+    assert export_differences(want, moved)["keypoints"] > 1.0
+    moved["confidence"][1, 1] -= 0.001  # the window moved by a bin: half a bin allowed
+    assert max(export_differences(want, moved).values()) <= 1.0
+    moved["keypoints"][1, 1, 1] += 0.3  # more than half a bin: fails even with a tie
+    assert export_differences(want, moved)["keypoints"] > 1.0
+    peaks = {"peaks": np.zeros((1, 4)), "peaks_ambiguous": np.array([[True, False, False, False]])}
+    assert export_differences(peaks, {"peaks": np.array([[1.0, 0, 0, 0]])})["peaks"] == 0.0
+    assert export_differences(peaks, {"peaks": np.array([[0, 1.0, 0, 0]])})["peaks"] > 1.0
