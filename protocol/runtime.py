@@ -378,6 +378,8 @@ class ZenohRunner:
                         node.alive(key, present)
                     for sub, channel in channels:
                         for _ in range(64):  # bounded per pass: fairness between keys
+                            if self._stop.is_set():  # a stop waits for one message, not a pass
+                                break
                             item = channel.pop()
                             if item is None:
                                 break
@@ -409,7 +411,11 @@ class ZenohRunner:
                         self._wake.wait(min(timeout, 0.05))
             finally:
                 sd_notify("STOPPING=1")
-                log.info("%s %s stopping", node.service, node.instance_id)
+                unprocessed = sum(len(channel) for _, channel in channels)
+                if unprocessed:
+                    node.stats.count("unprocessed_at_stop", unprocessed)
+                log.info("%s %s stopping (%d received messages left unprocessed)", node.service,
+                         node.instance_id, unprocessed)
                 if self._status:
                     try:
                         final = make_status(node, status_seq, started_s, "stopping")

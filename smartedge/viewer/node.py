@@ -167,9 +167,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def build_node(args: argparse.Namespace) -> ViewerNode:
-    from smartedge.viewer.rerun_view import RerunTarget, RerunView
+    from smartedge.viewer.rerun_view import RerunTarget, RerunView, StaticScene, scene_from_boxes
 
     truth: TruthSource | None = None
+    scene: StaticScene | None = None
     site = load_site(args.site) if args.site else None
     if args.sim_truth:
         from simulation.live import LiveSimulation, spec_from_args
@@ -177,12 +178,15 @@ def build_node(args: argparse.Namespace) -> ViewerNode:
         live = LiveSimulation(spec_from_args(args))
         site = site or live.site
         truth = truth_from_live(live)
+        sc = live.scenario
+        scene = scene_from_boxes(sc.room_min_xy_m, sc.room_max_xy_m, sc.room_height_m,
+                                 sc.obstacles)
     if site is None:
         raise UsageError("--site is required (or --sim-truth for the simulated site)")
     target = RerunTarget.parse(args.rerun)
     if target.kind == "none":
         raise UsageError("--rerun none: the viewer needs somewhere to draw")
-    return ViewerNode(site, RerunView(site, target), args.id, truth=truth)
+    return ViewerNode(site, RerunView(site, target, scene=scene), args.id, truth=truth)
 
 
 def truth_from_live(live: Any) -> TruthSource:

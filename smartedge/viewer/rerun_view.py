@@ -2,30 +2,42 @@
 
 Entity layout (world frame = site world frame, z up):
 
-- ``world/cameras/<camera_id>``: camera pose (Transform3D) and ``.../image`` Pinhole; per-frame
-  ``.../image/detections`` (boxes) and ``.../image/keypoints`` (2D keypoints); ``.../image``
-  also gets the camera's JPEG preview when its edge agent sends one (``--preview-rate``)
-- ``world/robots/<robot_id>/camera``: camera-only estimate (Transform3D) with ``.../keypoints``
-  (3D keypoints of the robot model at that pose)
-- ``world/robots/<robot_id>/fused``, ``.../odometry``, ``.../ground_truth``: poses
-- ``world/trajectories/<robot_id>/{camera,fused,odometry,ground_truth}``: line strips
-- ``metrics/<robot_id>/error_cm/{camera,fused,odometry}``, ``metrics/latency_ms/<stage>``: series
+- ``world/site/floor_plan`` (room outline and floor), ``world/site/obstacles`` (boxes): the
+  static scene when one is known (:class:`StaticScene`; the simulation provides it)
+- ``world/cameras/<camera_id>``: camera pose (Transform3D) and ``.../image`` Pinhole (frustum);
+  ``.../image/bounds`` the image rectangle; per frame ``.../image/detections`` (boxes),
+  ``.../image/keypoints`` (2D keypoints) and ``.../image/reprojection`` (the robot model at the
+  camera-only estimate projected back into this camera: what a person checks by eye);
+  ``.../image`` also gets the camera's JPEG preview when its edge agent sends one
+- ``world/robots/<robot_id>/{camera,fused,localization,odometry,ground_truth}``: poses
+  (Transform3D + heading arrow); ``.../camera_keypoints`` the 3D keypoints of the model at the
+  camera-only estimate; ``.../covariance/{camera,fused}`` 2-sigma position ellipses;
+  ``.../corrections`` markers where corrections were pushed (kept for the whole run)
+- ``world/trajectories/<robot_id>/<kind>``: trails, logged incrementally (one segment per new
+  point; the blueprint shows each trail's whole history up to the time cursor)
+- ``metrics/<robot_id>/error_cm/<kind>`` (one plot), ``metrics/<robot_id>/reprojection_rmse_px``,
+  ``metrics/latency_ms/<stage>``: series
 - ``status/<service>/<id>``: text log of service status
+
+A blueprint (:func:`blueprint`) goes with every recording and live view: a large 3D view, a row
+of camera views, one error plot with every source, latency and reprojection plots, the status
+log. Rows are batched into large chunks (:data:`BATCHING_S`), so recordings stay compact.
 
 Time: timeline ``stamp`` (sensor time of each message), so a replay shows what happened when.
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from protocol.errors import UsageError
 from protocol.geometry import (
@@ -45,14 +57,57 @@ from protocol.site import Site
 log = logging.getLogger(__name__)
 
 TIMELINE: Final = "stamp"
-TRAIL_MAX_POINTS: Final = 5000
+#: a trail gets a new point once the robot moved this far from the last one
+TRAIL_SPACING_M: Final = 0.02
+#: covariance ellipses are drawn at most this often per robot and source
+ELLIPSE_PERIOD_NS: Final = 200_000_000
+#: the ellipse's scale: 2 sigma (86 % of the planar mass)
+ELLIPSE_SIGMA: Final = 2.0
+#: how long rows wait to be batched into one chunk: a saved recording is read after the run,
+#: so large chunks (few, compact) win; a live view wants a short delay
+BATCHING_S: Final = {"save": 5.0, "live": 0.5}
+KINDS: Final = ("camera", "fused", "localization", "odometry", "ground_truth")
 COLORS: Final = {
     "camera": (230, 120, 20),
     "fused": (30, 160, 230),
+    "localization": (150, 60, 220),
     "odometry": (150, 150, 150),
     "ground_truth": (40, 200, 60),
     "correction": (220, 40, 200),
+    "floor": (70, 70, 80),
+    "wall": (200, 200, 210),
+    "obstacle": (160, 120, 90),
 }
+NAMES: Final = {
+    "camera": "cameras (one frame-set)",
+    "fused": "fused (pose graph)",
+    "localization": "robot's own localization",
+    "odometry": "odometry",
+    "ground_truth": "ground truth",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class ObstacleBox:
+    """A box standing in the room: ``center_m`` (3,) and ``size_m`` (3,) in the world frame,
+    ``yaw_rad`` about world z."""
+
+    name: str
+    center_m: tuple[float, float, float]
+    size_m: tuple[float, float, float]
+    yaw_rad: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticScene:
+    """What stands still in the room: its outline (``room_min_xy_m``, ``room_max_xy_m``,
+    ``room_height_m``; world frame, metres) and obstacles. The simulation's scenario provides
+    one; a site without one is drawn without a floor plan."""
+
+    room_min_xy_m: tuple[float, float]
+    room_max_xy_m: tuple[float, float]
+    room_height_m: float
+    obstacles: tuple[ObstacleBox, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,17 +134,93 @@ class RerunTarget:
         )
 
 
+def trail_path(robot_id: str, kind: str) -> str:
+    return f"world/trajectories/{robot_id}/{kind}"
+
+
+def _eye(site: Site, scene: StaticScene | None) -> rrb.EyeControls3D:
+    """A view from the south, above the room, at the room's centre (the cameras' when no
+    scene is known)."""
+    if scene is not None:
+        lo, hi = np.array(scene.room_min_xy_m), np.array(scene.room_max_xy_m)
+    else:
+        xy = np.array([c.T_world_cam[:2, 3] for c in site.cameras.values()] or [[0.0, 0.0]])
+        lo, hi = xy.min(axis=0) - 1.0, xy.max(axis=0) + 1.0
+    centre = 0.5 * (lo + hi)
+    span = float(max(hi - lo))
+    return rrb.EyeControls3D(position=[centre[0], lo[1] - 0.55 * span, 0.75 * span],
+                             look_target=[centre[0], centre[1], 0.0], eye_up=[0.0, 0.0, 1.0])
+
+
+def blueprint(site: Site, scene: StaticScene | None = None) -> rrb.Blueprint:
+    """The layout every recording and live view gets: the 3D site view (large, with every
+    trail and correction kept up to the time cursor), the camera views in a row, one plot of
+    every source's error, latency and reprojection plots, the status log."""
+    whole_run = rrb.VisibleTimeRanges([rrb.VisibleTimeRange(
+        TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+        end=rrb.TimeRangeBoundary.cursor_relative())])
+    keep: dict[str, Any] = {}
+    for robot_id in site.robots:
+        for kind in KINDS:
+            keep[trail_path(robot_id, kind)] = whole_run
+        keep[f"world/robots/{robot_id}/corrections"] = whole_run
+    world = rrb.Spatial3DView(origin="world", name="site", overrides=keep,
+                              eye_controls=_eye(site, scene))
+    cameras = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=c)
+               for c in site.cameras]
+    robots = list(site.robots)
+    errors = [rrb.TimeSeriesView(origin=f"metrics/{r}/error_cm", name=f"{r}: error (cm)")
+              for r in robots]
+    plots = rrb.Vertical(
+        *errors,
+        rrb.TimeSeriesView(origin="metrics/latency_ms", name="latency (ms)"),
+        *(rrb.TimeSeriesView(origin=f"metrics/{r}/reprojection_rmse_px",
+                             name=f"{r}: reprojection RMS (px)") for r in robots),
+        rrb.TextLogView(origin="status", name="service status"),
+        row_shares=[3] * len(errors) + [2] + [2] * len(robots) + [2],
+    )
+    top = rrb.Horizontal(world, plots, column_shares=[3, 2])
+    rows: list[Any] = [top]
+    if cameras:
+        rows.append(rrb.Horizontal(*cameras))
+    return rrb.Blueprint(rrb.Vertical(*rows, row_shares=[3, 1.4][:len(rows)]),
+                         collapse_panels=True)
+
+
+def covariance_ellipse(x: float, y: float, covariance: np.ndarray, sigma: float = ELLIPSE_SIGMA,
+                       points: int = 33) -> np.ndarray | None:
+    """(points, 3) closed ring at z = 0.02 m: the ``sigma`` ellipse of the (x, y) block of a 3x3
+    (x, y, theta) ``covariance`` (world frame, m^2) around (x, y); ``None`` when the block is
+    not a finite positive semi-definite matrix."""
+    cov = np.asarray(covariance, np.float64)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov[:2, :2])):
+        return None
+    vals, vecs = np.linalg.eigh(0.5 * (cov[:2, :2] + cov[:2, :2].T))
+    if vals[0] < 0:
+        return None
+    a = np.linspace(0.0, 2 * math.pi, points)
+    circle = np.stack([np.cos(a), np.sin(a)], 1) * (sigma * np.sqrt(vals))
+    ring = circle @ vecs.T + [x, y]
+    return np.column_stack([ring, np.full(points, 0.02)])
+
+
 class RerunView:
     """Logs site, detections, poses, trajectories and metrics to one Rerun recording.
 
     All methods are cheap and never raise into the caller: a viewer problem must not stop the
     backend (errors are logged once per kind)."""
 
-    def __init__(self, site: Site, target: RerunTarget, app_id: str = "smartedge") -> None:
+    def __init__(self, site: Site, target: RerunTarget, app_id: str = "smartedge", *,
+                 scene: StaticScene | None = None) -> None:
         self.site = site
         self.target = target
-        self.rec = rr.RecordingStream(app_id)
-        self._trails: dict[tuple[str, str], collections.deque[tuple[float, float]]] = {}
+        self.scene = scene
+        batching = BATCHING_S["save" if target.kind == "save" else "live"]
+        self.rec = rr.RecordingStream(app_id, batcher_config=rr.ChunkBatcherConfig(
+            flush_tick=batching, flush_num_bytes=8 << 20))
+        self._trail_last: dict[tuple[str, str], tuple[float, float]] = {}
+        self._ellipse_ns: dict[tuple[str, str], int] = {}
+        self._reprojected: dict[str, bool] = {}
         self._failed: set[str] = set()
         self._styled: set[str] = set()
         self.url: str | None = None
@@ -104,6 +235,8 @@ class RerunView:
             self.url = self.rec.serve_grpc()
             rr.serve_web_viewer(connect_to=self.url, open_browser=False)
             log.info("rerun: gRPC at %s, web viewer on http://localhost:9090", self.url)
+        if target.kind != "none":
+            self.rec.send_blueprint(blueprint(site, scene))
         self._log_static()
 
     # ---------------------------------------------------------------------------------------
@@ -122,6 +255,8 @@ class RerunView:
     def _log_static(self) -> None:
         rec = self.rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if self.scene is not None:
+            self._log_scene(self.scene)
         for cam in self.site.cameras.values():
             T = cam.T_world_cam
             base = f"world/cameras/{cam.camera_id}"
@@ -136,6 +271,11 @@ class RerunView:
                 ),
                 static=True,
             )
+            rec.log(f"{base}/image/bounds",
+                    rr.Boxes2D(mins=[[0.0, 0.0]], sizes=[[cam.width, cam.height]],
+                               colors=[(120, 120, 120)], labels=[cam.camera_id],
+                               show_labels=False),
+                    static=True)
         for robot_id in self.site.robots:
             model = self.site.robot_model(robot_id)
             names = list(model.keypoint_names)
@@ -171,9 +311,33 @@ class RerunView:
                     keypoint_ids=np.arange(model.num_keypoints),
                     class_ids=0,
                     radii=0.01,
+                    show_labels=False,
                 ),
                 static=True,
             )
+            for kind in KINDS:
+                rec.log(trail_path(robot_id, kind),
+                        rr.LineStrips3D.from_fields(colors=[COLORS[kind]], radii=[0.02]),
+                        static=True)
+
+    def _log_scene(self, scene: StaticScene) -> None:
+        (x0, y0), (x1, y1) = scene.room_min_xy_m, scene.room_max_xy_m
+        h = scene.room_height_m
+        corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]], np.float64)
+        self.rec.log("world/site/floor_plan", rr.LineStrips3D(
+            [np.column_stack([corners, np.zeros(5)]), np.column_stack([corners, np.full(5, h)]),
+             *(np.array([[x, y, 0.0], [x, y, h]]) for x, y in corners[:4])],
+            colors=[COLORS["wall"]], radii=0.01), static=True)
+        self.rec.log("world/site/floor", rr.Boxes3D(
+            mins=[[x0, y0, -0.02]], sizes=[[x1 - x0, y1 - y0, 0.02]],
+            colors=[(*COLORS["floor"], 255)], fill_mode="solid"), static=True)
+        if scene.obstacles:
+            self.rec.log("world/site/obstacles", rr.Boxes3D(
+                centers=[b.center_m for b in scene.obstacles],
+                half_sizes=[[0.5 * v for v in b.size_m] for b in scene.obstacles],
+                quaternions=[yaw_to_quaternion(b.yaw_rad) for b in scene.obstacles],
+                colors=[(*COLORS["obstacle"], 200)], labels=[b.name for b in scene.obstacles],
+                fill_mode="solid", show_labels=False), static=True)
 
     # ---------------------------------------------------------------------------------------
 
@@ -200,7 +364,8 @@ class RerunView:
             colors = np.stack([255 * (1 - scores), 255 * scores, np.zeros_like(scores)], 1)
             self.rec.log(
                 f"{base}/keypoints",
-                rr.Points2D(pts, keypoint_ids=kp_ids, colors=colors.astype(np.uint8), radii=3.0),
+                rr.Points2D(pts, keypoint_ids=kp_ids, colors=colors.astype(np.uint8), radii=3.0,
+                            show_labels=False),
             )
         else:
             self.rec.log(f"{base}/detections", rr.Clear(recursive=False))
@@ -225,17 +390,49 @@ class RerunView:
         kind = kind or ("camera" if est.source == "cameras" else "fused")
         self._time(est.stamp_ns)
         self._pose_entity(est.robot_id, kind, est.x, est.y, est.theta)
+        self._ellipse(est, kind)
         if kind == "camera":
             model = self.site.robot_model(est.robot_id)
             pts = model.keypoints_base_m @ rotation_z(est.theta).T + [est.x, est.y, 0.0]
             self.rec.log(
                 f"world/robots/{est.robot_id}/camera_keypoints",
-                rr.Points3D(pts, keypoint_ids=np.arange(len(pts)), class_ids=0, radii=0.015),
+                rr.Points3D(pts, keypoint_ids=np.arange(len(pts)), class_ids=0, radii=0.015,
+                            show_labels=False),
             )
-            self.rec.log(
-                f"metrics/{est.robot_id}/reprojection_rmse_px",
-                rr.Scalars([est.reprojection_rmse_px]),
-            )
+            self._reproject(pts)
+            if math.isfinite(est.reprojection_rmse_px):
+                self.rec.log(
+                    f"metrics/{est.robot_id}/reprojection_rmse_px",
+                    rr.Scalars([est.reprojection_rmse_px]),
+                )
+
+    def _ellipse(self, est: PoseEstimate, kind: str) -> None:
+        key = (est.robot_id, kind)
+        if est.stamp_ns - self._ellipse_ns.get(key, -ELLIPSE_PERIOD_NS) < ELLIPSE_PERIOD_NS:
+            return
+        ring = covariance_ellipse(est.x, est.y, est.covariance)
+        if ring is None:
+            return
+        self._ellipse_ns[key] = est.stamp_ns
+        self.rec.log(f"world/robots/{est.robot_id}/covariance/{kind}",
+                     rr.LineStrips3D([ring], colors=[COLORS.get(kind, (255, 255, 255))],
+                                     radii=0.006))
+
+    def _reproject(self, points_world: np.ndarray) -> None:
+        """The model keypoints at the camera-only estimate, projected into every camera that
+        sees them (cleared in the others)."""
+        for cam in self.site.cameras.values():
+            uv, depth = cam.project(points_world)
+            ok = (depth > 0) & cam.in_image(uv)
+            path = f"world/cameras/{cam.camera_id}/image/reprojection"
+            if ok.any():
+                self.rec.log(path, rr.Points2D(uv[ok], keypoint_ids=np.flatnonzero(ok),
+                                               colors=[COLORS["camera"]], radii=4.0,
+                                               show_labels=False))
+                self._reprojected[cam.camera_id] = True
+            elif self._reprojected.get(cam.camera_id):
+                self.rec.log(path, rr.Clear(recursive=False))
+                self._reprojected[cam.camera_id] = False
 
     def odometry_pose(
         self, robot_id: str, stamp_ns: int, x: float, y: float, theta: float, kind: str = "odometry"
@@ -254,24 +451,25 @@ class RerunView:
             f"world/robots/{robot_id}/{kind}",
             rr.Transform3D(translation=[x, y, 0.0], quaternion=list(yaw_to_quaternion(theta))),
         )
-        self.rec.log(
-            f"world/robots/{robot_id}/{kind}/marker",
-            rr.Arrows3D(
-                origins=[[0, 0, 0.02]],
-                vectors=[[0.3, 0, 0]],
-                colors=[COLORS.get(kind, (255, 255, 255))],
-            ),
-        )
-        trail = self._trails.setdefault(
-            (robot_id, kind), collections.deque(maxlen=TRAIL_MAX_POINTS)
-        )
-        if not trail or math.hypot(trail[-1][0] - x, trail[-1][1] - y) > 0.01:
-            trail.append((x, y))
-            strip = np.array([[px, py, 0.01] for px, py in trail])
+        if (robot_id, kind) not in self._trail_last:  # the marker rides on the transform
             self.rec.log(
-                f"world/trajectories/{robot_id}/{kind}",
-                rr.LineStrips3D([strip], colors=[COLORS.get(kind, (255, 255, 255))]),
+                f"world/robots/{robot_id}/{kind}/marker",
+                rr.Arrows3D(origins=[[0, 0, 0.02]], vectors=[[0.3, 0, 0]],
+                            colors=[COLORS.get(kind, (255, 255, 255))]),
+                static=True,
             )
+        self._trail(robot_id, kind, x, y)
+
+    def _trail(self, robot_id: str, kind: str, x: float, y: float) -> None:
+        """One new segment from the trail's last point: the trail is never logged whole."""
+        last = self._trail_last.get((robot_id, kind))
+        if last is not None and math.hypot(last[0] - x, last[1] - y) < TRAIL_SPACING_M:
+            return
+        self._trail_last[(robot_id, kind)] = (x, y)
+        if last is None:
+            return
+        self.rec.log(trail_path(robot_id, kind),
+                     rr.LineStrips3D([[[last[0], last[1], 0.01], [x, y, 0.01]]]))
 
     def odometry(self, msg: Odometry, T_world_odom: np.ndarray | None = None) -> None:
         """Odometry drawn in the world frame through ``T_world_odom`` (3x3 SE(2)) if known."""
@@ -287,7 +485,7 @@ class RerunView:
             if path not in self._styled:  # the series style goes on the series' own path
                 self._styled.add(path)
                 self.rec.log(path, rr.SeriesLines(colors=[COLORS.get(kind, (255, 255, 255))],
-                                                  names=[kind]), static=True)
+                                                  names=[NAMES.get(kind, kind)]), static=True)
             self._time(stamp_ns)
             self.rec.log(path, rr.Scalars([100.0 * error_m]))
 
@@ -305,7 +503,9 @@ class RerunView:
             self._time(stamp_ns)
             self.rec.log(
                 f"world/robots/{robot_id}/corrections",
-                rr.Points3D([[x, y, 0.05]], colors=[COLORS["correction"]], radii=0.05),
+                rr.Arrows3D(origins=[[x, y, 0.05]],
+                            vectors=[[0.35 * math.cos(theta), 0.35 * math.sin(theta), 0.0]],
+                            colors=[COLORS["correction"]], radii=0.02),
             )
 
         self._guard("correction", fn)
@@ -329,3 +529,53 @@ class RerunView:
                 self.rec.disconnect()
         except Exception:
             log.exception("closing the rerun recording failed")
+            return
+        if self.target.kind == "save":
+            compact_recording(Path(self.target.arg))
+
+
+def rerun_cli() -> Path:
+    """The ``rerun`` command-line tool that ships inside the rerun-sdk package."""
+    import rerun_cli as cli
+
+    return Path(cli.__file__).with_name("rerun")
+
+
+def compact_recording(path: Path, timeout_s: float = 60.0) -> bool:
+    """Rewrite a saved recording with its chunks compacted (``rerun rrd optimize``: a few large
+    chunks per entity instead of one per batching period), so it loads in seconds. The file is
+    replaced only when the compacted one was written completely; on any failure the original
+    stays (logged, ``False``)."""
+    import subprocess
+
+    tmp = path.with_name(path.name + ".compacting")
+    try:
+        proc = subprocess.run([str(rerun_cli()), "rrd", "optimize", str(path), "-o", str(tmp)],
+                              capture_output=True, text=True, timeout=timeout_s)
+        if proc.returncode != 0 or not tmp.is_file() or tmp.stat().st_size == 0:
+            log.warning("compacting %s failed (kept as recorded): %s", path,
+                        proc.stderr.strip()[-500:])
+            tmp.unlink(missing_ok=True)
+            return False
+        tmp.replace(path)
+        return True
+    except (OSError, subprocess.SubprocessError) as exc:
+        log.warning("compacting %s failed (kept as recorded): %s", path, exc)
+        tmp.unlink(missing_ok=True)
+        return False
+
+
+def scene_from_boxes(room_min_xy_m: Sequence[float], room_max_xy_m: Sequence[float],
+                     room_height_m: float, boxes: Sequence[Any]) -> StaticScene:
+    """A :class:`StaticScene` from a room outline and boxes with ``name``, ``center_xy_m``,
+    ``size_m``, ``yaw_rad`` and optionally ``z_min_m`` (the simulation's obstacle boxes)."""
+    obstacles = []
+    for b in boxes:
+        size = tuple(float(v) for v in b.size_m)
+        z0 = float(getattr(b, "z_min_m", 0.0))
+        cx, cy = (float(v) for v in b.center_xy_m)
+        obstacles.append(ObstacleBox(str(b.name), (cx, cy, z0 + 0.5 * size[2]), size,
+                                     float(b.yaw_rad)))
+    return StaticScene((float(room_min_xy_m[0]), float(room_min_xy_m[1])),
+                       (float(room_max_xy_m[0]), float(room_max_xy_m[1])),
+                       float(room_height_m), tuple(obstacles))

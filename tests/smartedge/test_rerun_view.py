@@ -69,3 +69,83 @@ def test_saved_recording_verifies_and_holds_the_entities(tmp_path: Path, example
         "/status/backend/main",
     ):
         assert f"{entity}:" in stats, entity
+
+
+def _rerun_stats(path: Path) -> str:
+    proc = subprocess.run([str(rr_view.rerun_cli()), "rrd", "stats", str(path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-1000:]
+    return proc.stdout + proc.stderr
+
+
+def test_recording_holds_blueprint_scene_trails_and_reprojections_compactly(
+        tmp_path: Path, example_site) -> None:
+    """A saved recording carries the layout, the floor plan and obstacles, trails logged one
+    segment at a time, the estimate projected back into the cameras that see it, and is
+    compacted on close (no 'unoptimized' warning from rerun's own tooling)."""
+    path = tmp_path / "view.rrd"
+    box = rr_view.ObstacleBox("table", (9.0, 5.0, 0.4), (1.2, 0.8, 0.8), 0.3)
+    scene = rr_view.StaticScene((0.0, 0.0), (14.0, 10.0), 3.0, (box,))
+    view = rr_view.RerunView(example_site, rr_view.RerunTarget.parse(f"save:{path}"),
+                             scene=scene)
+    cov = np.diag([1e-4, 4e-4, 1e-4])
+    t0 = 1_700_000_000_000_000_000
+    logged: list[int] = []
+    original = view.rec.log
+
+    def spy(entity: str, *args, **kwargs):
+        if entity == "world/trajectories/hsr/fused" and not kwargs.get("static"):
+            strips = args[0].strips.as_arrow_array()  # one segment per row, never the trail
+            logged.append(len(strips[0]))
+        return original(entity, *args, **kwargs)
+
+    view.rec.log = spy
+    for i in range(400):  # 4 m at 1 cm a step: a trail point every 2 cm
+        t = t0 + i * 50_000_000
+        view.pose(PoseEstimate("hsr", t, i, 8.0 + 0.01 * i, 5.0, 0.0, cov, "fused"))
+        if i % 3 == 0:
+            view.pose(PoseEstimate("hsr", t, i, 8.0 + 0.01 * i, 5.02, 0.01, cov, "cameras",
+                                   ("cam_sw",), 0.8))
+    view.correction("hsr", t0 + 10_000_000_000, 10.0, 5.0, 0.1)
+    view.close()
+    assert not view._failed
+    # 4 m with a point every 2-3 cm (float steps of 1 cm land on either side of 2 cm)
+    assert 133 <= len(logged) <= 200 and set(logged) == {2}
+    stats = _rerun_stats(path)
+    assert "unoptimized" not in stats
+    for entity in ("/world/site/floor_plan", "/world/site/obstacles", "/world/site/floor",
+                   "/world/trajectories/hsr/fused", "/world/trajectories/hsr/camera",
+                   "/world/robots/hsr/covariance/fused", "/world/robots/hsr/corrections",
+                   "/world/cameras/cam_sw/image/reprojection",
+                   "/world/cameras/cam_sw/image/bounds", "/viewport"):
+        assert f"{entity}:" in stats, entity
+    assert "/container/" in stats and "/view/" in stats  # the blueprint's own entities
+
+
+def test_reprojection_lands_on_the_true_keypoints(example_site) -> None:
+    """The estimate drawn back into a camera is the model's keypoints through that camera's
+    calibration: at the true pose it falls on the true pixels."""
+    view = rr_view.RerunView(example_site, rr_view.RerunTarget("none"))
+    drawn: dict[str, np.ndarray] = {}
+    view.rec.log = lambda entity, *args, **kw: drawn.__setitem__(entity, args[0])
+    model = example_site.robot_model("hsr")
+    pose = (9.1, 5.1, 0.4)
+    pts = model.keypoints_base_m @ rr_view.rotation_z(pose[2]).T + [pose[0], pose[1], 0.0]
+    view._reproject(pts)
+    cam = example_site.camera("cam_sw")
+    uv, _ = cam.project(pts)
+    got = drawn["world/cameras/cam_sw/image/reprojection"].positions.as_arrow_array()
+    np.testing.assert_allclose(np.asarray(got.to_pylist()), uv[cam.in_image(uv)], atol=1e-3)
+
+
+@pytest.mark.parametrize(("cov", "axes"), [
+    (np.diag([0.04, 0.01, 0.0]), (0.4, 0.2)),  # 2 sigma of 0.2 m and 0.1 m
+    (np.diag([0.01, 0.01, 1.0]), (0.2, 0.2)),
+])
+def test_covariance_ellipse_has_two_sigma_axes(cov: np.ndarray, axes: tuple) -> None:
+    ring = rr_view.covariance_ellipse(1.0, 2.0, cov)
+    r = np.linalg.norm(ring[:, :2] - [1.0, 2.0], axis=1)
+    assert r.max() == pytest.approx(max(axes), rel=1e-3)
+    assert r.min() == pytest.approx(min(axes), rel=2e-2)
+    assert rr_view.covariance_ellipse(0, 0, np.full((3, 3), np.nan)) is None
+    assert rr_view.covariance_ellipse(0, 0, -np.eye(3)) is None

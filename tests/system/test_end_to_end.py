@@ -19,13 +19,15 @@ from tests.conftest import free_tcp_port, wait_until
 pytestmark = pytest.mark.slow
 
 
-def _rrd_entities(path: Path) -> set[str]:
+def _rerun(*args: str) -> str:
     rerun = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    proc = subprocess.run(
-        [rerun, "rrd", "stats", str(path)], capture_output=True, text=True, timeout=120
-    )
+    proc = subprocess.run([rerun, *args], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return set(re.findall(r"^(/\S+): \d+$", proc.stdout, flags=re.MULTILINE))
+    return proc.stdout + proc.stderr
+
+
+def _rrd_entities(stats: str) -> set[str]:
+    return set(re.findall(r"^(/\S+): \d+$", stats, flags=re.MULTILINE))
 
 
 def test_demo_with_separate_processes(tmp_path: Path) -> None:
@@ -67,8 +69,22 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     assert abs(rmse - result.figures["fused (pose graph)"]) < 0.02 * rmse + 1e-4
     # the recording opens with rerun's own tooling and holds what a user wants to see
     assert result.rrd_path is not None and result.rrd_path.exists()
-    entities = _rrd_entities(result.rrd_path)
+    stats = _rerun("rrd", "stats", str(result.rrd_path))
+    assert "unoptimized" not in stats  # compacted when the viewer closed
+    entities = _rrd_entities(stats)
+    assert any(e.startswith("/container/") for e in entities), "no blueprint in the recording"
+    # compact: <= 5 MB per minute of the demo without the camera images (measured: ~2)
+    images = [f"/world/cameras/cam{i}/image" for i in range(1, 5)]
+    no_images = tmp_path / "no_images.rrd"
+    _rerun("rrd", "filter", str(result.rrd_path), "-o", str(no_images),
+           *(a for e in images for a in ("--drop-entity", e)))
+    assert no_images.stat().st_size / (30 / 60) <= 5e6, no_images.stat().st_size
     for expected in (
+        "/world/site/floor_plan",
+        "/world/site/obstacles",
+        "/world/cameras/cam1/image/reprojection",
+        "/world/cameras/cam1/image/bounds",
+        "/world/robots/hsr/covariance/fused",
         "/world/cameras/cam1",
         "/world/cameras/cam1/image",
         "/world/cameras/cam1/image/keypoints",
