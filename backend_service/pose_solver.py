@@ -136,8 +136,8 @@ class SolverConfig:
     try_pnp_fallback: bool = True
     sigma_floor_px: float = 1.5
     covariance_model: str = "propagated"
-    detection_shift_sigma_px: float = 0.3
-    detection_scale_sigma: float = 0.013
+    detection_shift_sigma_px: float = 0.45
+    detection_scale_sigma: float = 0.017
     extrinsic_sigma_m: float = 0.01
     extrinsic_sigma_deg: float = 0.1
 
