@@ -14,12 +14,12 @@ from typing import Final
 
 import numpy as np
 
-#: Semantic classes of the per-pixel class image, in id order (0 = nothing rendered). The
-#: semantic-mapping legend (a reduced ADE20K-like indoor set) uses the same ids.
-CLASSES: Final = (
-    "unlabeled", "floor", "wall", "ceiling", "door", "table", "chair", "shelf", "cabinet",
-    "box", "obstacle", "person", "robot", "distractor",
-)
+from protocol.semantic_classes import SEMANTIC_CLASSES
+
+#: Semantic classes of the per-pixel class image, in id order (0 = nothing rendered): the
+#: semantic-mapping legend of :mod:`protocol.semantic_classes`, one numbering for rendered
+#: labels, the segmentation network, the edge's clouds and the map.
+CLASSES: Final = SEMANTIC_CLASSES
 CLASS_ID: Final = {name: i for i, name in enumerate(CLASSES)}
 
 

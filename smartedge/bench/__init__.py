@@ -21,6 +21,7 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "backend": ("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
     "render": ("smartedge.bench.render", "main", "rendered images/s with exact labels"),
     "edge": ("smartedge.bench.edge", "main", "detector + keypoint latency with onnxruntime"),
+    "map": ("smartedge.bench.map", "main", "semantic map fusion (M points/s) and ICP latency"),
 }
 
 

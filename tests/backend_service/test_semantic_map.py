@@ -1,0 +1,409 @@
+"""The semantic voxel map: Bayesian fusion, input checks, carving, prior, files."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import backend_service.semantic_map as semantic_map
+from backend_service.semantic_map import (
+    MapError,
+    SemanticMapConfig,
+    SemanticVoxelMap,
+    pack_voxel_keys,
+    unpack_voxel_keys,
+)
+from protocol.semantic_classes import (
+    SEMANTIC_CLASS_COLORS,
+    SEMANTIC_CLASS_ID,
+    SEMANTIC_CLASSES,
+)
+
+FLOOR = SEMANTIC_CLASS_ID["floor"]
+TABLE = SEMANTIC_CLASS_ID["table"]
+BOX = SEMANTIC_CLASS_ID["box"]
+C = len(SEMANTIC_CLASSES)
+
+
+def plane_points(rng: np.random.Generator, n: int, *, size_m: float = 1.0, z: float = 0.0,
+                 noise_m: float = 0.005) -> np.ndarray:
+    """(n, 3) points on the square [0.02, size - 0.02]² at height z, with noise (the margin
+    keeps the noise from making sparse voxels past the square's edges)."""
+    xy = rng.uniform(0.02, size_m - 0.02, (n, 2))
+    pts = np.column_stack([xy, np.full(n, z)])
+    return pts + rng.normal(0.0, noise_m, pts.shape)
+
+
+def noisy_labels(rng: np.random.Generator, n: int, label: int, wrong: float,
+                 confidence: float) -> tuple[np.ndarray, np.ndarray]:
+    ids = np.where(rng.random(n) < wrong, rng.integers(0, C, n), label).astype(np.uint8)
+    return ids, np.full(n, confidence, dtype=np.float32)
+
+
+def test_two_noisy_views_raise_confidence() -> None:
+    rng = np.random.default_rng(0)
+    m = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.1))
+    n = 20_000
+    m.integrate(plane_points(rng, n, z=0.05), *noisy_labels(rng, n, FLOOR, 0.2, 0.7))
+    assert np.all(m.has_semantics())
+    first = dict(zip(m.keys().tolist(), m.confidence().tolist(), strict=True))
+    assert np.mean(m.labels() == FLOOR) > 0.95
+    m.integrate(plane_points(rng, n, z=0.05), *noisy_labels(rng, n, FLOOR, 0.2, 0.7))
+    second = dict(zip(m.keys().tolist(), m.confidence().tolist(), strict=True))
+    common = sorted(set(first) & set(second))
+    assert len(common) > 50
+    gain = np.array([second[k] - first[k] for k in common])
+    assert np.mean(gain > 0) > 0.95
+    well_seen = m.point_counts() >= 50  # edge voxels with a handful of points may be wrong
+    assert well_seen.sum() > 50
+    assert np.all(m.labels()[well_seen] == FLOOR)
+    assert np.all(m.hits() == 2)
+    probs = m.probabilities().astype(np.float64)
+    np.testing.assert_allclose(probs.sum(axis=1), 1.0, atol=1e-5)
+
+
+def test_one_scan_of_a_voxel_gives_the_detector_confidence() -> None:
+    m = SemanticVoxelMap()
+    pts = np.full((7, 3), 0.012)
+    m.integrate(pts, np.full(7, TABLE), np.full(7, 0.8))
+    assert len(m) == 1
+    assert m.labels()[0] == TABLE
+    assert m.confidence()[0] == pytest.approx(0.8, abs=1e-5)
+
+
+@pytest.mark.parametrize("evidence", ["mean", "sum"])
+def test_contradictory_labels_within_one_scan_follow_the_majority(evidence: str) -> None:
+    rng = np.random.default_rng(1)
+    m = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.25, evidence=evidence))
+    n = 4000
+    ids = np.where(rng.random(n) < 0.65, TABLE, BOX)
+    m.integrate(plane_points(rng, n, z=0.1), ids, np.full(n, 0.8))
+    assert np.all(m.labels() == TABLE)
+
+
+def test_contradictory_scans_resolve_to_the_majority_whatever_the_order() -> None:
+    rng = np.random.default_rng(2)
+    for order in ([TABLE, TABLE, TABLE, BOX, BOX], [BOX, BOX, TABLE, TABLE, TABLE],
+                  [TABLE, BOX, TABLE, BOX, TABLE]):
+        m = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.1))
+        for label in order:
+            n = 5000
+            m.integrate(plane_points(rng, n, z=0.05), np.full(n, label), np.full(n, 0.75))
+        assert np.all(m.labels() == TABLE), order
+        # a single scan's evidence (log 0.75 - log(0.25 / 13)) is below the clamp: not saturated
+        assert float(m.log_probs().min()) > m.config.class_log_prob_clamp
+
+
+def test_class_probabilities_input() -> None:
+    rng = np.random.default_rng(3)
+    n = 3000
+    probs = np.full((n, C), 0.2 / (C - 1), dtype=np.float32)
+    probs[:, TABLE] = 0.8
+    m = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.2))
+    m.integrate(plane_points(rng, n), class_probs=probs)
+    top1 = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.2))
+    top1.integrate(plane_points(np.random.default_rng(3), n), np.full(n, TABLE), np.full(n, 0.8))
+    assert np.all(m.labels() == TABLE)
+    np.testing.assert_allclose(m.log_probs(), top1.log_probs(), atol=1e-5)
+
+
+def _bad_inputs() -> list[tuple[str, dict, str]]:
+    n = 10
+    pts = np.linspace(0, 1, 3 * n).reshape(n, 3)
+    ids = np.full(n, FLOOR)
+    conf = np.full(n, 0.9)
+    nan_pts = pts.copy()
+    nan_pts[3, 1] = np.nan
+    inf_pts = pts.copy()
+    inf_pts[0, 2] = np.inf
+    bad_ids = ids.copy()
+    bad_ids[5] = C
+    neg_ids = ids.copy()
+    neg_ids[0] = -1
+    bad_conf = conf.copy()
+    bad_conf[2] = 1.5
+    probs = np.full((n, C), 1.0 / C)
+    return [
+        ("unknown class id", dict(points_world=pts, class_ids=bad_ids, confidences=conf),
+         "class_ids"),
+        ("negative class id", dict(points_world=pts, class_ids=neg_ids, confidences=conf),
+         "class_ids"),
+        ("float class ids", dict(points_world=pts, class_ids=ids * 1.0, confidences=conf),
+         "class_ids"),
+        ("NaN point", dict(points_world=nan_pts, class_ids=ids, confidences=conf),
+         "points_world"),
+        ("inf point", dict(points_world=inf_pts, class_ids=ids, confidences=conf),
+         "points_world"),
+        ("confidence > 1", dict(points_world=pts, class_ids=ids, confidences=bad_conf),
+         "confidences"),
+        ("points (N, 2)", dict(points_world=pts[:, :2], class_ids=ids, confidences=conf),
+         "points_world"),
+        ("short ids", dict(points_world=pts, class_ids=ids[:-1], confidences=conf),
+         "class_ids"),
+        ("no semantics", dict(points_world=pts), "class_ids"),
+        ("probs and ids", dict(points_world=pts, class_ids=ids, confidences=conf,
+                               class_probs=probs), "class_probs"),
+        ("probs rows", dict(points_world=pts, class_probs=probs * 2), "class_probs"),
+        ("probs columns", dict(points_world=pts, class_probs=probs[:, :-1]), "class_probs"),
+        ("far away", dict(points_world=pts + 1e6, class_ids=ids, confidences=conf),
+         "points_world"),
+        ("NaN origin", dict(points_world=pts, class_ids=ids, confidences=conf,
+                            sensor_origin_world=np.array([0.0, np.nan, 0.0])),
+         "sensor_origin_world"),
+    ]
+
+
+@pytest.mark.parametrize(("case", "kwargs", "field"), _bad_inputs(),
+                         ids=[c[0] for c in _bad_inputs()])
+def test_bad_input_is_rejected_and_leaves_the_map_unchanged(case: str, kwargs: dict,
+                                                            field: str) -> None:
+    rng = np.random.default_rng(4)
+    m = SemanticVoxelMap.from_prior_points(plane_points(rng, 2000))
+    m.integrate(plane_points(rng, 2000), np.full(2000, FLOOR), np.full(2000, 0.9))
+    before = m.copy()
+    assert m == before
+    with pytest.raises(MapError, match=field):
+        m.integrate(**kwargs)
+    assert m == before, case
+
+
+def test_config_is_validated_naming_the_field() -> None:
+    with pytest.raises(MapError, match="voxel_size_m"):
+        SemanticMapConfig(voxel_size_m=0.0)
+    with pytest.raises(MapError, match="num_classes"):
+        SemanticMapConfig(num_classes=1)
+    with pytest.raises(MapError, match="class_log_prob_clamp"):
+        SemanticMapConfig(class_log_prob_clamp=0.0)
+    with pytest.raises(MapError, match="evidence"):
+        SemanticMapConfig(evidence="max")
+    with pytest.raises(MapError, match="carve_free_space"):
+        SemanticMapConfig(carve_free_space="yes")  # type: ignore[arg-type]
+
+
+def test_range_limit_drops_far_points() -> None:
+    m = SemanticVoxelMap(SemanticMapConfig(max_range_m=2.0))
+    pts = np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 1.9, 0.0]])
+    report = m.integrate(pts, np.full(3, FLOOR), np.full(3, 0.9),
+                         sensor_origin_world=np.zeros(3))
+    assert (report.points_in, report.points_out_of_range, report.points_fused) == (3, 1, 2)
+    assert len(m) == 2
+
+
+def test_keys_pack_and_unpack() -> None:
+    idx = np.array([[0, 0, 0], [-1, 2, -3], [2**20 - 1, -(2**20), 5]], dtype=np.int64)
+    keys = pack_voxel_keys(idx)
+    np.testing.assert_array_equal(unpack_voxel_keys(keys), idx)
+    order = np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))
+    np.testing.assert_array_equal(np.argsort(keys), order)
+
+
+def _corridor() -> tuple[SemanticVoxelMap, np.ndarray]:
+    """A map with a wall at x = 3 m and a 'ghost' object at x = 1.5 m (seen before), both on
+    the line of sight of a sensor at the origin; returns the map and the wall points."""
+    rng = np.random.default_rng(5)
+    m = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.1, carve_free_space=True))
+    ghost = np.column_stack([np.full(400, 1.55), rng.uniform(-0.2, 0.2, (400, 2))])
+    m.integrate(ghost, np.full(400, BOX), np.full(400, 0.9))  # no origin: no carving
+    off_ray = np.column_stack([np.full(200, 1.55), rng.uniform(2.0, 2.3, 200),
+                               rng.uniform(-0.2, 0.2, 200)])
+    m.integrate(off_ray, np.full(200, BOX), np.full(200, 0.9))
+    wall = np.column_stack([np.full(3000, 3.05), rng.uniform(-0.5, 0.5, (3000, 2))])
+    return m, wall
+
+
+def test_carving_counts_misses_between_sensor_and_surface_and_creates_no_voxels() -> None:
+    m, wall = _corridor()
+    before = m.copy()
+    ghost_keys = before.keys()
+    report = m.integrate(wall, np.full(len(wall), SEMANTIC_CLASS_ID["wall"]),
+                         np.full(len(wall), 0.9), sensor_origin_world=np.zeros(3))
+    assert report.rays == report.voxels_updated and report.ray_samples > 0
+    # only the wall's voxels are new
+    wall_keys = np.unique(pack_voxel_keys(np.floor(wall / 0.1).astype(np.int64)))
+    assert len(m) == len(before) + len(wall_keys)
+    assert set(m.keys().tolist()) == set(ghost_keys.tolist()) | set(wall_keys.tolist())
+    # voxels on the rays (|y|, |z| < 0.2 at x = 1.5, inside the wall's view cone) were crossed
+    old = m.misses()[: len(before)]
+    centers = before.voxel_centers()
+    on_rays = (np.abs(centers[:, 1]) < 0.2) & (np.abs(centers[:, 2]) < 0.2)
+    off_rays = centers[:, 1] > 1.5
+    assert on_rays.any() and off_rays.any()
+    assert np.all(old[on_rays] == 1)
+    assert np.all(old[off_rays] == 0)
+    assert report.voxels_carved == int(np.count_nonzero(old))
+    assert np.all(m.misses()[len(before):] == 0)  # the wall itself is hit, not missed
+    assert np.all(m.hits()[len(before):] == 1)
+    # one hit, one miss: no longer occupied (hits > misses fails)
+    assert not m.occupied()[: len(before)][on_rays].any()
+
+
+def test_carving_by_key_lookup_matches_the_dense_grid(monkeypatch: pytest.MonkeyPatch) -> None:
+    m_grid, wall = _corridor()
+    m_keys = m_grid.copy()
+    args = (wall, np.full(len(wall), 2), np.full(len(wall), 0.9))
+    r_grid = m_grid.integrate(*args, sensor_origin_world=np.array([0.01, 0.02, 0.03]))
+    monkeypatch.setattr(semantic_map, "_CARVE_GRID_MAX_CELLS", 0)
+    r_keys = m_keys.integrate(*args, sensor_origin_world=np.array([0.01, 0.02, 0.03]))
+    assert r_grid == r_keys
+    assert m_grid == m_keys
+
+
+def test_no_carving_by_default_nor_without_a_sensor_origin() -> None:
+    carving, wall = _corridor()
+    plain = SemanticVoxelMap(SemanticMapConfig(voxel_size_m=0.1))
+    ghost = carving.means()
+    plain.integrate(ghost, np.full(len(ghost), BOX), np.full(len(ghost), 0.9))
+    args = (wall, np.full(len(wall), 2), np.full(len(wall), 0.9))
+    report = plain.integrate(*args, sensor_origin_world=np.zeros(3))
+    assert report.voxels_carved == 0 and report.ray_samples == 0
+    assert np.all(plain.misses() == 0)
+    report = carving.integrate(*args)  # carving on, but no origin
+    assert report.voxels_carved == 0 and report.ray_samples == 0
+    assert np.all(carving.misses() == 0)
+
+
+def test_prior_voxels_have_no_semantics_and_coverage_counts_them() -> None:
+    rng = np.random.default_rng(6)
+    prior = plane_points(rng, 40_000, size_m=2.0, noise_m=0.0)
+    m = SemanticVoxelMap.from_prior_points(prior, SemanticMapConfig(voxel_size_m=0.1),
+                                           normals=np.tile([0.0, 0.0, 1.0], (len(prior), 1)))
+    assert len(m) > 300
+    assert m.is_prior().all() and m.occupied().all()
+    assert not m.has_semantics().any()
+    assert np.all(m.labels() == -1)
+    np.testing.assert_allclose(m.confidence(), 1.0 / C, rtol=1e-5)
+    assert m.coverage() == 0.0
+    assert np.all(m.hits() == 0)
+    # floor voxels: normals along +z (oriented by the prior normals)
+    np.testing.assert_allclose(m.normals(), np.tile([0.0, 0.0, 1.0], (len(m), 1)), atol=1e-6)
+
+    # observe the half x < 1 m and a table above the floor (not in the prior)
+    seen = prior[prior[:, 0] < 0.95]
+    m.integrate(seen, np.full(len(seen), FLOOR), np.full(len(seen), 0.9))
+    table = plane_points(rng, 2000, size_m=0.5, z=0.75)
+    m.integrate(table, np.full(len(table), TABLE), np.full(len(table), 0.9))
+    prior_mask = m.is_prior()
+    seen_keys = set(pack_voxel_keys(np.floor(seen / 0.1).astype(np.int64)).tolist())
+    expected = sum(k in seen_keys for k in m.keys()[prior_mask].tolist()) / prior_mask.sum()
+    assert m.coverage() == pytest.approx(expected)
+    assert 0.4 < m.coverage() < 0.6
+    assert m.coverage(np.ones(len(m), dtype=bool)) > m.coverage()
+    assert math.isnan(SemanticVoxelMap().coverage())
+    with pytest.raises(MapError, match="surface_mask"):
+        m.coverage(np.ones(3, dtype=bool))
+
+
+def _busy_map() -> SemanticVoxelMap:
+    rng = np.random.default_rng(7)
+    m = SemanticVoxelMap.from_prior_points(
+        plane_points(rng, 5000, size_m=2.0), SemanticMapConfig(voxel_size_m=0.1,
+                                                               carve_free_space=True))
+    for k in range(3):
+        pts = plane_points(rng, 3000, size_m=2.0, z=0.02 * k)
+        m.integrate(pts, *noisy_labels(rng, 3000, FLOOR, 0.3, 0.8),
+                    sensor_origin_world=np.array([1.0, 1.0, 1.5]))
+    return m
+
+
+def test_save_and_load_round_trip_exactly(tmp_path: Path) -> None:
+    m = _busy_map()
+    path = tmp_path / "map.npz"
+    m.save_npz(path)
+    loaded = SemanticVoxelMap.load_npz(path)
+    assert loaded == m and loaded.config == m.config
+    for name in ("keys", "log_probs", "hits", "misses", "point_counts", "means", "normals"):
+        a, b = getattr(m, name)(), getattr(loaded, name)()
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+    # the loaded map goes on exactly like the original
+    rng = np.random.default_rng(8)
+    pts = plane_points(rng, 500, size_m=3.0)
+    for target in (m, loaded):
+        target.integrate(pts, np.full(500, TABLE), np.full(500, 0.6),
+                         sensor_origin_world=np.array([0.0, 0.0, 1.0]))
+    assert loaded == m
+    compressed = tmp_path / "small.npz"
+    m.save_npz(compressed, compress=True)
+    assert SemanticVoxelMap.load_npz(compressed) == m
+
+
+def test_broken_files_raise_map_error_naming_the_file(tmp_path: Path) -> None:
+    m = _busy_map()
+    good = tmp_path / "map.npz"
+    m.save_npz(good)
+    data = good.read_bytes()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapError, match=re.escape(str(truncated))):
+        SemanticVoxelMap.load_npz(truncated)
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, keys=np.arange(3))
+    with pytest.raises(MapError, match=re.escape(f"{foreign}: not a semantic map")):
+        SemanticVoxelMap.load_npz(foreign)
+    text = tmp_path / "notes.npz"
+    text.write_text("hello")
+    with pytest.raises(MapError, match=re.escape(str(text))):
+        SemanticVoxelMap.load_npz(text)
+    with pytest.raises(MapError, match=re.escape(str(tmp_path / "missing.npz"))):
+        SemanticVoxelMap.load_npz(tmp_path / "missing.npz")
+    # a damaged byte in the middle of an array (zip CRC) or in a header
+    corrupt = tmp_path / "corrupt.npz"
+    flipped = bytearray(data)
+    flipped[len(data) // 3] ^= 0xFF
+    corrupt.write_bytes(bytes(flipped))
+    with pytest.raises(MapError, match=re.escape(str(corrupt))):
+        SemanticVoxelMap.load_npz(corrupt)
+    # the right format with an inconsistent array
+    with np.load(good) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["hits"] = arrays["hits"][:-1]
+    inconsistent = tmp_path / "inconsistent.npz"
+    np.savez(inconsistent, **arrays)
+    with pytest.raises(MapError, match=re.escape(f"{inconsistent}: hits")):
+        SemanticVoxelMap.load_npz(inconsistent)
+
+
+def test_ply_reads_back_with_open3d(tmp_path: Path) -> None:
+    import open3d as o3d
+
+    m = _busy_map()
+    table = plane_points(np.random.default_rng(9), 500, size_m=0.5, z=0.75)
+    m.integrate(table, np.full(500, TABLE), np.full(500, 0.9))
+    path = tmp_path / "map.ply"
+    m.to_ply(path)
+    cloud = o3d.io.read_point_cloud(str(path))
+    assert len(cloud.points) == len(m)
+    np.testing.assert_allclose(np.asarray(cloud.points), m.means(), atol=1e-5)
+    assert cloud.has_normals() and cloud.has_colors()
+    labels = m.labels()
+    colors = np.round(np.asarray(cloud.colors) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(colors[labels == TABLE][0], SEMANTIC_CLASS_COLORS[TABLE])
+    np.testing.assert_array_equal(colors[labels == -1][0], (128, 128, 128))
+    # the scalar properties, read by hand
+    raw = path.read_bytes()
+    header, body = raw.split(b"end_header\n", 1)
+    assert b"property int label" in header and b"property float confidence" in header
+    dtype = np.dtype([("xyz", "<f4", 3), ("n", "<f4", 3), ("rgb", "u1", 3), ("label", "<i4"),
+                      ("confidence", "<f4")])
+    rows = np.frombuffer(body, dtype=dtype)
+    np.testing.assert_array_equal(rows["label"], labels)
+    np.testing.assert_array_equal(rows["confidence"], m.confidence())
+
+
+def test_copy_is_independent() -> None:
+    m = _busy_map()
+    c = m.copy()
+    assert c == m and c is not m
+    c.integrate(np.array([[5.0, 5.0, 5.0]]), np.array([TABLE]), np.array([0.9]))
+    assert c != m and len(c) == len(m) + 1
+
+
+def test_class_legend_matches_the_simulation() -> None:
+    from simulation.mesh import CLASSES
+
+    assert tuple(CLASSES) == SEMANTIC_CLASSES
+    assert SEMANTIC_CLASS_COLORS.shape == (len(SEMANTIC_CLASSES), 3)
+    assert SemanticMapConfig().num_classes == len(SEMANTIC_CLASSES)
