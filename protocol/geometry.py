@@ -1,5 +1,5 @@
 """Plain-numpy geometry shared by every floor: angles, SE(2), SE(3), quaternions, the OpenCV
-lens distortion model and the static-robot detector.
+lens distortion model (and its inverse) and the static-robot detector.
 
 Only numpy, math and dataclasses are imported, so an edge board can use it.
 
@@ -260,6 +260,44 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
+
+
+def undistort_normalized(xy_distorted: np.ndarray, dist: np.ndarray, *,
+                         iterations: int = 20, tol: float = 1e-12) -> np.ndarray:
+    """Invert :func:`distort_normalized`: (..., 2) distorted normalized coordinates (what
+    ``K^-1 [u, v, 1]`` gives for an image pixel) → (..., 2) undistorted normalized coordinates
+    (x/z, y/z of the ray in the camera optical frame).
+
+    Newton iterations on the exact model with a finite-difference 2x2 Jacobian, starting from the
+    distorted coordinates; unlike ``cv2.undistortPoints``' fixed-point loop it converges to
+    1e-12 for strong distortion too. Points without a preimage inside the lens's fold radius
+    (:func:`lens_fold_radius`), or that do not converge, are NaN. ``dist`` as in
+    :func:`distort_normalized` (one coefficient vector).
+    """
+    target = np.asarray(xy_distorted, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64).ravel()
+    if dist.size == 0 or not np.any(dist):
+        return target.copy()
+    shape = target.shape
+    t = target.reshape(-1, 2)
+    x = t.copy()
+    eps = 1e-7
+    ex, ey = np.array([eps, 0.0]), np.array([0.0, eps])
+    with np.errstate(all="ignore"):
+        for _ in range(iterations):
+            f = distort_normalized(x, dist) - t
+            if np.all(np.abs(f[np.isfinite(f)]) < tol):
+                break
+            jx = (distort_normalized(x + ex, dist) - distort_normalized(x - ex, dist)) / (2 * eps)
+            jy = (distort_normalized(x + ey, dist) - distort_normalized(x - ey, dist)) / (2 * eps)
+            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+            dx = (jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det
+            dy = (-jx[:, 1] * f[:, 0] + jx[:, 0] * f[:, 1]) / det
+            x = x - np.stack([dx, dy], axis=-1)
+        residual = np.max(np.abs(distort_normalized(x, dist) - t), axis=-1)
+        bad = ~(residual < 1e-9) | ~(np.hypot(x[:, 0], x[:, 1]) < lens_fold_radius(dist))
+    x[bad] = np.nan
+    return x.reshape(shape)
 
 
 #: the fold search covers normalized radii up to this (about 87 degrees off-axis), in these steps

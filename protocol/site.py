@@ -26,6 +26,33 @@ from protocol.geometry import invert_transform, quaternion_to_rotation, rotation
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class HeadCamera:
+    """A robot's own RGB-D camera (the HSR's head Xtion), rigidly mounted on the base.
+
+    ``width``, ``height`` in pixels; ``K`` (3, 3) intrinsics in pixels; ``dist`` OpenCV
+    distortion coefficients (0, 4, 5 or 8); ``T_base_cam`` (4, 4) maps the camera's optical
+    frame (z forward, x right, y down) into the robot base frame (x forward, y left, z up, origin
+    on the ground at the rotation centre), metres. Depth is aligned to the colour image. A head
+    that pans or tilts is not modelled: the mounting is the camera's pose while mapping.
+    """
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray
+    T_base_cam: np.ndarray
+
+    def camera_model(self, camera_id: str = "head",
+                     T_world_base: np.ndarray | None = None) -> CameraModel:
+        """The camera as a :class:`CameraModel` whose "world" is the frame ``T_world_base``
+        maps the base into (``None``: the base frame itself)."""
+        T_world_cam = self.T_base_cam if T_world_base is None else (
+            np.asarray(T_world_base, np.float64) @ self.T_base_cam)
+        return CameraModel(camera_id, self.width, self.height, np.array(self.K),
+                           np.array(self.dist), invert_transform(T_world_cam))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class RobotModel:
     """Keypoints defined on the rigid robot base.
 
@@ -35,6 +62,8 @@ class RobotModel:
     (used for occlusion and rendering in simulation). ``detector_onnx`` / ``keypoints_onnx``:
     the edge's models for this robot (site file key ``models: {detector, keypoints}``, paths
     relative to the site file; ``None``: the shipped models of the built-in robot).
+    ``head_camera``: the robot's own RGB-D camera (site file key ``head_camera``), ``None``
+    when it has none.
     """
 
     name: str
@@ -44,6 +73,7 @@ class RobotModel:
     height_m: float = 1.0
     detector_onnx: Path | None = None
     keypoints_onnx: Path | None = None
+    head_camera: HeadCamera | None = None
 
     @property
     def num_keypoints(self) -> int:
@@ -370,7 +400,8 @@ def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> Ca
 def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any,
                        base_dir: Path = Path(".")) -> RobotModel:
     node = ctx.mapping(key, value)
-    ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m", "models"})
+    ctx.no_unknown(key, node, {"keypoints", "footprint_radius_m", "height_m", "models",
+                               "head_camera"})
     kkey = join_key(key, "keypoints")
     kps = ctx.require(key, node, "keypoints")
     if not isinstance(kps, list) or len(kps) < 3:
@@ -412,8 +443,37 @@ def _parse_robot_model(ctx: ConfigReader, key: str, name: str, value: Any,
                 raise ctx.fail(join_key(mkey, kind), "expected the path of an .onnx file")
             path = Path(raw).expanduser()
             onnx[kind] = path if path.is_absolute() else base_dir / path
+    head = None
+    if "head_camera" in node:
+        head = _parse_head_camera(ctx, join_key(key, "head_camera"), node["head_camera"])
     return RobotModel(name, tuple(names), pts, radius, height, onnx["detector"],
-                      onnx["keypoints"])
+                      onnx["keypoints"], head)
+
+
+_HEAD_CAMERA_KEYS: Final = {"resolution", "K", "intrinsics", "distortion", "T_base_cam"}
+
+
+def _parse_head_camera(ctx: ConfigReader, key: str, value: Any) -> HeadCamera:
+    """``head_camera: {resolution, K | intrinsics, distortion, T_base_cam}`` of a robot model;
+    ``T_base_cam`` in any form :func:`_parse_transform` reads (4x4, translation_m + rpy_deg /
+    quaternion_xyzw / matrix, or position_m + look_at_m in the base frame)."""
+    node = ctx.mapping(key, value)
+    ctx.no_unknown(key, node, set(_HEAD_CAMERA_KEYS))
+    res_key = join_key(key, "resolution")
+    res = ctx.require(key, node, "resolution")
+    if not isinstance(res, list) or len(res) != 2:
+        raise ctx.fail(res_key, "expected [width, height] in pixels")
+    width = ctx.integer(res_key, res[0], lo=1, hi=65535)
+    height = ctx.integer(res_key, res[1], lo=1, hi=65535)
+    K = _parse_K(ctx, key, node)
+    dist = ctx.matrix(join_key(key, "distortion"), node.get("distortion", []), None, None)
+    if dist.size not in DISTORTION_LENGTHS:
+        raise ctx.fail(join_key(key, "distortion"), f"length {dist.size} not in "
+                       f"{DISTORTION_LENGTHS}")
+    T = _parse_transform(ctx, join_key(key, "T_base_cam"), ctx.require(key, node, "T_base_cam"))
+    for arr in (K, dist, T):
+        arr.setflags(write=False)
+    return HeadCamera(width, height, K, dist.reshape(-1), T)
 
 
 def _parse_thresholds(ctx: ConfigReader, value: Any) -> Thresholds:
