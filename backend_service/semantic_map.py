@@ -747,6 +747,24 @@ class SemanticVoxelMap:
         out._index_rows = self._index_rows.copy()
         return out
 
+    def subset(self, mask: np.ndarray) -> SemanticVoxelMap:
+        """A new map with the voxels where ``mask`` (K,) bool is true (same configuration,
+        their state copied, in row order)."""
+        mask = np.asarray(mask)
+        if mask.shape != (self._n,) or mask.dtype != np.bool_:
+            raise MapError(f"mask: expected a ({self._n},) bool array, got {mask.shape} "
+                           f"{mask.dtype}")
+        rows = np.flatnonzero(mask)
+        m = len(rows)
+        out = SemanticVoxelMap(self.config, capacity=max(m, 1))
+        for name in self._STATE:
+            getattr(out, name)[:m] = getattr(self, name)[rows]
+        out._n = m
+        order = np.argsort(out._keys[:m], kind="stable")
+        out._index_keys = out._keys[:m][order].copy()
+        out._index_rows = order.astype(np.int64)
+        return out
+
     def equals(self, other: SemanticVoxelMap) -> bool:
         """Exact equality: same configuration, same voxels in the same rows, bitwise equal
         per-voxel state."""
@@ -916,3 +934,108 @@ class SemanticVoxelMap:
         with open(path, "wb") as f:
             f.write(header.encode("ascii"))
             f.write(vertex.tobytes())
+
+
+# ----------------------------------------------------------------------------------------------
+# prior models
+
+
+_PLY_TYPES: Final = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+#: Largest header read (bytes) and vertex count accepted from a PLY file.
+_PLY_MAX_HEADER: Final = 64 * 1024
+_PLY_MAX_VERTICES: Final = 50_000_000
+
+
+def read_ply_points(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) float64 and, when the file has ``nx ny nz``, normals (N, 3) of a PLY
+    point cloud (``ascii`` or ``binary_little_endian``/``binary_big_endian``; the ``vertex``
+    element must come first; other elements such as faces are ignored). This is how a prior
+    geometric model of the site is read (e.g. exported from CAD or CloudCompare, or written
+    by :meth:`SemanticVoxelMap.to_ply`). Raises :class:`MapError` naming the file and what is
+    wrong."""
+    where = str(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_PLY_MAX_HEADER)
+            end = head.find(b"end_header")
+            if not head.startswith(b"ply") or end < 0:
+                raise MapError(f"{where}: not a PLY file (no 'ply' magic or no end_header in "
+                               f"the first {_PLY_MAX_HEADER} bytes)")
+            nl = head.find(b"\n", end)
+            if nl < 0:
+                raise MapError(f"{where}: truncated after end_header")
+            header = head[:nl].decode("ascii", errors="replace").splitlines()
+            fmt, count, props = _parse_ply_header(header, where)
+            f.seek(nl + 1)
+            if fmt == "ascii":
+                rows = [f.readline().split() for _ in range(count)]
+                if any(len(r) < len(props) for r in rows):
+                    raise MapError(f"{where}: truncated: fewer than {count} vertex rows")
+                table = np.array([r[:len(props)] for r in rows], dtype=np.float64).reshape(
+                    count, len(props))
+                column = {name: table[:, i] for i, (name, _) in enumerate(props)}
+            else:
+                order = "<" if fmt == "binary_little_endian" else ">"
+                dtype = np.dtype([(name, order + kind) for name, kind in props])
+                raw = f.read(dtype.itemsize * count)
+                if len(raw) < dtype.itemsize * count:
+                    raise MapError(f"{where}: truncated: {len(raw)} bytes of vertex data, "
+                                   f"expected {dtype.itemsize * count}")
+                data = np.frombuffer(raw, dtype=dtype, count=count)
+                column = {name: data[name].astype(np.float64) for name, _ in props}
+    except FileNotFoundError as exc:
+        raise MapError(f"{where}: no such PLY file") from exc
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, MapError):
+            raise
+        raise MapError(f"{where}: not a readable PLY point cloud ({exc})") from exc
+    points = np.stack([column["x"], column["y"], column["z"]], axis=1)
+    if not np.isfinite(points).all():
+        raise MapError(f"{where}: vertices with NaN or inf coordinates")
+    normals = None
+    if {"nx", "ny", "nz"} <= set(column):
+        normals = np.stack([column["nx"], column["ny"], column["nz"]], axis=1)
+        normals = np.where(np.isfinite(normals), normals, 0.0)
+    return points, normals
+
+
+def _parse_ply_header(lines: list[str], where: str) -> tuple[str, int, list[tuple[str, str]]]:
+    fmt = ""
+    element = None
+    count = -1
+    props: list[tuple[str, str]] = []
+    for line in lines[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1] if len(words) > 1 else ""
+        elif words[0] == "element":
+            if element == "vertex":
+                break  # the vertex element is complete
+            element = words[1] if len(words) > 1 else ""
+            if element != "vertex":
+                raise MapError(f"{where}: the 'vertex' element must come first, found "
+                               f"{element!r}")
+            try:
+                count = int(words[2])
+            except (IndexError, ValueError):
+                raise MapError(f"{where}: bad element line {line!r}") from None
+        elif words[0] == "property" and element == "vertex":
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise MapError(f"{where}: unsupported vertex property {line!r} (scalar "
+                               "properties only)")
+            props.append((words[2], _PLY_TYPES[words[1]]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise MapError(f"{where}: unsupported PLY format {fmt!r}")
+    if not 0 <= count <= _PLY_MAX_VERTICES:
+        raise MapError(f"{where}: vertex count {count} missing or above {_PLY_MAX_VERTICES}")
+    names = [n for n, _ in props]
+    missing = [n for n in ("x", "y", "z") if n not in names]
+    if missing:
+        raise MapError(f"{where}: vertex properties {missing} missing")
+    return fmt, count, props

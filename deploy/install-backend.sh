@@ -2,7 +2,8 @@
 # Install smartedge on the backend host: a venv in /opt/smartedge with the `backend` and `bridge`
 # extras (plus libusb-1.0-0, which open3d needs at import), the system user `smartedge`,
 # /etc/smartedge (site file, zenoh router and client configs, settings), the site's Zenoh router
-# (zenohd, or the backend's own session), smartedge-backend.service, smartedge-viewer.service
+# (zenohd, or the backend's own session), smartedge-backend.service, smartedge-mapper.service
+# (the semantic map), smartedge-viewer.service
 # (Rerun drawing of the site; optional, --no-viewer) and one smartedge-robot-bridge@<robot>.service
 # per robot id. Safe to re-run. Walkthrough: docs/deployment.md.
 set -euo pipefail
@@ -182,6 +183,9 @@ else
   remove_file "$dropin/zenoh-router.conf"
 fi
 units+=(smartedge-backend.service)
+# The mapper: the semantic map, a unit of its own so that ICP never delays a pose estimate.
+install_system_file "$DEPLOY_DIR/systemd/smartedge-mapper.service" "$UNIT_DIR/smartedge-mapper.service"
+units+=(smartedge-mapper.service)
 # The viewer: a unit of its own, so that it can fail or be left out without touching the backend.
 if [ "$VIEWER" = 1 ]; then
   install_system_file "$DEPLOY_DIR/systemd/smartedge-viewer.service" "$UNIT_DIR/smartedge-viewer.service"
@@ -197,5 +201,6 @@ units_start "${units[@]}"
 
 log "done. Check with:"
 log "  systemctl status 'smartedge-*'    journalctl -u smartedge-backend -f"
+log "  mapper: journalctl -u smartedge-mapper (map kept in /var/lib/smartedge/semantic_map.npz)"
 [ "$ROUTER" != zenohd ] || log "  zenohd: journalctl -u smartedge-zenohd"
 [ "$VIEWER" = 0 ] || log "  viewer: journalctl -u smartedge-viewer (Rerun sink: SMARTEDGE_RERUN)"

@@ -12,6 +12,7 @@
     smartedge/<site>/robot/<robot_id>/localization   PoseEstimate (the robot's own, "robot")
     smartedge/<site>/robot/<robot_id>/ground_truth   PoseEstimate (simulation only)
     smartedge/<site>/robot/<robot_id>/correction     PoseCorrection
+    smartedge/<site>/map/<map_id>/voxels             SemanticCloud (the semantic map's voxels)
     smartedge/<site>/status/<service>/<id>           ServiceStatus
     smartedge/<site>/alive/<service>/<id>            liveliness token (no payload)
 """
@@ -48,8 +49,9 @@ TOPIC_TYPES: Final[dict[tuple[str, str], type[Message]]] = {
     ("robot", "localization"): PoseEstimate,
     ("robot", "ground_truth"): PoseEstimate,
     ("robot", "correction"): PoseCorrection,
+    ("map", "voxels"): SemanticCloud,
 }
-SERVICES: Final = ("edge-agent", "backend", "robot-bridge")
+SERVICES: Final = ("edge-agent", "backend", "mapper", "robot-bridge")
 
 
 def _chunk(field: str, value: str, wildcard: bool) -> str:
@@ -112,6 +114,12 @@ def correction_key(site: str, robot_id: str) -> str:
     return robot_key(site, robot_id, "correction")
 
 
+def map_voxels_key(site: str, map_id: str) -> str:
+    """``smartedge/<site>/map/<map_id>/voxels``: the mapper's semantic voxels (``'*'`` allowed
+    for the id)."""
+    return f"{ROOT}/{check_id('site', site)}/map/{_chunk('map_id', map_id, True)}/voxels"
+
+
 def status_key(site: str, service: str, instance_id: str) -> str:
     """``smartedge/<site>/status/<service>/<id>``; ``'*'`` is allowed for both ids."""
     return (
@@ -130,9 +138,9 @@ def alive_key(site: str, service: str, instance_id: str) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class ParsedKey:
-    """A key split into its parts. ``scope`` is ``edge``, ``robot``, ``status`` or ``alive``;
-    ``source_id`` the camera/robot/instance id; ``topic`` the last chunk (for status/alive: the
-    service name); ``message_type`` the type carried (``None`` for liveliness)."""
+    """A key split into its parts. ``scope`` is ``edge``, ``robot``, ``map``, ``status`` or
+    ``alive``; ``source_id`` the camera/robot/map/instance id; ``topic`` the last chunk (for
+    status/alive: the service name); ``message_type`` the type carried (``None`` for liveliness)."""
 
     site: str
     scope: str
@@ -148,7 +156,7 @@ def parse_key(key: str) -> ParsedKey:
         raise ValidationError("key", f"not a smartedge key: {str(key)[:200]!r}")
     _, site, scope, a, b = parts
     check_id("key.site", site)
-    if scope in ("edge", "robot"):
+    if scope in ("edge", "robot", "map"):
         msg_type = TOPIC_TYPES.get((scope, b))
         if msg_type is None:
             raise ValidationError("key", f"unknown {scope} topic {b!r} in {key!r}")

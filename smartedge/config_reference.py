@@ -36,10 +36,13 @@ class Section:
 
 
 def sections() -> list[Section]:
+    from backend_service.cloud_alignment import AlignmentConfig
     from backend_service.estimate import SolverConfig
     from backend_service.fusion import FusionConfig
+    from backend_service.mapping import MappingConfig
     from backend_service.multi_frame import MultiFrameConfig
     from backend_service.pipeline import PipelineConfig
+    from backend_service.semantic_map import SemanticMapConfig
     from protocol.site import Thresholds
     from robot_bridge.bridge import BridgeConfig
 
@@ -52,11 +55,15 @@ def sections() -> list[Section]:
         Section("pose", "backend_service (pipeline + solver)",
                 ((PipelineConfig, frozenset({"prior", "prior_max_age_s", "fuse_while_moving"})),
                  (SolverConfig, None)),
-                "`smartedge backend --robust-loss/--solver` override the file; without either, "
-                "the service uses the Huber loss."),
+                "`smartedge backend --robust-loss/--solver` override the file."),
         Section("multi_frame", "backend_service", ((MultiFrameConfig, None),),
                 "`count` defaults to `thresholds.multi_frame_count`."),
         Section("fusion", "backend_service (pose graph)", ((FusionConfig, None),)),
+        Section("map", "backend_service (semantic mapping, `smartedge mapper`)",
+                ((MappingConfig, None), (SemanticMapConfig, None), (AlignmentConfig, None)),
+                "One flat section for the mapper, the voxel map and the ICP gate; the ICP's "
+                "per-level tuples (voxel_sizes_m, max_correspondence_m, max_iterations) keep "
+                "their defaults. Paths are relative to the site file."),
         Section("bridge", "robot_bridge",
                 ((BridgeConfig, frozenset({"backend_timeout_s", "robot_timeout_s"})),)),
     ]

@@ -29,6 +29,7 @@ SMARTEDGE_BIN = "/opt/smartedge/bin/smartedge"
 SERVICE_UNITS = {
     "smartedge-edge-agent@.service": "edge-agent",
     "smartedge-backend.service": "backend",
+    "smartedge-mapper.service": "mapper",
     "smartedge-robot-bridge@.service": "robot-bridge",
     "smartedge-viewer.service": "viewer",
 }
@@ -578,7 +579,8 @@ def test_backend_dry_run_prints_the_steps_and_changes_nothing(tmp_path: Path) ->
     assert "zenoh/router.json5 → " in out
     assert "smartedge-backend.service.d/zenoh-router.conf" in out
     assert "smartedge-robot-bridge@hsr.service" in out
-    assert "systemctl enable smartedge-backend.service smartedge-viewer.service " in out
+    assert ("systemctl enable smartedge-backend.service smartedge-mapper.service "
+            "smartedge-viewer.service ") in out
 
     no_viewer = _run_script(
         "install-backend.sh", "--dry-run", "--root", str(root), "--site", str(EXAMPLE_SITE),
@@ -743,7 +745,8 @@ def test_backend_staged_install_viewer_sink_and_no_viewer(tmp_path: Path) -> Non
     env = (etc / "smartedge.env").read_text()
     assert "\nSMARTEDGE_RERUN=serve\n" in env
     assert "\nSMARTEDGE_VIEWER_ARGS=\n" in env
-    assert "enable smartedge-backend.service smartedge-viewer.service" in proc.stdout
+    assert ("enable smartedge-backend.service smartedge-mapper.service "
+            "smartedge-viewer.service") in proc.stdout
     backend = (units / "smartedge-backend.service").read_bytes()
 
     proc = _run_script("install-backend.sh", *base, "--no-viewer", "hsr")
