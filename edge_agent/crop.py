@@ -88,6 +88,23 @@ def resize_for_detector(image_rgb: np.ndarray, input_w: int, input_h: int) -> np
     return cv2.resize(image_rgb, (input_w, input_h), interpolation=interp)
 
 
+def downscale_labels(class_id: np.ndarray, out_w: int, out_h: int) -> np.ndarray:
+    """(H, W) integer class image → (out_h, out_w) uint8 by nearest neighbour: output pixel
+    ``(i, j)`` takes the image pixel nearest to its centre ``((j + 0.5) * W / out_w - 0.5,
+    (i + 0.5) * H / out_h - 0.5)`` (the segmentation network's output convention)."""
+    import cv2
+
+    labels = np.asarray(class_id)
+    if labels.ndim != 2:
+        raise ValueError(f"expected an (H, W) class image, got shape {labels.shape}")
+    h, w = labels.shape
+    if (w, h) == (out_w, out_h):
+        return labels.astype(np.uint8)
+    # INTER_NEAREST_EXACT samples floor((j + 0.5) * W / out_w): the pixel holding that centre
+    return cv2.resize(labels.astype(np.uint8), (out_w, out_h),
+                      interpolation=cv2.INTER_NEAREST_EXACT)
+
+
 def to_nchw(images_rgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) or (N, H, W, 3) uint8 → (N, 3, H, W) float32 in [0, 1] (the models' input;
     they normalise inside the graph)."""

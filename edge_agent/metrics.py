@@ -1,5 +1,5 @@
-"""Held-out metrics for the detector and the keypoint network (numpy only, no torch: the
-ONNX evaluation in ``smartedge evaluate keypoints`` uses them too)."""
+"""Held-out metrics for the detector, the keypoint network and the segmentation network (numpy
+only, no torch: the ONNX evaluation in ``smartedge evaluate keypoints`` uses them too)."""
 
 from __future__ import annotations
 
@@ -155,3 +155,37 @@ def sigma_from_confidence(confidence: np.ndarray, calibration: dict[str, list[fl
     if xs.size == 0 or xs.size != ys.size:
         return None
     return np.interp(np.asarray(confidence, np.float64), xs, ys)
+
+
+def confusion_matrix(true_ids: np.ndarray, predicted_ids: np.ndarray, num_classes: int
+                     ) -> np.ndarray:
+    """(num_classes, num_classes) int64 pixel counts, row = true class, column = predicted, of
+    two equal-shape integer class images (any leading shape); ids outside ``[0, num_classes)``
+    are a ``ValueError``."""
+    t = np.asarray(true_ids).astype(np.int64).ravel()
+    p = np.asarray(predicted_ids).astype(np.int64).ravel()
+    if t.shape != p.shape:
+        raise ValueError(f"class images of {np.shape(true_ids)} and {np.shape(predicted_ids)}")
+    if t.size and (min(t.min(), p.min()) < 0 or max(t.max(), p.max()) >= num_classes):
+        raise ValueError(f"class ids outside [0, {num_classes})")
+    return np.bincount(t * num_classes + p, minlength=num_classes ** 2).reshape(
+        num_classes, num_classes)
+
+
+def segmentation_metrics(confusion: np.ndarray, class_names: Sequence[str]
+                         ) -> dict[str, float]:
+    """Figures of a :func:`confusion_matrix`: ``pixel accuracy``, ``mean IoU`` over the classes
+    present (at least one true pixel), ``IoU <name>`` of each present class (intersection over
+    union of true and predicted pixels) and ``pixels``."""
+    cm = np.asarray(confusion, np.float64)
+    total = cm.sum()
+    tp = np.diag(cm)
+    true_px, pred_px = cm.sum(1), cm.sum(0)
+    present = true_px > 0
+    iou = tp / np.maximum(true_px + pred_px - tp, 1.0)
+    out = {"pixel accuracy": float(tp.sum() / total) if total else float("nan"),
+           "mean IoU": float(np.mean(iou[present])) if present.any() else float("nan")}
+    for i in np.flatnonzero(present):
+        out[f"IoU {class_names[i]}"] = float(iou[i])
+    out["pixels"] = float(total)
+    return out

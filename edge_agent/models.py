@@ -1,13 +1,15 @@
 """The edge's networks at run time: model cards, onnxruntime sessions, decoding (no torch).
 
 A model is an ONNX file with its card beside it (same name, ``.json``: :class:`DetectorCard` /
-:class:`KeypointCard`: input size, robot model and keypoint names, training record, held-out
-metrics); ``.md`` is the same card for people and ``.reference.npz`` holds torch's outputs on
-fixed inputs (the export check). The shipped models for the built-in robot live in
+:class:`KeypointCard` / :class:`SegmentationCard`: input size, robot model and keypoint names,
+the segmentation's classes and output size, training record, held-out metrics); ``.md`` is the
+same card for people and ``.reference.npz`` holds torch's outputs on fixed inputs (the export
+check). The shipped models for the built-in robot live in
 ``edge_agent/models/`` (:func:`default_model_dir`); a site file's robot model may name others.
 
 :class:`RobotKeypointPipeline` runs detector → crop → keypoints on a full frame and returns raw
-(distorted) pixel keypoints with confidences per detected robot.
+(distorted) pixel keypoints with confidences per detected robot. :class:`SemanticSegmenter`
+turns a whole frame into per-pixel classes of :mod:`protocol.semantic_classes` with confidences.
 """
 
 from __future__ import annotations
@@ -25,11 +27,12 @@ import numpy as np
 from edge_agent.crop import CROP_PADDING, crop_transform, extract_crop, resize_for_detector, to_nchw
 from edge_agent.metrics import sigma_from_confidence
 from protocol.errors import SmartedgeError
+from protocol.semantic_classes import SEMANTIC_CLASSES
 
 log = logging.getLogger(__name__)
 
 CARD_VERSION: Final = 1
-KINDS: Final = ("detector", "keypoints")
+KINDS: Final = ("detector", "keypoints", "segmentation")
 
 
 class ModelError(SmartedgeError):
@@ -93,16 +96,24 @@ class ModelCard:
         except (TypeError, ValueError) as exc:
             raise ModelError(f"{path}: bad model card: {exc}") from None
 
+    def _loss_lines(self) -> list[str]:
+        return []
+
+    def _model_lines(self) -> list[str]:
+        """The card's first bullet points after the file: what the model is for."""
+        return [f"- robot model: `{self.robot_model}` ({len(self.keypoint_names)} keypoints: "
+                f"{', '.join(self.keypoint_names)}); mesh: "
+                f"{self.training.get('robot_mesh', '?')}",
+                f"- input: {self.input_w}x{self.input_h} RGB float32 in [0, 1], NCHW "
+                "(normalised inside the graph)"]
+
     def markdown(self) -> str:
         t = self.training
         lines = [
             f"# {self.KIND} model card",
             "",
             f"- file: `{self.onnx}` (ONNX opset 17, one self-contained file)",
-            f"- robot model: `{self.robot_model}` ({len(self.keypoint_names)} keypoints: "
-            f"{', '.join(self.keypoint_names)}); mesh: {t.get('robot_mesh', '?')}",
-            f"- input: {self.input_w}x{self.input_h} RGB float32 in [0, 1], NCHW "
-            "(normalised inside the graph)",
+            *self._model_lines(),
             f"- parameters: {t.get('parameters', 0) / 1e6:.2f} M",
             "",
             "## Training",
@@ -114,6 +125,7 @@ class ModelCard:
         for key in ("train_sets", "val_sets"):
             sets = ", ".join(f"{s['mode']} seed {s['seed']} x{s['count']}" for s in t.get(key, []))
             lines.append(f"- {'training' if key == 'train_sets' else 'held-out'} sets: {sets}")
+        lines += self._loss_lines()
         lines += [
             f"- steps: {t.get('steps')} x batch {t.get('batch')}, AdamW lr {t.get('lr')}, "
             f"final loss {t.get('final_loss')}",
@@ -189,6 +201,44 @@ class KeypointCard(ModelCard):
             "sigma = this / crop scale (image pixels) with every keypoint and the backend "
             "weights keypoints by it (docs/pose_estimation.md).\n\n"
             "| confidence (bin median) | sigma (crop px) |\n|---|---|\n" + rows + "\n")
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentationCard(ModelCard):
+    """The segmentation network's card: ``classes`` (the legend the output ids index; must be
+    :data:`protocol.semantic_classes.SEMANTIC_CLASSES`), ``output_w`` x ``output_h`` the size of
+    its class and confidence images. ``robot_model``/``keypoint_names``: the robot rendered
+    in the training views (class ``robot``)."""
+
+    KIND: ClassVar[str] = "segmentation"
+    classes: list[str]
+    output_w: int
+    output_h: int
+
+    def _model_lines(self) -> list[str]:
+        return [f"- classes ({len(self.classes)}, ids in this order): {', '.join(self.classes)}",
+                f"- input: {self.input_w}x{self.input_h} RGB float32 in [0, 1], NCHW "
+                "(normalised inside the graph): the whole frame, resized",
+                f"- output: {self.output_w}x{self.output_h} `class_ids` uint8 and `confidence` "
+                "float32 (softmax probability of that class); output pixel (i, j) covers "
+                "image pixel centre ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5)",
+                f"- robot in the renders: `{self.robot_model}`, mesh: "
+                f"{self.training.get('robot_mesh', '?')}"]
+
+    def _loss_lines(self) -> list[str]:
+        weights = self.training.get("class_weights")
+        if not weights:
+            return []
+        named = ", ".join(f"{name} {w:.2f}" for name, w in zip(self.classes, weights,
+                                                                  strict=False) if w > 0)
+        return ["- loss: cross-entropy weighted by sqrt(median frequency / class frequency) of "
+                f"the training labels, clipped to [0.2, 5]: {named}"]
+
+    def markdown(self) -> str:
+        return super().markdown().replace(
+            "max abs difference per output: class_ids",
+            "share of pixels whose class differs: class_ids").replace(
+            ", confidence", "; max abs difference: confidence")
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,9 +324,11 @@ def reference_path(onnx_path: Path) -> Path:
     return onnx_path.with_name(onnx_path.stem + ".reference.npz")
 
 
-#: max abs difference between onnxruntime and torch's stored outputs, per output (export check)
+#: max abs difference between onnxruntime and torch's stored outputs, per output (export check);
+#: for the segmentation's ``class_ids``: the share of pixels whose class differs (a pixel whose
+#: two best classes tie within float noise may go either way)
 EXPORT_TOLERANCE: Final = {"peaks": 1e-3, "size": 1e-2, "offset": 1e-3, "keypoints": 0.05,
-                           "confidence": 1e-3}
+                           "confidence": 1e-3, "class_ids": 1e-3}
 #: A keypoint whose two best SimCC bins tie within float noise may have its decode window
 #: centred one bin apart in two runtimes (seen: onnxruntime vs torch, 0.059 px). Such a
 #: keypoint shows as a window mass (its confidence) that differs by more than float noise
@@ -293,12 +345,13 @@ def export_differences(want: dict[str, np.ndarray], got: dict[str, np.ndarray]
     the export check. Cells the reference marks ambiguous (``peaks_ambiguous``: the detector's
     peak test at its tie threshold) are not compared; keypoints whose decode window may sit one
     bin apart (:data:`KEYPOINT_TIE_CONFIDENCE`) are held to :data:`KEYPOINT_TIE_TOLERANCE`.
-    Raises ``KeyError`` naming an output missing on either side."""
+    Segmentation ``class_ids`` are compared as the share of pixels that differ. Raises
+    ``KeyError`` naming an output missing on either side."""
     got = dict(got)
     if "peaks_ambiguous" in want and "peaks" in got:
         got["peaks"] = np.where(want["peaks_ambiguous"], want["peaks"], got["peaks"])
     tie = None
-    if "confidence" in want and "confidence" in got:
+    if "keypoints" in want and "confidence" in want and "confidence" in got:
         tie = np.abs(got["confidence"] - want["confidence"]) > KEYPOINT_TIE_CONFIDENCE
     ratios: dict[str, float] = {}
     for name, out in got.items():
@@ -308,6 +361,10 @@ def export_differences(want: dict[str, np.ndarray], got: dict[str, np.ndarray]
             continue
         if not ref.size:
             ratios[name] = 0.0
+            continue
+        if name == "class_ids":
+            share = float(np.mean(np.asarray(out) != np.asarray(ref)))
+            ratios[name] = share / EXPORT_TOLERANCE[name]
             continue
         diff = np.abs(out.astype(np.float64) - ref)
         if tie is not None and name in KEYPOINT_TIE_TOLERANCE:
@@ -487,3 +544,86 @@ class RobotKeypointPipeline:
         return [RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
                                  None if sigma is None else sigma[i])
                 for i, b in enumerate(boxes)]
+
+
+# --------------------------------------------------------------------------------------------
+# semantic segmentation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Segmentation:
+    """One segmented image. ``class_ids`` (h, w) uint8 ids of
+    :data:`protocol.semantic_classes.SEMANTIC_CLASSES`; ``confidence`` (h, w) float32 in
+    [0, 1], the softmax probability of that class; ``image_width`` x ``image_height`` (W, H):
+    the image that was segmented. Output pixel ``(i, j)`` covers the image pixel centre
+    ``((j + 0.5) * W / w - 0.5, (i + 0.5) * H / h - 0.5)`` (OpenCV convention: pixel centres
+    at integer coordinates); ``infer_ms``: resize + network, milliseconds."""
+
+    class_ids: np.ndarray
+    confidence: np.ndarray
+    image_width: int
+    image_height: int
+    infer_ms: float
+
+    def image_pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(h, w) image x and y (pixels, OpenCV convention) of every output pixel's centre."""
+        h, w = self.class_ids.shape
+        x = (np.arange(w) + 0.5) * (self.image_width / w) - 0.5
+        y = (np.arange(h) + 0.5) * (self.image_height / h) - 0.5
+        return np.broadcast_to(x[None], (h, w)), np.broadcast_to(y[:, None], (h, w))
+
+
+class SemanticSegmenter:
+    """The segmentation network: a whole frame → per-pixel classes and confidences.
+
+    ``onnx_path``: the model (its :class:`SegmentationCard` beside it); ``None``: the shipped
+    ``edge_agent/models/segmentation.onnx``. ``threads``: onnxruntime intra-op threads;
+    ``providers``: execution providers in order of preference (default CPU). A missing, corrupt
+    or truncated model, a missing or wrong card, a card whose classes are not
+    :data:`protocol.semantic_classes.SEMANTIC_CLASSES` and a graph whose input or output size is
+    not the card's raise :class:`ModelError` naming the file."""
+
+    def __init__(self, onnx_path: Path | str | None = None, *, threads: int = 2,
+                 providers: Sequence[str] | None = None) -> None:
+        self.path = Path(onnx_path) if onnx_path is not None else (
+            default_model_dir() / "segmentation.onnx")
+        if not self.path.is_file():
+            raise ModelError(f"{self.path}: segmentation model file not found")
+        card = SegmentationCard.read(card_path(self.path))
+        if list(card.classes) != list(SEMANTIC_CLASSES):
+            raise ModelError(f"{card_path(self.path)}: the model's classes {card.classes} are not "
+                             f"smartedge's legend {list(SEMANTIC_CLASSES)} "
+                             "(protocol.semantic_classes); retrain it")
+        self.card = card
+        self.session = _session(self.path, threads, providers)
+        _check_io(self.path, self.session, [("image", (3, card.input_h, card.input_w))],
+                  ["class_ids", "confidence"])
+        for out in self.session.get_outputs():
+            if tuple(out.shape[1:]) != (card.output_h, card.output_w):
+                raise ModelError(f"{self.path}: output {out.name} of shape {out.shape[1:]}, the "
+                                 f"card says {card.output_h}x{card.output_w} (h x w)")
+
+    @property
+    def model_id(self) -> str:
+        """Which model this is (provenance): ``segmentation/<its folder's name>``."""
+        return f"{self.card.KIND}/{self.path.parent.name}"
+
+    def __call__(self, image_rgb: np.ndarray) -> Segmentation:
+        """Segment an (H, W, 3) uint8 RGB image of any size (resized to the network's input
+        inside); raises ``ValueError`` for anything else."""
+        if (not isinstance(image_rgb, np.ndarray) or image_rgb.ndim != 3
+                or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8
+                or min(image_rgb.shape[:2]) < 1):
+            got = (f"{image_rgb.shape} {image_rgb.dtype}" if isinstance(image_rgb, np.ndarray)
+                   else type(image_rgb).__name__)
+            raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {got}")
+        c = self.card
+        h, w = image_rgb.shape[:2]
+        t0 = time.perf_counter()
+        x = to_nchw(resize_for_detector(image_rgb, c.input_w, c.input_h))
+        class_ids, confidence = self.session.run(None, {"image": x})
+        infer_ms = (time.perf_counter() - t0) * 1e3
+        return Segmentation(class_ids[0].astype(np.uint8, copy=False),
+                            np.clip(confidence[0], 0.0, 1.0).astype(np.float32, copy=False),
+                            int(w), int(h), infer_ms)

@@ -1,4 +1,4 @@
-"""``smartedge train detector|keypoints``: train a network on synthetic renders only.
+"""``smartedge train detector|keypoints|segmentation``: train a network on synthetic renders only.
 
 Renders (once, cached in ``OUT/cache``) domain-randomized scenes and views from the site's own
 cameras, trains with a progress line and checkpoints (run the same command again to resume an
@@ -10,6 +10,7 @@ Examples::
 
     smartedge train detector  --out runs/models --minutes 45
     smartedge train keypoints --out runs/models --minutes 45
+    smartedge train segmentation --out runs/seg --minutes 40 --threads 1 --workers 1
     smartedge train keypoints --out runs/tiny --steps 5 --train-views 16 --val-views 8 --tiny
     smartedge train keypoints --out runs/husky --robot-mesh husky.urdf --keypoints husky_kp.yaml
 
@@ -19,6 +20,7 @@ The shipped models in ``edge_agent/models/`` were made with ``scripts/train_ship
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,7 +34,7 @@ HELD_OUT_SEED_OFFSET = 1000
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="smartedge train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", choices=("detector", "keypoints"))
+    p.add_argument("kind", choices=("detector", "keypoints", "segmentation"))
     p.add_argument("--out", required=True, help="output folder (model, card, cache, checkpoint)")
     p.add_argument("--scenario", help="scenario file (default: the paper's lab); its site file "
                    "gives the cameras and the robot model")
@@ -44,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="randomized training views (default 3000)")
     p.add_argument("--site-views", type=int, default=1200,
                    help="training views from the site's cameras (default 1200)")
+    p.add_argument("--site-seeds", type=int, default=1,
+                   help="spread the site views over this many seeds (seed + 1, + 2, ...), each "
+                   "its own textures and obstacle colours of the site (default 1)")
     p.add_argument("--val-views", type=int, default=200,
                    help="held-out views of each kind (default 200)")
     p.add_argument("--seed", type=int, default=1, help="training seed (default 1); held-out "
@@ -51,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=3000, help="optimizer steps (default 3000)")
     p.add_argument("--minutes", type=float, help="time budget instead of --steps (the step count "
                    "is set from the speed measured in the first steps)")
-    p.add_argument("--batch", type=int, help="batch size (default 16 detector, 32 keypoints)")
+    p.add_argument("--batch", type=int, help="batch size (default 16 detector and "
+                   "segmentation, 32 keypoints)")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
@@ -82,12 +88,23 @@ def main(argv: Sequence[str]) -> int:
             model = scenario.site.robot_model(args.robot or scenario.robot_id)
         geometry = (Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
                     if args.tiny else Geometry())
+        if args.kind == "segmentation":  # whole frames + label images at the output size
+            from edge_agent.training.nets import SemanticSegNet
+
+            stride = SemanticSegNet.output_stride
+            geometry = dataclasses.replace(geometry, crops_per_robot=0,
+                                           seg_w=geometry.det_w // stride,
+                                           seg_h=geometry.det_h // stride)
+        n_site = max(1, args.site_seeds)
+        site_sets = [SetSpec("site", args.seed + 1 + k,
+                             args.site_views // n_site + (k < args.site_views % n_site))
+                     for k in range(n_site)]
         train_sets = tuple(s for s in (SetSpec("randomized", args.seed, args.train_views),
-                                       SetSpec("site", args.seed + 1, args.site_views))
+                                       *site_sets)
                            if s.count > 0)
         val_sets = (SetSpec("randomized", args.seed + HELD_OUT_SEED_OFFSET, args.val_views),
                     SetSpec("site", args.seed + HELD_OUT_SEED_OFFSET + 1, args.val_views))
-        batch = args.batch or (16 if args.kind == "detector" else 32)
+        batch = args.batch or (32 if args.kind == "keypoints" else 16)
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
                           workers=args.workers, init_from=args.init_from)

@@ -5,7 +5,8 @@ pre-processing (:mod:`edge_agent.crop`).
 
 Rendering is the expensive part on a CPU, so :func:`render_set` renders a set of views once,
 in parallel worker processes, into compact shards (detector-sized frames, keypoint crops with
-their labels) under a cache folder; training then runs epochs over them with on-the-fly
+their labels, and for the segmentation network the per-pixel class images at its output size)
+under a cache folder; training then runs epochs over them with on-the-fly
 augmentation. Shards are written as they complete, so an interrupted run resumes where it
 stopped. The same seed always gives the same set.
 """
@@ -23,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from edge_agent.crop import crop_transform, extract_crop, resize_for_detector
+from edge_agent.crop import crop_transform, downscale_labels, extract_crop, resize_for_detector
 from protocol.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -46,9 +47,11 @@ class SetSpec:
 
 @dataclasses.dataclass(frozen=True)
 class Geometry:
-    """Network input sizes and crop sampling: detector input, keypoint crop, and how many
-    jittered crops of each visible robot to keep (``crop_jitter``: 0 = the deployed crop only,
-    as for evaluation)."""
+    """Network input sizes and crop sampling: detector input (also the segmentation network's),
+    keypoint crop, and how many jittered crops of each visible robot to keep (``crop_jitter``:
+    False = the deployed crop only, as for evaluation; ``crops_per_robot`` 0: no crops, for a
+    segmentation set); ``seg_w`` x ``seg_h``: the size of the per-pixel class labels (the
+    segmentation network's output; 0: none stored)."""
 
     det_w: int = 424
     det_h: int = 240
@@ -58,6 +61,8 @@ class Geometry:
     crop_jitter: bool = True
     frame_w: int | None = None  # render size (None: 848x480 / the site cameras' own)
     frame_h: int | None = None
+    seg_w: int = 0
+    seg_h: int = 0
 
 
 @dataclasses.dataclass
@@ -66,7 +71,10 @@ class RenderedSet:
     uint8, ``boxes`` (N, 4) robot box in *frame* pixels (NaN: none visible), ``frame_size``
     (N, 2) frame width, height. Keypoint part, one row per crop: ``crops`` (M, ch, cw, 3),
     ``crop_kp`` (M, K, 2) crop pixels, ``crop_in_image`` / ``crop_visible`` (M, K),
-    ``crop_scale`` (M,) crop pixels per frame pixel, ``crop_view`` (M,) row of the view."""
+    ``crop_scale`` (M,) crop pixels per frame pixel, ``crop_view`` (M,) row of the view.
+    Segmentation part, one row per view: ``seg_labels`` (N, seg_h, seg_w) uint8 class ids of
+    :data:`protocol.semantic_classes.SEMANTIC_CLASSES` (``downscale_labels`` of the render's
+    class image; (N, 0, 0) when the geometry asks for none)."""
 
     det_images: np.ndarray
     boxes: np.ndarray
@@ -77,6 +85,7 @@ class RenderedSet:
     crop_visible: np.ndarray
     crop_scale: np.ndarray
     crop_view: np.ndarray
+    seg_labels: np.ndarray
 
     @staticmethod
     def concatenate(parts: Sequence[RenderedSet]) -> RenderedSet:
@@ -101,7 +110,11 @@ class RenderedSet:
     @staticmethod
     def load(path: Path) -> RenderedSet:
         with np.load(path) as z:
-            return RenderedSet(**{f.name: z[f.name] for f in dataclasses.fields(RenderedSet)})
+            arrays = {f.name: z[f.name] for f in dataclasses.fields(RenderedSet)
+                      if f.name in z.files}
+        # shards written before segmentation labels existed hold none
+        arrays.setdefault("seg_labels", np.zeros((len(arrays["det_images"]), 0, 0), np.uint8))
+        return RenderedSet(**arrays)
 
 
 class ViewSource(Protocol):
@@ -138,7 +151,8 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
     box = (np.full(4, np.nan) if robot.bbox_xyxy is None
            else np.asarray(robot.bbox_xyxy, np.float64))
     crops, kps, scales = [], [], []
-    if robot.bbox_xyxy is not None and (box[2] - box[0]) * (box[3] - box[1]) >= 64:
+    big_enough = robot.bbox_xyxy is not None and (box[2] - box[0]) * (box[3] - box[1]) >= 64
+    if big_enough and g.crops_per_robot > 0:
         n = g.crops_per_robot if g.crop_jitter else 1
         for _ in range(n):
             jitter: dict[str, Any] = {}
@@ -151,6 +165,8 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
             scales.append(tf.scale)
     k = len(robot.visible)
     m = len(crops)
+    seg = (downscale_labels(sample.class_id, g.seg_w, g.seg_h)[None] if g.seg_w > 0
+           else np.zeros((1, 0, 0), np.uint8))
     return RenderedSet(
         det_images=det[None],
         boxes=box[None],
@@ -161,6 +177,7 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
         crop_visible=np.repeat(robot.visible[None], m, 0).astype(bool),
         crop_scale=np.asarray(scales, np.float32),
         crop_view=np.zeros(m, np.int64),
+        seg_labels=seg,
     )
 
 
@@ -199,7 +216,9 @@ def render_set(views: ViewSource, specs: Sequence[SetSpec], geometry: Geometry,
     _check_manifest(cache_dir, views.identity())
     tag = (f"d{geometry.det_w}x{geometry.det_h}-c{geometry.crop_w}x{geometry.crop_h}"
            f"-n{geometry.crops_per_robot}{'j' if geometry.crop_jitter else 'e'}"
-           f"-f{geometry.frame_w}x{geometry.frame_h}{'-a' if augment_clean else ''}")
+           f"-f{geometry.frame_w}x{geometry.frame_h}{'-a' if augment_clean else ''}"
+           # only segmentation sets carry labels: earlier shard names stay valid
+           + (f"-s{geometry.seg_w}x{geometry.seg_h}" if geometry.seg_w > 0 else ""))
     jobs: list[tuple[SetSpec, int, int, Path]] = []
     for spec in specs:
         for start in range(0, spec.count, SHARD):

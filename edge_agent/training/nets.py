@@ -4,12 +4,16 @@
   backbone, a light FPN back to stride 4, and three heads: a centre heatmap (one class: robot),
   the box size (log pixels of the detector input) and the sub-cell centre offset. Peaks are kept
   by a 3x3 max-pool inside the graph, so no NMS is needed.
+- :class:`SemanticSegNet`: per-pixel semantic classes (:data:`protocol.semantic_classes.
+  SEMANTIC_CLASSES`) on the whole resized frame: the backbone and an FPN back to stride 4 as in
+  the detector, a classifier head, and the logits upsampled (bilinear) to stride 2 inside the
+  graph, which returns the arg-max class and its softmax probability per output pixel.
 - :class:`KeypointNet`: top-down keypoints on a fixed-size crop with a SimCC head (one 1-D
   classification over sub-pixel bins per axis and keypoint, no heatmaps). The exported graph
   decodes inside: a soft-argmax in a window around the best bin gives sub-pixel coordinates and
   the probability mass in that window is the keypoint's confidence.
 
-Both take float32 RGB in [0, 1] (N, 3, H, W) and normalise inside, so the edge pipeline only
+All take float32 RGB in [0, 1] (N, 3, H, W) and normalise inside, so the edge pipeline only
 resizes and scales.
 """
 
@@ -226,3 +230,39 @@ class KeypointNet(nn.Module):
         px, mx = self._decode_axis(out.logits_x)
         py, my = self._decode_axis(out.logits_y)
         return torch.stack([px, py], dim=-1), torch.sqrt(mx * my)
+
+
+class SemanticSegNet(nn.Module):
+    """Per-pixel classes on the whole frame; output stride 2 (half the input size).
+
+    The backbone's stride-32 features come back to stride 4 through FPN steps (``width``
+    channels); a depthwise-separable head predicts ``num_classes`` logits there, upsampled
+    bilinearly to stride 2 (decoding at stride 2 itself doubled the training cost on a CPU).
+    Output pixel ``(i, j)`` stands for input pixel centre ``(2 j + 0.5, 2 i + 0.5)`` (OpenCV
+    convention), as the labels of :func:`edge_agent.crop.downscale_labels` do."""
+
+    output_stride: Final = 2
+
+    def __init__(self, num_classes: int, width: int = 48) -> None:
+        super().__init__()
+        self.num_classes = num_classes
+        self.backbone = Backbone()
+        c4, c8, c16, c32 = Backbone.channels
+        self.top = ConvBNAct(c32, width, 1)
+        self.fuse16, self.fuse8, self.fuse4 = _Fuse(c16, width), _Fuse(c8, width), _Fuse(c4, width)
+        self.classifier = _head(width, num_classes)
+
+    def forward_train(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) RGB in [0, 1] → (N, num_classes, H/2, W/2) logits."""
+        f4, f8, f16, f32 = self.backbone(x)
+        y = self.fuse4(self.fuse8(self.fuse16(self.top(f32), f16), f8), f4)
+        # a fixed factor (not the input's size) keeps the exported output shape static
+        return F.interpolate(self.classifier(y), scale_factor=4 / self.output_stride,
+                             mode="bilinear", align_corners=False)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Exported graph: (class_ids (N, H/2, W/2) uint8, the arg-max class; confidence
+        (N, H/2, W/2) float32, its softmax probability in [0, 1])."""
+        prob = torch.softmax(self.forward_train(x), dim=1)
+        confidence, class_ids = prob.max(dim=1)
+        return class_ids.to(torch.uint8), confidence

@@ -1,9 +1,9 @@
-"""Train, validate and export the detector and the keypoint network.
+"""Train, validate and export the detector, the keypoint network and the segmentation network.
 
-``smartedge train detector|keypoints`` runs :func:`train`: render (or reuse) the training and
-held-out sets, train with checkpoints (an interrupted run resumes), validate on the held-out
-sets, export one self-contained ONNX file, check onnxruntime against torch, write the model card
-(``<kind>.json`` read by the edge pipeline, ``<kind>.md`` for people).
+``smartedge train detector|keypoints|segmentation`` runs :func:`train`: render (or reuse) the
+training and held-out sets, train with checkpoints (an interrupted run resumes), validate on the
+held-out sets, export one self-contained ONNX file, check onnxruntime against torch, write the
+model card (``<kind>.json`` read by the edge pipeline, ``<kind>.md`` for people).
 """
 
 from __future__ import annotations
@@ -21,22 +21,30 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from edge_agent.metrics import detection_ap, keypoint_metrics
+from edge_agent.metrics import (
+    confusion_matrix,
+    detection_ap,
+    keypoint_metrics,
+    segmentation_metrics,
+)
 from edge_agent.models import (
     CARD_VERSION,
     KINDS,
     DetectorCard,
     KeypointCard,
+    SegmentationCard,
     card_path,
     decode_detections,
     export_differences,
     reference_path,
 )
 from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
-from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector
+from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector, SemanticSegNet
 from protocol.errors import SmartedgeError
+from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
 
 log = logging.getLogger(__name__)
+
 
 class TrainingError(SmartedgeError):
     """Training cannot start or its result fails a check (export, onnxruntime mismatch)."""
@@ -76,6 +84,15 @@ class TrainConfig:
             raise TrainingError(f"held-out sets reuse training seed(s) {sorted(clash)}")
         if self.steps < 1 or self.batch < 1:
             raise TrainingError(f"steps {self.steps}, batch {self.batch}: both must be >= 1")
+        if self.kind == "segmentation":
+            g, stride = self.geometry, SemanticSegNet.output_stride
+            if g.det_w % 4 or g.det_h % 4:
+                raise TrainingError(f"segmentation input {g.det_w}x{g.det_h}: both must be "
+                                    "multiples of 4")
+            if (g.seg_w, g.seg_h) != (g.det_w // stride, g.det_h // stride):
+                raise TrainingError(f"segmentation labels {g.seg_w}x{g.seg_h}: the network's "
+                                    f"output for a {g.det_w}x{g.det_h} input is "
+                                    f"{g.det_w // stride}x{g.det_h // stride}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -151,6 +168,22 @@ def photometric(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return (x * gain * colour + bias).clamp(0, 1)
 
 
+def class_weights(labels: np.ndarray, num_classes: int, lo: float = 0.2, hi: float = 5.0
+                  ) -> np.ndarray:
+    """(num_classes,) float32 cross-entropy weights from (N, h, w) training labels: the square
+    root of median frequency balancing (median class frequency / class frequency, over the
+    classes present), clipped to [lo, hi]; 0 for classes absent from the labels. The square
+    root keeps the rare classes (robot, person) learnt without trading away the large ones
+    (floor, wall) that the map needs most."""
+    counts = np.bincount(np.asarray(labels).ravel(), minlength=num_classes)[:num_classes]
+    freq = counts / max(int(counts.sum()), 1)
+    present = freq > 0
+    w = np.zeros(num_classes, np.float64)
+    if present.any():
+        w[present] = np.clip(np.sqrt(np.median(freq[present]) / freq[present]), lo, hi)
+    return w.astype(np.float32)
+
+
 def _to_tensor(images: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
 
@@ -164,13 +197,23 @@ def _build(cfg: TrainConfig, num_keypoints: int) -> torch.nn.Module:
     g = cfg.geometry
     if cfg.kind == "detector":
         return RobotDetector()
+    if cfg.kind == "segmentation":
+        return SemanticSegNet(NUM_SEMANTIC_CLASSES)
     return KeypointNet(num_keypoints, g.crop_w, g.crop_h)
 
 
 def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx: np.ndarray,
-                gen: torch.Generator, rng: np.random.Generator, device: torch.device
-                ) -> torch.Tensor:
+                gen: torch.Generator, rng: np.random.Generator, device: torch.device,
+                weights: torch.Tensor | None = None) -> torch.Tensor:
     g = cfg.geometry
+    if cfg.kind == "segmentation":
+        images, labels = data.det_images[idx], data.seg_labels[idx]
+        flip = rng.uniform(size=len(idx)) < 0.5
+        images = np.where(flip[:, None, None, None], images[:, :, ::-1], images)
+        labels = np.where(flip[:, None, None], labels[:, :, ::-1], labels)
+        x = photometric(_to_tensor(images), gen).to(device)
+        target = torch.from_numpy(labels.astype(np.int64)).to(device)
+        return F.cross_entropy(model.forward_train(x), target, weight=weights)
     if cfg.kind == "detector":
         images = data.det_images[idx]
         boxes = frame_to_input(data.boxes[idx], data.frame_size[idx], g.det_w, g.det_h)
@@ -202,7 +245,7 @@ def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx
 
 
 def _rows(cfg: TrainConfig, data: RenderedSet) -> int:
-    return len(data.det_images) if cfg.kind == "detector" else len(data.crops)
+    return len(data.crops) if cfg.kind == "keypoints" else len(data.det_images)
 
 
 def _progress_line(step: int, total: int, loss: float, rate: float, eta_s: float) -> str:
@@ -223,7 +266,7 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     rows = _rows(cfg, data)
     if rows < cfg.batch:
         raise TrainingError(f"{rows} training rows for batch {cfg.batch}: render more views")
-    identity = {"kind": cfg.kind, "geometry": dataclasses.asdict(cfg.geometry)}
+    identity = {"kind": cfg.kind, "geometry": _geometry_identity(cfg.geometry)}
     state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": [],
                              "identity": identity, "render_wall_s": render_s}
     if cfg.init_from and not ckpt.exists():
@@ -246,6 +289,11 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             state["total_steps"] = cfg.steps
         say(f"resuming from {ckpt} at step {state['step']}/{state['total_steps']}")
     history = state.setdefault("history", [])
+    weights = None
+    if cfg.kind == "segmentation":
+        state.setdefault("class_weights", class_weights(data.seg_labels,
+                                                        NUM_SEMANTIC_CLASSES).tolist())
+        weights = torch.tensor(state["class_weights"], dtype=torch.float32, device=device)
     first_step = state["step"]
     gen = torch.Generator().manual_seed(cfg.seed + state["step"])
     rng = np.random.default_rng([cfg.seed, state["step"]])
@@ -261,7 +309,7 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             group["lr"] = lr
         idx = rng.choice(rows, cfg.batch, replace=False)
         t0 = time.perf_counter()
-        loss = _batch_loss(cfg, model, data, idx, gen, rng, device)
+        loss = _batch_loss(cfg, model, data, idx, gen, rng, device, weights)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -294,6 +342,16 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     _save_checkpoint(ckpt, model, opt, state)
     model.eval()
     return state
+
+
+def _geometry_identity(geometry: Geometry) -> dict[str, Any]:
+    """The geometry as a checkpoint records it; without the segmentation label size when there
+    is none, so checkpoints from before it existed still resume."""
+    doc = dataclasses.asdict(geometry)
+    if not geometry.seg_w and not geometry.seg_h:
+        doc.pop("seg_w")
+        doc.pop("seg_h")
+    return doc
 
 
 def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
@@ -342,6 +400,19 @@ def predict_detector(model: RobotDetector, det_images: np.ndarray, batch: int = 
 
 
 @torch.no_grad()
+def predict_segmentation(model: SemanticSegNet, images: np.ndarray, batch: int = 16
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, h, w) uint8 class ids and float32 confidences of (N, H, W, 3) uint8 inputs."""
+    model.eval()
+    ids, confs = [], []
+    for i in range(0, len(images), batch):
+        c, p = model(_to_tensor(images[i:i + batch]))
+        ids.append(c.numpy())
+        confs.append(p.numpy())
+    return np.concatenate(ids), np.concatenate(confs)
+
+
+@torch.no_grad()
 def predict_keypoints(model: KeypointNet, crops: np.ndarray, batch: int = 32
                       ) -> tuple[np.ndarray, np.ndarray]:
     model.eval()
@@ -364,6 +435,10 @@ def validate(cfg: TrainConfig, model: torch.nn.Module, sets: dict[str, RenderedS
             dets = predict_detector(model, data.det_images)  # type: ignore[arg-type]
             gt = frame_to_input(data.boxes, data.frame_size, g.det_w, g.det_h)
             result[name] = detection_ap(dets, gt)
+        elif cfg.kind == "segmentation":
+            ids, _ = predict_segmentation(model, data.det_images)  # type: ignore[arg-type]
+            cm = confusion_matrix(data.seg_labels, ids, NUM_SEMANTIC_CLASSES)
+            result[name] = segmentation_metrics(cm, SEMANTIC_CLASSES)
         else:
             kp, conf = predict_keypoints(model, data.crops)  # type: ignore[arg-type]
             # errors in frame pixels: crop error / crop scale
@@ -386,6 +461,10 @@ def export_onnx(cfg: TrainConfig, model: torch.nn.Module, path: Path) -> None:
         names_in, names_out = ["image"], ["peaks", "size", "offset"]
         dyn = {"image": {0: "batch"}, "peaks": {0: "batch"}, "size": {0: "batch"},
                "offset": {0: "batch"}}
+    elif cfg.kind == "segmentation":
+        dummy = torch.rand(1, 3, g.det_h, g.det_w)
+        names_in, names_out = ["image"], ["class_ids", "confidence"]
+        dyn = {"image": {0: "batch"}, "class_ids": {0: "batch"}, "confidence": {0: "batch"}}
     else:
         dummy = torch.rand(1, 3, g.crop_h, g.crop_w)
         names_in, names_out = ["crop"], ["keypoints", "confidence"]
@@ -423,7 +502,11 @@ def check_onnxruntime(cfg: TrainConfig, model: torch.nn.Module, path: Path,
         extra = {}
     diffs = {}
     for name, r, o in zip(names, ref, got, strict=True):
-        diffs[name] = float(np.max(np.abs(r - o))) if r.size else 0.0
+        if name == "class_ids":  # the share of pixels whose class differs
+            diffs[name] = float(np.mean(r != o)) if r.size else 0.0
+        else:
+            diffs[name] = (float(np.max(np.abs(r.astype(np.float64) - o))) if r.size
+                           else 0.0)
     ratios = export_differences({**dict(zip(names, ref, strict=True)), **extra},
                                 dict(zip(names, got, strict=True)))
     bad = {k: diffs[k] for k, v in ratios.items() if v > 1.0}
@@ -472,7 +555,7 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
         stale.unlink(missing_ok=True)  # never leave a new model beside an old card
     export_onnx(cfg, model, onnx_path)
     first = next(iter(val.values()))
-    probe = first.det_images[:2] if cfg.kind == "detector" else first.crops[:4]
+    probe = first.crops[:4] if cfg.kind == "keypoints" else first.det_images[:2]
     try:
         diffs = check_onnxruntime(cfg, model, onnx_path, probe)
     except TrainingError:
@@ -491,7 +574,7 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
 def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any],
           metrics: dict[str, dict[str, float]], diffs: dict[str, float], n_params: int,
           render_s: float | None, total_s: float, onnx_path: Path
-          ) -> DetectorCard | KeypointCard:
+          ) -> DetectorCard | KeypointCard | SegmentationCard:
     g = cfg.geometry
     training = {
         "train_sets": [dataclasses.asdict(s) for s in cfg.train_sets],
@@ -507,12 +590,18 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
         "parameters": n_params, "robot_mesh": mesh_name,
         "history": list(state.get("history", [])),
     }
+    if cfg.kind == "segmentation":
+        training["class_weights"] = [round(w, 3) for w in state.get("class_weights", [])]
+        training.pop("sigma_px")
     common = {"version": CARD_VERSION, "onnx": onnx_path.name, "robot_model": model_def.name,
               "keypoint_names": list(model_def.keypoint_names), "metrics": metrics,
               "onnx_check": diffs, "training": training}
     if cfg.kind == "detector":
         return DetectorCard(input_w=g.det_w, input_h=g.det_h, stride=RobotDetector.stride,
                             **common)
+    if cfg.kind == "segmentation":
+        return SegmentationCard(input_w=g.det_w, input_h=g.det_h, output_w=g.seg_w,
+                                output_h=g.seg_h, classes=list(SEMANTIC_CLASSES), **common)
     return KeypointCard(input_w=g.crop_w, input_h=g.crop_h, **common)
 
 

@@ -31,3 +31,15 @@ def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
         code = train_tiny(kind, out)
         assert code == 0, f"smartedge train {kind} (tiny) exited with {code}"
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_segmentation(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with ``segmentation.*`` (onnx, json, md, reference.npz, ckpt) and the render
+    ``cache/`` of a tiny ``smartedge train segmentation`` run (128x96 input, 64x48 output)."""
+    pytest.importorskip("torch", reason="training the tiny model needs torch (train extra)")
+    pytest.importorskip("moderngl", reason="rendering the training views needs moderngl")
+    out = tmp_path_factory.mktemp("tiny_segmentation")
+    code = train_tiny("segmentation", out)
+    assert code == 0, f"smartedge train segmentation (tiny) exited with {code}"
+    return out
