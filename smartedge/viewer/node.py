@@ -27,6 +27,7 @@ from protocol.messages import (
     PoseCorrection,
     PoseEstimate,
     RobotDetections,
+    SemanticCloud,
     ServiceStatus,
 )
 from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
@@ -58,6 +59,8 @@ class ViewerNode(ServiceNode):
         self._odometry: dict[str, Odometry] = {}
         self._T_world_odom: dict[str, np.ndarray] = {}
         self._truth_drawn_ns: dict[str, int] = {}
+        voxel = site.section("map").get("voxel_size_m", 0.05)
+        self.map_voxel_size_m = float(voxel) if isinstance(voxel, (int, float)) else 0.05
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
@@ -70,6 +73,7 @@ class ViewerNode(ServiceNode):
             Subscription(keys.pose_key(s, "*"), PoseEstimate, capacity=4096),
             Subscription(keys.correction_key(s, "*"), PoseCorrection, capacity=64),
             Subscription(keys.status_key(s, "*", "*"), ServiceStatus, capacity=256),
+            Subscription(keys.map_voxels_key(s, "*"), SemanticCloud, capacity=2),
         ]
 
     def handle(self, key: str, message: Message, recv_ns: int) -> Iterable[Outgoing]:
@@ -87,6 +91,8 @@ class ViewerNode(ServiceNode):
                                  message.theta)
         elif isinstance(message, ServiceStatus):
             self.view.status(message)
+        elif isinstance(message, SemanticCloud):
+            self.view.semantic_map(message, self.map_voxel_size_m)
         return []
 
     def _on_odometry(self, odom: Odometry) -> None:

@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
+from protocol.messages import (
+    Detection,
+    PoseEstimate,
+    RobotDetections,
+    SemanticCloud,
+    ServiceStatus,
+)
 
 rr_view = pytest.importorskip("smartedge.viewer.rerun_view")
 
@@ -149,3 +155,38 @@ def test_covariance_ellipse_has_two_sigma_axes(cov: np.ndarray, axes: tuple) -> 
     assert r.min() == pytest.approx(min(axes), rel=2e-2)
     assert rr_view.covariance_ellipse(0, 0, np.full((3, 3), np.nan)) is None
     assert rr_view.covariance_ellipse(0, 0, -np.eye(3)) is None
+
+
+def test_semantic_map_is_drawn_by_class_with_the_legend_and_throttled(
+        tmp_path: Path, example_site) -> None:
+    """The mapper's voxels appear as points with class ids (coloured through the legend's
+    annotation context); a second map within the drawing period is not logged again."""
+    from protocol.semantic_classes import SEMANTIC_CLASSES
+
+    path = tmp_path / "map.rrd"
+    view = rr_view.RerunView(example_site, rr_view.RerunTarget.parse(f"save:{path}"))
+    logged: list[tuple[str, object]] = []
+    original = view.rec.log
+
+    def spy(entity: str, *args, **kwargs):
+        logged.append((entity, args[0]))
+        return original(entity, *args, **kwargs)
+
+    view.rec.log = spy
+    n = 500
+    t0 = 1_700_000_000_000_000_000
+    msg = SemanticCloud("main", t0, 0, "map", np.random.default_rng(0).random((n, 3), np.float32),
+                        np.full(n, 2, np.uint16), np.full(n, 0.9, np.float32))
+    view.semantic_map(msg)
+    view.semantic_map(SemanticCloud("main", t0 + 1_000_000_000, 1, "map", msg.points_xyz,
+                                    msg.class_ids, msg.confidences))
+    view.close()
+    drawn = [obj for entity, obj in logged if entity == "world/map/voxels"]
+    assert len(drawn) == 1
+    assert drawn[0].class_ids.as_arrow_array().to_pylist() == [2] * n
+    stats = _rerun_stats(path)
+    assert "/world/map/voxels:" in stats and "/world/map:" in stats  # points and legend
+    legend = [obj for entity, obj in logged if entity == "world/map"]
+    assert len(legend) == 0  # logged once at start, before the spy
+    assert view._failed == set(), view._failed
+    assert SEMANTIC_CLASSES[2] == "wall"
