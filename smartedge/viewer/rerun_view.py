@@ -50,8 +50,8 @@ from protocol.messages import (
     Odometry,
     PoseEstimate,
     RobotDetections,
-    ServiceStatus,
     SemanticCloud,
+    ServiceStatus,
 )
 from protocol.semantic_classes import SEMANTIC_CLASS_COLORS, SEMANTIC_CLASSES
 from protocol.site import Site
