@@ -11,7 +11,8 @@ stops the service.
 
 Grabbers: :class:`OpenCVGrabber` (V4L2 device index or path, RTSP/HTTP URL, video file),
 :class:`ImageFolderGrabber` (a folder of images, paced at a rate), :class:`RealSenseGrabber`
-(Intel RealSense colour stream through ``pyrealsense2``, optional). The simulation's renderer
+(Intel RealSense colour stream, with depth aligned to it on request, through ``pyrealsense2``,
+optional). The simulation's renderer
 is registered as a source from the top floor.
 """
 
@@ -42,11 +43,14 @@ class FrameSourceError(SmartedgeError):
 @dataclasses.dataclass(frozen=True, eq=False)
 class Frame:
     """One image: ``image_rgb`` (H, W, 3) uint8, ``stamp_ns`` capture time in the sensor clock,
-    ``seq`` the grabber's frame counter."""
+    ``seq`` the grabber's frame counter; ``depth_m`` (H, W) float32 depth aligned to the colour
+    image (z in the colour camera's optical frame, metres; 0, inf or NaN = no depth), ``None``
+    from a source without depth."""
 
     image_rgb: np.ndarray
     stamp_ns: int
     seq: int
+    depth_m: np.ndarray | None = None
 
 
 class Grabber(Protocol):
@@ -231,15 +235,20 @@ class ImageFolderGrabber:
 class RealSenseGrabber:
     """The colour stream of an Intel RealSense camera (the paper's D455) through
     ``pyrealsense2`` (``pip install pyrealsense2``). Stamps: the frame's own timestamp in the
-    host-synchronised ("global") time domain, in nanoseconds."""
+    host-synchronised ("global") time domain, in nanoseconds. ``depth``: also stream depth,
+    aligned to the colour image by the SDK (``rs.align``), into :attr:`Frame.depth_m` in metres
+    (the device's depth scale applied; 0 = no depth)."""
 
     def __init__(self, serial: str | None = None, *, width: int = 848, height: int = 480,
-                 fps: int = 30, timeout_ms: int = 2000) -> None:
+                 fps: int = 30, timeout_ms: int = 2000, depth: bool = False) -> None:
         self.serial = serial
         self.label = f"realsense:{serial or 'first'}"
         self.width, self.height, self.fps = width, height, fps
         self.timeout_ms = timeout_ms
+        self.depth = depth
         self._pipe: Any = None
+        self._align: Any = None
+        self._depth_scale_m = 0.001
         self._seq = 0
 
     def open(self) -> None:
@@ -253,11 +262,18 @@ class RealSenseGrabber:
         if self.serial:
             cfg.enable_device(self.serial)
         cfg.enable_stream(rs.stream.color, self.width, self.height, rs.format.rgb8, self.fps)
+        if self.depth:
+            cfg.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
         pipe = rs.pipeline()
         try:
-            pipe.start(cfg)
+            profile = pipe.start(cfg)
         except RuntimeError as exc:
-            raise FrameSourceError(f"{self.label}: cannot start the colour stream: {exc}") from None
+            what = "colour and depth streams" if self.depth else "colour stream"
+            raise FrameSourceError(f"{self.label}: cannot start the {what}: {exc}") from None
+        if self.depth:
+            self._depth_scale_m = float(profile.get_device().first_depth_sensor()
+                                        .get_depth_scale())
+            self._align = rs.align(rs.stream.color)
         self._pipe = pipe
 
     def read(self) -> Frame | None:
@@ -267,18 +283,29 @@ class RealSenseGrabber:
             frames = self._pipe.wait_for_frames(self.timeout_ms)
         except RuntimeError as exc:
             raise FrameSourceError(f"{self.label}: no frame: {exc}") from None
+        depth_m = None
+        if self._align is not None:
+            try:
+                frames = self._align.process(frames)
+            except RuntimeError as exc:
+                raise FrameSourceError(f"{self.label}: depth alignment failed: {exc}") from None
+            depth = frames.get_depth_frame()
+            if depth:
+                raw = np.asanyarray(depth.get_data())
+                depth_m = raw.astype(np.float32) * np.float32(self._depth_scale_m)
         color = frames.get_color_frame()
         if not color:
             raise FrameSourceError(f"{self.label}: frame set without colour")
         self._seq += 1
         image = np.asanyarray(color.get_data()).copy()
-        return Frame(image, int(color.get_timestamp() * 1e6), self._seq)
+        return Frame(image, int(color.get_timestamp() * 1e6), self._seq, depth_m)
 
     def close(self) -> None:
         if self._pipe is not None:
             with contextlib.suppress(RuntimeError):
                 self._pipe.stop()
             self._pipe = None
+        self._align = None
 
 
 @dataclasses.dataclass

@@ -14,6 +14,14 @@ Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the regist
 - ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.plugins`): the simulated
   site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.
+
+Semantic clouds (paper Sec. III-C): a source with depth (a RealSense, the rendered simulated
+camera) also feeds the segmentation network (:class:`edge_agent.models.SemanticSegmenter`);
+``--cloud-rate`` times a second (default 1 Hz where the source has depth) the processed frame
+becomes a :class:`protocol.SemanticCloud` in the site's world frame
+(:mod:`edge_agent.semantic_cloud`), published reliably on
+``smartedge/<site>/edge/<camera_id>/cloud``. The status counts ``clouds_published`` and
+``clouds_skipped_*`` and reports ``segmentation`` / ``cloud`` latencies.
 """
 
 from __future__ import annotations
@@ -22,10 +30,12 @@ import argparse
 import logging
 import sys
 from collections.abc import Iterable, Sequence
+from typing import Any, Final
 
+from edge_agent.semantic_cloud import SemanticCloudMaker
 from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
-from protocol.errors import UsageError
+from protocol.errors import SmartedgeError, UsageError
 from protocol.runtime import Outgoing, ServiceNode, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
@@ -34,15 +44,22 @@ log = logging.getLogger(__name__)
 
 __all__ = ["EdgeAgentNode", "FrameSource", "build_node", "build_parser", "main"]
 
+#: semantic clouds per second of a source with depth when ``--cloud-rate`` is not given
+DEFAULT_CLOUD_RATE_HZ: Final = 1.0
+#: bad-input cloud failures logged in full (then only counted)
+_CLOUD_ERRORS_LOGGED: Final = 5
+
 
 class EdgeAgentNode(ServiceNode):
-    """Publishes what the source detects; counts frames with and without a robot."""
+    """Publishes what the source detects; counts frames with and without a robot. With
+    ``clouds`` (a :class:`SemanticCloudMaker` of this camera) it also turns the source's RGB-D
+    frames (``source.rgbd_frame()``) into semantic clouds at the maker's rate."""
 
     service = "edge-agent"
 
     def __init__(
         self, site: Site, camera_id: str, source: FrameSource, tick_period_s: float = 0.01,
-        preview_rate_hz: float = 0.0,
+        preview_rate_hz: float = 0.0, clouds: SemanticCloudMaker | None = None,
     ) -> None:
         super().__init__(site.name, camera_id)
         site.camera(camera_id)  # raises a clear KeyError for an unknown camera
@@ -57,6 +74,9 @@ class EdgeAgentNode(ServiceNode):
         bind = getattr(source, "bind_stats", None)
         if bind is not None:
             bind(self.stats)
+        self.clouds = clouds
+        self._cloud_key = keys.edge_cloud_key(site.name, camera_id)
+        self._cloud_errors = 0
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         out = []
@@ -68,7 +88,35 @@ class EdgeAgentNode(ServiceNode):
             out.append(Outgoing(self._key, msg, reliable=False))
         if self._preview_period_ns and out:
             out.extend(self._preview(now_ns))
+        if self.clouds is not None and out:
+            out.extend(self._cloud())
         return out
+
+    def _cloud(self) -> list[Outgoing]:
+        """The last processed RGB-D frame as a semantic cloud, when one is due. Runs the
+        segmentation network in the worker loop (~1 Hz; detections wait that long)."""
+        assert self.clouds is not None
+        rgbd = getattr(self.source, "rgbd_frame", None)
+        frame = rgbd() if rgbd is not None else None
+        if frame is None or not self.clouds.due(frame.stamp_ns):
+            return []
+        try:
+            cloud, timing = self.clouds.make(frame.image_rgb, frame.depth_m, frame.stamp_ns)
+        except ValueError as exc:  # a frame the network or the builder cannot take
+            self.stats.count("clouds_skipped_bad_input")
+            self._cloud_errors += 1
+            if self._cloud_errors <= _CLOUD_ERRORS_LOGGED:
+                log.warning("%s: no cloud from frame %d: %s", self.camera_id, frame.seq, exc)
+            return []
+        self.stats.latency("segmentation", timing.segmentation_ms * 1e-3)
+        self.stats.latency("cloud", timing.cloud_ms * 1e-3)
+        if len(cloud.points_xyz) == 0:
+            self.stats.count("clouds_skipped_empty")
+            return []
+        self.stats.count("clouds_published")
+        self.stats.count("cloud_points", len(cloud.points_xyz))
+        self.stats.event("clouds")
+        return [Outgoing(self._cloud_key, cloud, reliable=True)]
 
     def _preview(self, now_ns: int) -> list[Outgoing]:
         """The last processed frame as a JPEG for the viewer, at most at the preview rate."""
@@ -116,21 +164,66 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preview-rate", type=float, default=0.0, metavar="HZ",
                         help="publish the processed frame as a JPEG for the viewer at most this "
                         "often (default 0: never; images leave the board only when asked for)")
+    parser.add_argument("--cloud-rate", type=float, default=None, metavar="HZ",
+                        help="semantic clouds per second from a source with depth (default "
+                        f"{DEFAULT_CLOUD_RATE_HZ:g} where the source has depth; 0: none)")
+    parser.add_argument("--segmentation-model", metavar="ONNX",
+                        help="segmentation network for the clouds (default: the shipped one)")
     add_session_arguments(parser)
     add_source_arguments(parser, default="camera")
     return parser
+
+
+def build_cloud_maker(args: argparse.Namespace, site: Site, camera_id: str, source: Any,
+                      segmenter: Any = None) -> SemanticCloudMaker | None:
+    """The cloud maker ``--cloud-rate`` asks for, or ``None`` (rate 0; a source without depth
+    or a segmentation model that cannot be loaded: logged once, the agent runs without
+    clouds). ``segmenter``: use this instead of loading ``--segmentation-model``."""
+    rate = getattr(args, "cloud_rate", None)
+    has_depth = bool(getattr(source, "provides_depth", False))
+    if rate is None:
+        rate = DEFAULT_CLOUD_RATE_HZ if has_depth else 0.0
+    if not rate >= 0:
+        raise UsageError(f"--cloud-rate {rate}: must be >= 0")
+    if rate == 0:
+        return None
+    if not has_depth:
+        log.warning("%s: --cloud-rate %g Hz, but source %s gives no depth: no semantic clouds",
+                    camera_id, rate, getattr(source, "label", "?"))
+        return None
+    if segmenter is None:
+        try:
+            from edge_agent.models import SemanticSegmenter
+
+            segmenter = SemanticSegmenter(getattr(args, "segmentation_model", None),
+                                          threads=getattr(args, "threads", 2))
+        except (ImportError, SmartedgeError, OSError, RuntimeError) as exc:
+            log.error("%s: no semantic clouds: the segmentation model cannot be loaded: %s",
+                      camera_id, exc)
+            return None
+    camera = site.camera(camera_id)
+    maker = SemanticCloudMaker(segmenter, camera, sensor_id=camera_id,
+                               frame_id=site.world_frame, T_frame_sensor=camera.T_world_cam,
+                               rate_hz=rate)
+    log.info("%s: semantic clouds at %g Hz in frame %s through %s", camera_id, rate,
+             site.world_frame, getattr(segmenter, "model_id", type(segmenter).__name__))
+    return maker
 
 
 def build_node(args: argparse.Namespace) -> EdgeAgentNode:
     """The edge agent for ``args``: the chosen source plug-in builds the frame source."""
     if not args.preview_rate >= 0:
         raise UsageError(f"--preview-rate {args.preview_rate}: must be >= 0")
+    if args.cloud_rate is not None and not args.cloud_rate >= 0:
+        raise UsageError(f"--cloud-rate {args.cloud_rate}: must be >= 0")
     site = load_site(args.site) if args.site else None
     source = get_source(args.source).build(args, site)
     site = site or getattr(source, "site", None)
     if site is None:
         raise UsageError(f"--site is required with --source {args.source}")
-    return EdgeAgentNode(site, args.camera, source, preview_rate_hz=args.preview_rate)
+    clouds = build_cloud_maker(args, site, args.camera, source)
+    return EdgeAgentNode(site, args.camera, source, preview_rate_hz=args.preview_rate,
+                         clouds=clouds)
 
 
 def main(argv: Sequence[str]) -> int:

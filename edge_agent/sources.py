@@ -29,7 +29,9 @@ class FrameSource(Protocol):
 
     ``label`` names the source in the status (``sim``, ``camera``...). A source that brings its
     own site (the simulated one) may also have a ``site`` attribute: the edge agent uses it when
-    no ``--site`` was given.
+    no ``--site`` was given. An RGB-D source has ``provides_depth = True`` and a method
+    ``rgbd_frame() -> Frame | None`` returning its last processed frame with ``depth_m`` (the
+    edge agent turns some of them into semantic clouds).
     """
 
     label: str
@@ -86,12 +88,19 @@ class PipelineSource:
     (:attr:`last_frame`, the frame of the last message :meth:`process` returned)."""
 
     label = "camera"
+    #: whether the frames carry depth (:meth:`rgbd_frame`)
+    provides_depth = False
 
     def __init__(self, pipeline: Any) -> None:
         self.pipeline = pipeline
         self.last_frame: Any = None
         self._stats: Any = None
         self._skipped_seen = 0
+
+    def rgbd_frame(self) -> Any:
+        """The last processed frame if it has depth (``Frame.depth_m``), else ``None``."""
+        frame = self.last_frame
+        return frame if frame is not None and frame.depth_m is not None else None
 
     def bind_stats(self, stats: Any) -> None:
         """Record per-stage latencies and skipped frames in the service's stats."""
@@ -125,6 +134,7 @@ class CameraFrameSource(PipelineSource):
         super().__init__(pipeline)
         self.reader = reader
         self.label = label
+        self.provides_depth = bool(getattr(reader.grabber, "depth", False))
 
     def poll(self, now_ns: int) -> list[RobotDetections]:
         frame = self.reader.take()
@@ -162,7 +172,8 @@ class CameraSourcePlugin:
                           "stream URL (rtsp://..., http://...) or video file")
         what.add_argument("--images", metavar="DIR", help="a folder of images, in name order")
         what.add_argument("--realsense", nargs="?", const="", metavar="SERIAL",
-                          help="an Intel RealSense colour stream (needs pyrealsense2)")
+                          help="an Intel RealSense colour stream, with depth aligned to it "
+                          "unless --cloud-rate 0 (needs pyrealsense2)")
         g.add_argument("--rate", type=float, default=10.0,
                        help="--images: frames per second (0: every image in turn, each as soon "
                        "as the previous one is processed; default 10)")
@@ -195,7 +206,8 @@ class CameraSourcePlugin:
             grabber: Any = ImageFolderGrabber(args.images, rate_hz=args.rate, loop=args.loop)
         elif args.realsense is not None:
             grabber = RealSenseGrabber(args.realsense or None, width=camera.width,
-                                       height=camera.height)
+                                       height=camera.height,
+                                       depth=getattr(args, "cloud_rate", None) != 0)
         elif args.device:
             grabber = OpenCVGrabber(args.device, width=camera.width, height=camera.height,
                                     loop=args.loop)

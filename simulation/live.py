@@ -23,7 +23,7 @@ from protocol.errors import UnknownIdError
 from protocol.messages import RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
-from simulation.site_cameras import SensorNoise, SiteCameraRenderer
+from simulation.site_cameras import DepthNoise, SensorNoise, SiteCameraRenderer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,6 +199,7 @@ class RenderedCameraFeed:
         self._phase_ns = round(live.run.camera_phase_s[camera_id] * 1e9)
         index = sorted(live.site.cameras).index(camera_id)
         self._rng = np.random.default_rng([live.spec.seed, 2000 + index])
+        self._depth_rng: np.random.Generator | None = None
         self._next_frame: int | None = None
         self.skipped = 0
         self.seq = 0
@@ -223,3 +224,71 @@ class RenderedCameraFeed:
     def render(self, capture_ns: int) -> np.ndarray:
         """(H, W, 3) uint8 RGB image at ``capture_ns``."""
         return self.images.render(self.camera_id, self.live.ground_truth(capture_ns), self._rng)
+
+    def depth(self, capture_ns: int) -> np.ndarray:
+        """(H, W) float32 depth aligned to the image at ``capture_ns`` (camera-frame z, metres,
+        0 = none), with the depth noise (its own random stream, so asking for depth does not
+        change the colour images). Reuses the render of that frame."""
+        if self._depth_rng is None:
+            index = sorted(self.live.site.cameras).index(self.camera_id)
+            self._depth_rng = np.random.default_rng([self.live.spec.seed, 3000 + index])
+        return self.images.depth(self.camera_id, self.live.ground_truth(capture_ns),
+                                 self._depth_rng)
+
+
+class HeadCameraFeed:
+    """The robot's head RGB-D camera (the site file's ``head_camera`` of the robot model),
+    rendered from the robot's *true* pose at ``rate_hz`` (frames at t = k / rate_hz), with
+    sensor and depth noise. A caller that falls behind gets the newest due frame
+    (:attr:`skipped` counts the others). The GL renderer is created on first use."""
+
+    def __init__(self, live: LiveSimulation, rate_hz: float = 1.0, texture_seed: int = 0,
+                 noise: SensorNoise | None = None, depth_noise: DepthNoise | None = None
+                 ) -> None:
+        head = live.site.robot_model(live.robot_id).head_camera
+        if head is None:
+            raise UnknownIdError(
+                f"robot model of {live.robot_id!r} has no head_camera in "
+                f"{live.site.source_path}")
+        if not rate_hz > 0:
+            raise ValueError(f"head camera rate {rate_hz} Hz: must be > 0")
+        self.live = live
+        self.head = head
+        self.camera_id = f"{live.robot_id}_head"
+        self.camera = head.camera_model(self.camera_id)
+        self.images = SiteCameraRenderer(live.scenario, texture_seed=texture_seed, noise=noise,
+                                         depth_noise=depth_noise)
+        self.rate_hz = float(rate_hz)
+        self._period_ns = round(1e9 / self.rate_hz)
+        self._rng = np.random.default_rng([live.spec.seed, 4000])
+        self._next_frame: int | None = None
+        self.skipped = 0
+        self.seq = 0
+
+    def due(self, now_ns: int) -> int | None:
+        """The capture stamp of the newest frame due at ``now_ns`` not yet taken, or None."""
+        newest = (now_ns - self.live.spec.epoch_ns) // self._period_ns
+        if newest < 0:
+            return None
+        if self._next_frame is None:
+            self._next_frame = int(newest)
+        if newest < self._next_frame:
+            return None
+        self.skipped += int(newest - self._next_frame)
+        self._next_frame = int(newest) + 1
+        self.seq += 1
+        return self.live.spec.epoch_ns + int(newest) * self._period_ns
+
+    def render(self, capture_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frame at ``capture_ns``: (H, W, 3) uint8 RGB with sensor noise, (H, W) float32
+        depth (optical-frame z, metres, 0 = none) with depth noise, and the renderer's exact
+        (H, W) int32 class ids (for tests and ground-truth segmentation)."""
+        out = self.images.render_head(self.head, self.live.ground_truth(capture_ns),
+                                      self.camera_id)
+        image = self.images.add_noise(out.color_rgb, self._rng) \
+            if self.images.noise.sigma_dn > 0 else out.color_rgb
+        depth = self.images.depth_noise.apply(out.depth_m, self._rng)
+        return image, depth, out.class_id
+
+    def release(self) -> None:
+        self.images.release()

@@ -11,6 +11,11 @@ helps. :class:`SensorNoise` adds that per frame (zero-mean Gaussian, ``sigma_dn`
 of 0-255, from a bank of pre-drawn noise images picked and shifted at random per frame, so it
 costs an addition rather than a million random draws). The clean render of a static robot is
 cached per camera, so a robot standing at a waypoint costs one render per camera.
+
+Depth (the RGB-D cameras' aligned depth, for semantic clouds) is the renderer's camera-frame z
+with :class:`DepthNoise`: a stereo camera's error grows with the square of the distance, and
+nothing is measured beyond its range. The robot's head camera (:meth:`SiteCameraRenderer.
+render_head`) is rendered from the robot's true pose without the robot itself in the scene.
 """
 
 from __future__ import annotations
@@ -18,12 +23,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from protocol.camera import CameraModel
 from protocol.errors import UnknownIdError
 from protocol.geometry import se3_from_planar
+from protocol.site import HeadCamera
+
+if TYPE_CHECKING:
+    from simulation.render_gl import Renderer, RenderOutput
 
 log = logging.getLogger(__name__)
 
@@ -45,15 +55,47 @@ class SensorNoise:
             raise ValueError(f"sensor noise sigma_dn must be >= 0, got {self.sigma_dn}")
 
 
+#: default depth noise: sigma_z = k z^2 with k for a D455-class stereo camera (~1 % at 4 m)
+DEFAULT_DEPTH_SIGMA_PER_M = 0.0025
+DEFAULT_MAX_DEPTH_M = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class DepthNoise:
+    """Per-frame depth noise: zero-mean Gaussian with ``sigma_z = sigma_per_m * z^2`` (metres,
+    z in metres) and no depth (0) beyond ``max_depth_m``; ``sigma_per_m`` 0: exact depth."""
+
+    sigma_per_m: float = DEFAULT_DEPTH_SIGMA_PER_M
+    max_depth_m: float = DEFAULT_MAX_DEPTH_M
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sigma_per_m) and self.sigma_per_m >= 0.0):
+            raise ValueError(f"depth noise sigma_per_m must be >= 0, got {self.sigma_per_m}")
+        if not self.max_depth_m > 0.0:
+            raise ValueError(f"depth noise max_depth_m must be > 0, got {self.max_depth_m}")
+
+    def apply(self, depth_m: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """(H, W) float32 noisy copy of ``depth_m`` (inf where nothing was drawn becomes 0,
+        like a depth camera's "no data"); ``rng`` ``None``: no noise, range limit only."""
+        z = np.asarray(depth_m, np.float32)
+        out = np.where(np.isfinite(z) & (z <= self.max_depth_m), z, np.float32(0.0))
+        if rng is not None and self.sigma_per_m > 0.0:
+            noise = rng.standard_normal(out.shape, dtype=np.float32)
+            out = out + noise * (np.float32(self.sigma_per_m) * out * out)
+            out[out < 0.0] = 0.0
+        return out.astype(np.float32, copy=False)
+
+
 class SiteCameraRenderer:
     """Renders the cameras of a :class:`simulation.scenario.Scenario`.
 
     ``texture_seed``: the site's textures (the same seed gives the same-looking site);
-    ``noise``: per-frame sensor noise. The GL renderer is created on first use, in the calling
-    process (one per image size); not thread-safe."""
+    ``noise``: per-frame sensor noise; ``depth_noise``: per-frame depth noise. The GL renderer
+    is created on first use, in the calling process (one per image size); not thread-safe."""
 
     def __init__(self, scenario: object, *, texture_seed: int = 0,
-                 noise: SensorNoise | None = None) -> None:
+                 noise: SensorNoise | None = None,
+                 depth_noise: DepthNoise | None = None) -> None:
         from simulation.detections import true_cameras
         from simulation.robot_mesh import hsr_like_mesh
         from simulation.scenes import site_geometry
@@ -63,10 +105,11 @@ class SiteCameraRenderer:
         robot_id = scenario.robot_id  # type: ignore[attr-defined]
         self.robot_model = scenario.site.robot_model(robot_id)  # type: ignore[attr-defined]
         self.noise = noise if noise is not None else SensorNoise()
+        self.depth_noise = depth_noise if depth_noise is not None else DepthNoise()
         self._geometry = site_geometry(scenario, seed=texture_seed)
         self._robot_mesh = hsr_like_mesh(self.robot_model)
         self._renderers: dict[tuple[int, int], object] = {}
-        self._clean: dict[str, tuple[bytes, np.ndarray]] = {}
+        self._clean: dict[str, tuple[bytes, RenderOutput]] = {}
         self._noise_bank: dict[tuple[int, int], np.ndarray] = {}
         r, h = self.robot_model.footprint_radius_m, self.robot_model.height_m
         ang = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
@@ -96,25 +139,52 @@ class SiteCameraRenderer:
     def render_clean(self, camera_id: str, robot_pose: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 RGB noise-free image with the robot at ``robot_pose`` (x, y, theta);
         the last image per camera is reused while the pose is the same. Do not modify it."""
+        return self.render_output(camera_id, robot_pose).color_rgb
+
+    def render_output(self, camera_id: str, robot_pose: np.ndarray) -> RenderOutput:
+        """The whole noise-free render (colour, depth, labels) of :meth:`render_clean`, from the
+        same per-camera cache. Do not modify it."""
         pose = np.asarray(robot_pose, dtype=np.float64).reshape(-1)[:3]
         key = pose.tobytes()
         cached = self._clean.get(camera_id)
         if cached is not None and cached[0] == key:
             self.cache_hits += 1
             return cached[1]
-        from simulation.render_gl import Renderer
         from simulation.scenes import site_scene
 
         cam = self.camera(camera_id)
-        size = (cam.width, cam.height)
-        renderer = self._renderers.get(size)
-        if renderer is None:
-            renderer = self._renderers[size] = Renderer(*size)
         scene = site_scene(self._geometry, self._robot_mesh, pose)
-        image = renderer.render(scene, cam).color_rgb  # type: ignore[attr-defined]
-        self._clean[camera_id] = (key, image)
+        out = self._renderer(cam.width, cam.height).render(scene, cam)
+        self._clean[camera_id] = (key, out)
         self.renders += 1
-        return image
+        return out
+
+    def depth(self, camera_id: str, robot_pose: np.ndarray,
+              rng: np.random.Generator | None = None) -> np.ndarray:
+        """(H, W) float32 depth (camera-frame z, metres, 0 = none) the camera delivers with the
+        robot at ``robot_pose``, aligned to its colour image, with :attr:`depth_noise`."""
+        return self.depth_noise.apply(self.render_output(camera_id, robot_pose).depth_m, rng)
+
+    def render_head(self, head: HeadCamera, robot_pose: np.ndarray,
+                    camera_id: str = "head") -> RenderOutput:
+        """What the robot's head camera sees with the robot at (true) ``robot_pose`` (x, y,
+        theta in the world frame): the site without the robot itself (the camera sits inside
+        its body mesh). Noise-free; add :meth:`add_noise` and :attr:`depth_noise` per frame."""
+        from simulation.mesh import Scene
+
+        pose = np.asarray(robot_pose, dtype=np.float64).reshape(-1)[:3]
+        cam = head.camera_model(camera_id, se3_from_planar(*(float(v) for v in pose)))
+        scene = Scene(self._geometry.objects)
+        self.renders += 1
+        return self._renderer(cam.width, cam.height).render(scene, cam)
+
+    def _renderer(self, width: int, height: int) -> Renderer:
+        from simulation.render_gl import Renderer
+
+        renderer = self._renderers.get((width, height))
+        if renderer is None:
+            renderer = self._renderers[(width, height)] = Renderer(width, height)
+        return renderer  # type: ignore[return-value]
 
     def render(self, camera_id: str, robot_pose: np.ndarray,
                rng: np.random.Generator | None = None) -> np.ndarray:

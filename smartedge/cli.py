@@ -25,6 +25,8 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
                "run the semantic mapping service (clouds in, one semantic voxel map out)"),
     "map": ("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
     "robot-bridge": ("smartedge.plugins", "robot_bridge_main", "run the robot bridge"),
+    "robot-camera": ("smartedge.robot_camera", "main",
+                     "the simulated robot's head RGB-D camera: semantic clouds in base_link"),
     "viewer": ("smartedge.viewer", "main", "watch a running system in Rerun (a sink of the keys)"),
     "evaluate": ("smartedge.evaluate", "main", "trajectory metrics and the paper's experiments"),
     "bench": ("smartedge.bench", "main", "benchmarks: codec, pose, sim, fusion, backend"),

@@ -1,9 +1,10 @@
 """``smartedge demo``: the whole system on the simulated paper site, over Zenoh on loopback.
 
 Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph), the viewer
-(Rerun recording, with the simulator's ground truth) and the robot bridge (simulated HSR with
-drifting localization that accepts corrections while static) talk over real Zenoh sessions on
-127.0.0.1 (no router, no multicast).
+(Rerun recording, with the simulator's ground truth), the robot bridge (simulated HSR with
+drifting localization that accepts corrections while static) and the robot's head camera
+(semantic clouds in base_link; ``--no-clouds`` leaves it and the edge clouds out) talk over
+real Zenoh sessions on 127.0.0.1 (no router, no multicast).
 By default they run as threads of this process, each with its own Zenoh session; with
 ``--processes`` each is its own OS process started with the same command a deployment uses.
 A monitor session listens to everything, prints progress, and at the end prints the accuracy
@@ -196,15 +197,25 @@ class Services:
             # four agents share the machine: one onnxruntime thread each
             detections += ["--render-rate", f"{rate:g}", "--threads", "1",
                            "--preview-rate", f"{DEMO_PREVIEW_RATE_HZ:g}"]
+        clouds = not getattr(self.args, "no_clouds", False)
+        if mode == "cnn" and clouds:
+            # semantic clouds from the rendered RGB-D frames (one onnxruntime thread each)
+            detections += ["--cloud-rate", f"{DEMO_CLOUD_RATE_HZ:g}"]
+        elif mode == "cnn":
+            detections += ["--cloud-rate", "0"]
         edges = [
             ["edge-agent", *site, "--camera", c, "--source", "sim", *sim, *detections,
              *listen_any]
             for c in self.camera_ids
         ]
+        # the robot's head camera: its clouds in base_link, made on the (simulated) robot
+        robot_camera = ["robot-camera", *site, "--cloud-rate", f"{DEMO_CLOUD_RATE_HZ:g}",
+                        "--threads", "1", *sim, *listen_any]
         return [
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
             ("robot-bridge", bridge),
+            *([("robot-camera", robot_camera)] if clouds else []),
             *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
 
@@ -268,6 +279,7 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
         "backend": "backend_service.service",
         "robot-bridge": "robot_bridge.service",
         "edge-agent": "edge_agent.service",
+        "robot-camera": "smartedge.robot_camera",
         "viewer": "smartedge.viewer",
     }[command]
     svc = importlib.import_module(module)
@@ -281,6 +293,9 @@ DEFAULT_RENDER_RATE_HZ = 5.0
 #: the demo's edge agents send the viewer one camera image per second (the Rerun view shows
 #: each camera's image with its detected box and keypoints)
 DEMO_PREVIEW_RATE_HZ = 1.0
+#: semantic clouds per second from each edge camera (with --detections cnn) and from the
+#: robot's head camera
+DEMO_CLOUD_RATE_HZ = 1.0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -324,6 +339,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--render-rate", type=float, default=DEFAULT_RENDER_RATE_HZ, metavar="HZ",
         help="--detections cnn: frames per second per camera (default "
         f"{DEFAULT_RENDER_RATE_HZ:g}: what 2 CPU cores render and infer for 4 cameras)",
+    )
+    parser.add_argument(
+        "--no-clouds", action="store_true",
+        help="no semantic clouds: the edge agents make none and the robot's head camera "
+        f"(smartedge robot-camera, {DEMO_CLOUD_RATE_HZ:g} Hz) does not run",
     )
     parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
     return parser

@@ -19,6 +19,7 @@ agent's command never loads the robot bridge.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -53,11 +54,24 @@ class RenderedCameraSource(PipelineSource):
     loop: the same models and code as on a real camera); the site comes with it."""
 
     label = "sim-render"
+    #: an RGB-D camera: the renderer's depth with the simulation's depth noise
+    provides_depth = True
 
     def __init__(self, feed: Any, pipeline: Any, site: Site) -> None:
         super().__init__(pipeline)
         self._feed = feed
         self.site = site
+
+    def rgbd_frame(self) -> Any:
+        """The last processed frame with its depth (rendered, noisy; made only when asked for,
+        at the cloud rate, from the same render)."""
+        frame = self.last_frame
+        if frame is None:
+            return None
+        if frame.depth_m is None:
+            frame = dataclasses.replace(frame, depth_m=self._feed.depth(frame.stamp_ns))
+            self.last_frame = frame
+        return frame
 
     def poll(self, now_ns: int) -> list[RobotDetections]:
         from edge_agent.frames import Frame
