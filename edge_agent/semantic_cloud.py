@@ -230,29 +230,34 @@ def voxel_downsample(points: np.ndarray, class_ids: np.ndarray, confidence: np.n
     cells = np.floor(points / voxel_m).astype(np.int64)
     cells -= cells.min(axis=0)
     dims = cells.max(axis=0) + 1
-    if float(dims[0]) * float(dims[1]) * float(dims[2]) < 2.0**62:
-        keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:  # a cloud kilometres across: unique rows instead of packed keys
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    m = counts.size
-    mean = np.stack([np.bincount(inverse, points[:, k], m) for k in range(3)], axis=1)
-    mean /= counts[:, None]
     cls = class_ids.astype(np.int64)
     num_cls = int(cls.max()) + 1
-    pair_keys, pair_inverse, pair_counts = np.unique(inverse * num_cls + cls, return_inverse=True,
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) * num_cls < 2.0**62:
+        keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    else:  # a cloud kilometres across: number the occupied voxels first
+        _, keys = np.unique(cells, axis=0, return_inverse=True)
+        keys = keys.reshape(-1)
+    # one sort for everything: (voxel, class) pairs in ascending order, so the pairs of one
+    # voxel are adjacent and in ascending class order
+    pair_keys, pair_inverse, pair_counts = np.unique(keys * num_cls + cls, return_inverse=True,
                                                      return_counts=True)
+    pair_voxel_key = pair_keys // num_cls
+    starts = np.flatnonzero(np.r_[True, pair_voxel_key[1:] != pair_voxel_key[:-1]])
+    pair_voxel = np.cumsum(np.r_[True, pair_voxel_key[1:] != pair_voxel_key[:-1]]) - 1
+    m = starts.size
+    inverse = pair_voxel[pair_inverse.reshape(-1)]
+    counts = np.bincount(pair_voxel, pair_counts, m).astype(np.int64)
+    mean = np.stack([np.bincount(inverse, points[:, k], m) for k in range(3)], axis=1)
+    mean /= counts[:, None]
     pair_conf = np.bincount(pair_inverse.reshape(-1), confidence.astype(np.float64),
                             pair_keys.size)
-    pair_voxel = pair_keys // num_cls
-    # per voxel the pair with most points: sorted by voxel, then count descending (the sort is
-    # stable and pairs come in ascending class order, so ties keep the lower class id)
-    order = np.lexsort((-pair_counts, pair_voxel))
-    first = order[np.r_[True, pair_voxel[order][1:] != pair_voxel[order][:-1]]]
+    # per voxel the first pair (lowest class id) with the most points
+    best = np.maximum.reduceat(pair_counts, starts)
+    is_best = np.flatnonzero(pair_counts == best[pair_voxel])
+    first = is_best[np.r_[True, pair_voxel[is_best][1:] != pair_voxel[is_best][:-1]]]
     majority = (pair_keys[first] % num_cls).astype(class_ids.dtype)
     conf = (pair_conf[first] / pair_counts[first]).astype(np.float32)
-    return mean, majority, conf, counts.astype(np.int64)
+    return mean, majority, conf, counts
 
 
 def build_semantic_cloud(
