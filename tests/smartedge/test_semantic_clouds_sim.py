@@ -6,6 +6,7 @@ without a segmentation model runs on without clouds."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import threading
@@ -41,6 +42,9 @@ except ImportError:  # the runtime class is being written; same fields
         image_height: int
         infer_ms: float = 0.0
 
+
+with contextlib.suppress(ImportError):  # the tiny trained segmentation model (session-scoped)
+    from tests.edge_agent.conftest import tiny_segmentation  # noqa: F401
 
 FLOOR, WALL = SEMANTIC_CLASS_ID["floor"], SEMANTIC_CLASS_ID["wall"]
 ROOM_X, ROOM_Y = (0.0, 20.0), (0.0, 12.0)  # the paper lab's walls
@@ -331,3 +335,46 @@ def test_edge_agent_without_a_segmentation_model_logs_and_runs_without_clouds(
     maker = build_cloud_maker(args, live.site, "cam1", DepthSource(), segmenter=lambda im: None)
     assert maker is not None and maker.frame_id == "map" and maker.rate_hz == 1.0
     assert np.allclose(maker.T_frame_sensor, live.site.camera("cam1").T_world_cam)
+
+
+def test_the_segmentation_network_feeds_the_cloud_builder(request) -> None:
+    """The real :class:`SemanticSegmenter` (onnxruntime; the shipped model, else a tiny trained
+    one) on a rendered RGB-D frame: its output, at its own scale, becomes a valid cloud in the
+    world frame within the camera's range, of the legend's classes, without dynamic ones."""
+    pytest.importorskip("onnxruntime")
+    try:
+        from edge_agent.models import SemanticSegmenter, default_model_dir
+    except ImportError:
+        pytest.skip("edge_agent.models has no SemanticSegmenter yet")
+    from protocol.semantic_classes import NUM_SEMANTIC_CLASSES
+    from simulation.live import RenderedCameraFeed
+
+    shipped = default_model_dir() / "segmentation.onnx"
+    if shipped.exists():
+        segmenter = SemanticSegmenter(threads=1)
+    else:
+        try:
+            folder = request.getfixturevalue("tiny_segmentation")
+        except pytest.FixtureLookupError:
+            pytest.skip("no shipped segmentation model and no tiny one to train")
+        segmenter = SemanticSegmenter(folder / "segmentation.onnx", threads=1)
+    live = _live()
+    feed = RenderedCameraFeed(live, "cam1")
+    camera = live.site.camera("cam1")
+    config = SemanticCloudConfig(min_confidence=0.0)
+    maker = SemanticCloudMaker(segmenter, camera, sensor_id="cam1", frame_id="map",
+                               T_frame_sensor=camera.T_world_cam, config=config)
+    stamp = live.spec.epoch_ns + 5 * 10**9
+    image = feed.render(stamp)
+    seg = segmenter(image)
+    assert (seg.image_width, seg.image_height) == (camera.width, camera.height)
+    cloud, timing = maker.make(image, feed.depth(stamp), stamp)
+    assert timing.segmentation_ms > 0.0 and cloud.frame_id == "map"
+    p = cloud.points_xyz.astype(np.float64)
+    if len(p):
+        r = np.linalg.norm(p - camera.position_world, axis=1)
+        assert np.all((r > 0.25) & (r < 6.0 + 0.3))
+        assert int(cloud.class_ids.max()) < NUM_SEMANTIC_CLASSES
+        assert not np.isin(cloud.class_ids, config.drop_class_ids).any()
+    # every labelled output pixel with depth is accounted for: no points beyond the pixels
+    assert len(p) <= seg.class_ids.size
