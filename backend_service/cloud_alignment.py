@@ -51,6 +51,12 @@ class AlignmentConfig:
     0 when a direction is unconstrained, e.g. a floor and one wall; 1/3 at best).
     ``crop_margin_m``: map points farther than this outside the cloud's bounding box are not
     used (``None``: ``max_offset_m`` + the coarsest correspondence distance).
+    ``robust_scale``: Tukey's biweight on the finest level's point-to-plane residuals with its
+    cut-off at this share of that level's correspondence distance (0: plain least squares);
+    robot points on things the map does not hold yet (furniture missing from the prior model)
+    then pull less; ``robust_levels``: ``"finest"`` or ``"all"``. ``planar``: keep only the
+    planar part (x, y, yaw) of each level's correction (a ground robot's pose error; roll,
+    pitch and height would let points of furniture the map lacks tilt the cloud).
     """
 
     voxel_sizes_m: tuple[float, ...] = (0.2, 0.1, 0.05)
@@ -66,6 +72,9 @@ class AlignmentConfig:
     max_offset_deg: float = 10.0
     min_normal_spread: float = 0.01
     crop_margin_m: float | None = None
+    robust_scale: float = 0.0
+    robust_levels: str = "finest"
+    planar: bool = True
 
     def __post_init__(self) -> None:
         def bad(field: str, reason: str) -> MapError:
@@ -87,7 +96,7 @@ class AlignmentConfig:
         if not 0.0 <= self.min_fitness <= 1.0:
             raise bad("min_fitness", f"must be in [0, 1], got {self.min_fitness}")
         for name in ("relative_fitness", "relative_rmse", "max_inlier_rmse_m", "max_offset_m",
-                     "max_offset_deg", "min_normal_spread"):
+                     "max_offset_deg", "min_normal_spread", "robust_scale"):
             if not getattr(self, name) >= 0.0:
                 raise bad(name, f"must be >= 0, got {getattr(self, name)}")
         if not (isinstance(self.min_points, int) and self.min_points >= 3):
@@ -152,6 +161,17 @@ def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     for a in (1, 2):
         inside &= (points[:, a] >= lo[a]) & (points[:, a] <= hi[a])
     return inside
+
+
+def planar_part(T: np.ndarray) -> np.ndarray:
+    """The planar part (x, y translation, rotation about z) of a (4, 4) transform: what can
+    differ between a ground robot's pose and the truth; roll, pitch and height are dropped."""
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    out = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:2, 3] = T[:2, 3]
+    return out
 
 
 def _rejected(reason: str, num_points: int = 0, num_map_points: int = 0) -> AlignmentResult:
@@ -221,7 +241,7 @@ def align_to_map(
     result = None
     target_nrm = map_nrm
     n_used = 0
-    estimation = _reg.TransformationEstimationPointToPlane()
+    estimation = None
     last = len(cfg.voxel_sizes_m) - 1
     for level, (voxel, dist, iters) in enumerate(
         zip(cfg.voxel_sizes_m, cfg.max_correspondence_m, cfg.max_iterations, strict=True)
@@ -243,13 +263,23 @@ def align_to_map(
         near = np.flatnonzero(_in_box(map_xyz, moved_lo - dist, moved_hi + dist))
         if voxel > finest:
             near = near[:: max(1, int((voxel / finest) ** 2 / 2))]
+        if len(near) < cfg.min_points:  # the cloud moved away from the map at a coarse level
+            return _rejected(f"too_few_map_points: {len(near)} map points near the cloud at "
+                             f"level {level} < {cfg.min_points}", n_used, n_map)
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(map_xyz[near]))
         target.normals = o3d.utility.Vector3dVector(map_nrm[near])
+        # the robust kernel only on the finest level: coarse levels keep least squares and
+        # their wide basin (a robust kernel there settles for partial, wrong overlaps)
+        robust = cfg.robust_scale > 0 and (level == last or cfg.robust_levels == "all")
+        estimation = _reg.TransformationEstimationPointToPlane(
+            _reg.TukeyLoss(k=dist * cfg.robust_scale) if robust else _reg.L2Loss())
         criteria = _reg.ICPConvergenceCriteria(relative_fitness=cfg.relative_fitness,
                                                relative_rmse=cfg.relative_rmse,
                                                max_iteration=iters)
         result = _reg.registration_icp(down, target, dist, T, estimation, criteria)
         T = np.asarray(result.transformation, dtype=np.float64).copy()
+        if cfg.planar:
+            T = planar_part(T)
         target_nrm = np.asarray(target.normals)
     assert result is not None
 
@@ -281,3 +311,20 @@ def align_to_map(
     logger.debug("ICP: accepted %s, fitness %.3f, rmse %.4f m, offset %.3f m / %.2f deg %s",
                  out.accepted, fitness, rmse, offset_m, offset_deg, out.reason)
     return out
+
+
+def consistency(cloud_world: np.ndarray, map_points: np.ndarray,
+                max_distance_m: float = 0.1) -> tuple[float, float]:
+    """How well a cloud, as placed, agrees with the map without moving it: (fitness, inlier
+    RMSE in metres), fitness the share of the cloud's points with a map point within
+    ``max_distance_m`` and the RMSE over those (NaN when none). The paper's consistency measure
+    of robot observations against the map (Fig. 7)."""
+    cloud = _check_array(cloud_world, "cloud_world")
+    mp = _check_array(map_points, "map_points")
+    if len(cloud) == 0 or len(mp) == 0:
+        return 0.0, math.nan
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(mp))
+    res = _reg.evaluate_registration(source, target, max_distance_m, np.eye(4))
+    inliers = len(np.asarray(res.correspondence_set))
+    return float(res.fitness), float(res.inlier_rmse) if inliers else math.nan

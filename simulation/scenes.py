@@ -180,6 +180,43 @@ def site_geometry(scenario: object, seed: int = 0) -> SiteGeometry:
     return SiteGeometry(tuple(objs))
 
 
+def surface_samples(objects: Sequence[SceneObject], spacing_m: float, seed: int = 0,
+                    classes: Sequence[int] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points on the objects' triangles, about one per ``spacing_m``² of surface (area-weighted
+    uniform sampling): (N, 3) world metres, (N, 3) unit face normals, (N,) class ids. Only
+    objects whose class is in ``classes`` (default: all). The ground truth of the semantic map
+    (every static surface with its class) and its prior model (floor and walls only: the empty
+    room) come from here."""
+    rng = np.random.default_rng(seed)
+    out_p, out_n, out_c = [], [], []
+    for obj in objects:
+        if classes is not None and obj.class_id not in classes:
+            continue
+        T = obj.T_world_object
+        v = obj.mesh.vertices.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        tri = v[obj.mesh.faces.astype(np.int64)]  # (M, 3, 3)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area2 = np.linalg.norm(cross, axis=1)
+        ok = area2 > 1e-12
+        tri, cross, area2 = tri[ok], cross[ok], area2[ok]
+        expected = 0.5 * area2 / spacing_m**2
+        counts = rng.poisson(expected)
+        if counts.sum() == 0:
+            continue
+        which = np.repeat(np.arange(len(tri)), counts)
+        a, b = rng.random((2, len(which)))
+        flip = a + b > 1.0
+        a[flip], b[flip] = 1.0 - a[flip], 1.0 - b[flip]
+        t = tri[which]
+        out_p.append(t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0]))
+        out_n.append(cross[which] / area2[which, None])
+        out_c.append(np.full(len(which), obj.class_id, dtype=np.int64))
+    if not out_p:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    return np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_c)
+
+
 def site_scene(geometry: SiteGeometry, robot_mesh: Mesh, robot_pose: Sequence[float],
                occluders: Sequence[SceneObject] = (), *,
                light_dir_world: tuple[float, float, float] = (0.3, 0.2, 1.0)) -> Scene:

@@ -167,8 +167,10 @@ class Services:
         endpoint: str,
         rrd: str,
         camera_ids: Sequence[str],
+        out_dir: Path = Path("runs/demo"),
     ) -> None:
         self.args = args
+        self.out_dir = out_dir
         self.spec = spec
         self.site_path = site_path
         self.endpoint = endpoint
@@ -211,11 +213,14 @@ class Services:
         # the robot's head camera: its clouds in base_link, made on the (simulated) robot
         robot_camera = ["robot-camera", *site, "--cloud-rate", f"{DEMO_CLOUD_RATE_HZ:g}",
                         "--threads", "1", *sim, *listen_any]
+        # the semantic map, from the empty room's prior model, kept in the output folder
+        mapper = ["mapper", *site, "--prior-model", str(self.out_dir / PRIOR_MODEL_FILE),
+                  "--snapshot", str(self.out_dir / MAP_FILE), *listen_any]
         return [
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
             ("robot-bridge", bridge),
-            *([("robot-camera", robot_camera)] if clouds else []),
+            *([("robot-camera", robot_camera), ("mapper", mapper)] if clouds else []),
             *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
 
@@ -280,6 +285,7 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
         "robot-bridge": "robot_bridge.service",
         "edge-agent": "edge_agent.service",
         "robot-camera": "smartedge.robot_camera",
+        "mapper": "backend_service.map_service",
         "viewer": "smartedge.viewer",
     }[command]
     svc = importlib.import_module(module)
@@ -296,6 +302,9 @@ DEMO_PREVIEW_RATE_HZ = 1.0
 #: semantic clouds per second from each edge camera (with --detections cnn) and from the
 #: robot's head camera
 DEMO_CLOUD_RATE_HZ = 1.0
+#: in the output folder: the empty room's prior model (PLY) the mapper starts from, and the map
+PRIOR_MODEL_FILE = "room_prior.ply"
+MAP_FILE = "semantic_map.npz"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -400,7 +409,13 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         f"{live.duration_s:.0f} s), services as {mode}, Zenoh on {endpoint}, correction "
         f"feedback {'off' if args.no_feedback else 'on'}"
     )
-    services = Services(args, spec, site_path, endpoint, rrd, sorted(scenario.site.cameras))
+    if not args.no_clouds:
+        from smartedge.mapping_experiment import write_prior_model
+
+        (out_dir / MAP_FILE).unlink(missing_ok=True)  # a fresh map every demo
+        write_prior_model(scenario, out_dir / PRIOR_MODEL_FILE)
+    services = Services(args, spec, site_path, endpoint, rrd, sorted(scenario.site.cameras),
+                        out_dir)
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     monitor = None
@@ -438,11 +453,32 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         print(f"\ntrajectories (TUM): {out_dir / 'tum'}/{{{','.join(tum)}}}.tum  (e.g. "
               f"evo_ape tum {out_dir / 'tum' / 'ground_truth.tum'} "
               f"{out_dir / 'tum' / 'fused.tum'}, or smartedge evaluate ate ...)")
+    if not args.no_clouds:
+        figures.update(summarize_map(scenario, out_dir))
     if rrd_path is not None:
         print(f"\nRerun recording: {rrd_path}  (open with: rerun {rrd_path})")
     if args.processes:
         print(f"service logs: {out_dir}/*.log; exit codes {codes}")
     return DemoResult(seen, figures, codes, rrd_path, out_dir, live)
+
+
+def summarize_map(scenario: Any, out_dir: Path, out: Any = sys.stdout) -> dict[str, float]:
+    """Print the semantic map's coverage and label accuracy against the simulation's ground
+    truth (the map the mapper saved when it stopped); the figures by name."""
+    from backend_service.semantic_map import MapError, SemanticVoxelMap
+    from smartedge.mapping_experiment import ground_truth, map_scores
+
+    path = out_dir / MAP_FILE
+    try:
+        m = SemanticVoxelMap.load_npz(path)
+    except MapError as exc:
+        print(f"\nsemantic map: none ({exc})", file=out)
+        return {}
+    scores = map_scores(m, ground_truth(scenario, m.config.voxel_size_m))
+    print(f"\nsemantic map: {len(m)} voxels, {scores.labelled_voxels} with semantics; "
+          f"{scores.coverage:.1%} of the room's surfaces covered, label accuracy "
+          f"{scores.accuracy:.1%} ({path}; smartedge map export {path} map.ply)", file=out)
+    return {"map_coverage": scores.coverage, "map_accuracy": scores.accuracy}
 
 
 def write_trajectories(seen: Observed, live: Any, folder: Path) -> list[str]:

@@ -4,7 +4,7 @@
 
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
-                             [--experiments 1,2,3] [--feedback-seeds K] [--robustness-runs R]
+                             [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
@@ -13,8 +13,10 @@
 metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
 (Markdown) and Fig. 6-like plots (PNG) into DIR (detections from the noise model, or with
 ``--detections cnn`` from rendered images through the edge's ONNX models), then experiment 2
-(correction feedback on 3x Traj. 3, Fig. 7) and experiment 3 (robustness, Table III), and
-``report.md`` with all three.
+(correction feedback on 3x Traj. 3, Fig. 7), experiment 3 (robustness, Table III), experiment 4
+(collaborative semantic mapping: coverage from the static cameras alone and after the robot's
+route, label accuracy, consistency with and without feedback, a top-down map), and
+``report.md`` with all four.
 ``keypoints`` renders a fresh held-out set (seed S, N views each of randomized scenes and of the
 site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the ONNX models
 (default: the shipped ones), one figure per line with its name.
@@ -67,8 +69,8 @@ def _paper(args: argparse.Namespace) -> int:
         experiments = tuple(sorted({int(e) for e in args.experiments.split(",") if e.strip()}))
     except ValueError:
         experiments = ()
-    if not experiments or not set(experiments) <= {1, 2, 3}:
-        print("smartedge evaluate paper: --experiments takes a list of 1, 2, 3",
+    if not experiments or not set(experiments) <= {1, 2, 3, 4}:
+        print("smartedge evaluate paper: --experiments takes a list of 1, 2, 3, 4",
               file=sys.stderr)
         return 2
     calibration_seeds = None
@@ -104,7 +106,8 @@ def _paper(args: argparse.Namespace) -> int:
         print(f"smartedge evaluate paper: {exc}", file=sys.stderr)
         return 1
     for text in (report.table1_markdown, report.table2_markdown, report.nees_markdown,
-                 report.feedback_markdown, report.robustness_markdown):
+                 report.feedback_markdown, report.robustness_markdown,
+                 report.mapping_markdown):
         if text:
             print(text)
     print(f"wrote {args.out}")
@@ -202,9 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--stop-s", type=float, default=None, help="override the dwell time at each waypoint, s"
     )
     p_paper.add_argument(
-        "--experiments", default="1,2,3",
+        "--experiments", default="1,2,3,4",
         help="which experiments: 1 Table I/II, 2 correction feedback (Fig. 7), "
-        "3 robustness (Table III); default 1,2,3",
+        "3 robustness (Table III), 4 semantic mapping (Sec. IV-C); default 1,2,3,4",
     )
     p_paper.add_argument(
         "--feedback-seeds", type=int, default=1,

@@ -109,12 +109,16 @@ class PaperConfig:
     use_fusion: bool = True
     fusion_factory: FusionFactory | None = None
     fused_trajectory_step: int = 4
-    #: which experiments run_paper runs: 1 (Table I/II), 2 (feedback, Fig. 7), 3 (Table III)
-    experiments: tuple[int, ...] = (1, 2, 3)
+    #: which experiments run_paper runs: 1 (Table I/II), 2 (feedback, Fig. 7), 3 (Table III),
+    #: 4 (semantic mapping: coverage, labels, consistency; Sec. IV-C)
+    experiments: tuple[int, ...] = (1, 2, 3, 4)
     long_route: str = "traj3x3"
     feedback_seeds: int = 1
     robustness_route: str = "robustness_route"
     robustness_runs: int | None = None
+    #: experiment 4: the robot's exploration route and its head camera's cloud rate
+    mapping_route: str = "robustness_route"
+    mapping_cloud_rate_hz: float = 1.0
     #: where detections come from: "noise" (the scenario's detector error model) or "cnn"
     #: (rendered images through the edge's ONNX models: :mod:`smartedge.rendered_detections`)
     detections: str = "noise"
@@ -594,6 +598,7 @@ class PaperReport:
     feedback_markdown: str = ""
     robustness_markdown: str = ""
     nees_markdown: str = ""
+    mapping_markdown: str = ""
 
 
 def run_paper(config: PaperConfig, out_dir: str | Path,
@@ -678,6 +683,10 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
         rb_md, rb_numbers = robustness_table(rb_runs)
         (out / "table3.md").write_text(rb_md, encoding="utf-8")
         files.append(out / "table3.md")
+    map_md = ""
+    if 4 in config.experiments:
+        map_md, map_files = run_experiment4(sc, config, factory, world, detector, out, say)
+        files += map_files
     if 2 in config.experiments or 3 in config.experiments:
         (out / "feedback_results.json").write_text(json.dumps({
             "scenario": sc.name, "seed": config.seed, "experiment2": fb_numbers,
@@ -696,12 +705,15 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
                      "![Fig. 7](fig7_feedback_error_over_distance.png)\n"]
     if 3 in config.experiments:
         sections += ["## Experiment 3: robustness (Sec. IV-D, Table III)\n", rb_md]
+    if 4 in config.experiments:
+        sections += ["## Experiment 4: collaborative semantic mapping (Sec. IV-C, Fig. 7-8)\n",
+                     map_md, "![Semantic map](semantic_map_topdown.png)\n"]
     sections.append(f"Wall time: {wall:.0f} s.\n")
     (out / "report.md").write_text("\n".join(sections), encoding="utf-8")
     files.append(out / "report.md")
     say(f"done in {wall:.1f} s; wrote {out}")
     return PaperReport(results, t1_md, t2_md, t1, t2, fusion_available, files, wall,
-                       fb_runs, rb_runs, fb_md, rb_md, nees_md)
+                       fb_runs, rb_runs, fb_md, rb_md, nees_md, map_md)
 
 
 def _with_suffix(res: RunResult, suffix: str) -> RunResult:
@@ -860,6 +872,10 @@ class FeedbackRun:
     simulated_s: float
     wall_s: float
     bridge_counters: dict[str, int]
+    #: (K, 4) every fused pose the pipeline published: stamp_ns, x, y, theta (what the bridge
+    #: and the mapper service receive)
+    published_fused: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros((0, 4)))
 
     def robot_rms_m(self) -> float:
         """RMS translation error (m) of the robot's internal localization over the run."""
@@ -913,6 +929,7 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
     corrections: list[AppliedCorrection] = []
     arrived: set[int] = set()
     state: dict[str, object] = {"outcome": SUCCESS, "wp": None, "dist": math.nan}
+    published: list[tuple[float, float, float, float]] = []
 
     def push(box: Outbox) -> None:
         """Corrections decided on an estimate go to the robot the one way the bridge has."""
@@ -950,6 +967,7 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
             break
         msg = tm.message
         out = pipeline.step(msg, tm.arrival_ns)
+        published.extend((float(f.stamp_ns), f.x, f.y, f.theta) for f in out.fused)
         if bridge is None or adapter is None:
             continue
         if isinstance(msg, Odometry):
@@ -981,6 +999,7 @@ def run_feedback(scenario: Scenario, route: str, feedback: bool,
         travelled_m=robot.travelled_m, simulated_s=robot.t_s,
         wall_s=time.perf_counter() - wall0,
         bridge_counters=dict(bridge.counters) if bridge is not None else {},
+        published_fused=np.array(published, dtype=np.float64).reshape(-1, 4),
     )
 
 
@@ -1093,6 +1112,41 @@ def failure_model(scenario: Scenario) -> FailureModel:
     rc = scenario.robustness
     radius = scenario.site.robot_model(scenario.robot_id).footprint_radius_m
     return FailureModel(rc.waypoint_tolerance_m, radius + rc.collision_margin_m)
+
+
+def run_experiment4(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+                    world: World, detector: DetectionSimulator, out: Path,
+                    say: Callable[[str], None]) -> tuple[str, list[Path]]:
+    """Experiment 4 (:mod:`smartedge.mapping_experiment`): the static cameras' clouds, then
+    the robot's exploration route (``config.mapping_route``, the same seed without and with
+    feedback) with its head camera's clouds, into the backend's semantic map."""
+    from smartedge.mapping_experiment import (
+        MappingExperimentConfig,
+        mapping_markdown,
+        run_mapping,
+    )
+
+    route = config.mapping_route
+    seed = run_seed(sc, route, False, 0, config.seed)
+    say(f"paper experiment 4: semantic mapping, the static cameras then {route} (without and "
+        f"with feedback for the consistency comparison)")
+
+    def run_route(feedback: bool) -> FeedbackRun:
+        r = run_feedback(sc, route, feedback, seed,
+                         name=f"{route}_map_{'fb' if feedback else 'nofb'}",
+                         fusion_factory=factory, world=world, detector=detector,
+                         pipeline_config=paper_pipeline_config(
+                             sc.site, scenario=sc, detections=config.detections),
+                         fused_trajectory_step=config.fused_trajectory_step)
+        say(f"[exp4] {r.name}: robot RMS {r.robot_rms_m() * 100:.1f} cm, fused "
+            f"{r.fused_rms_m() * 100:.1f} cm, {r.simulated_s:.0f} s simulated in "
+            f"{r.wall_s:.1f} s")
+        return r
+
+    mcfg = MappingExperimentConfig(route=route, seed=config.seed, threads=config.threads,
+                                   robot_cloud_rate_hz=config.mapping_cloud_rate_hz)
+    report = run_mapping(sc, mcfg, out, run_route=run_route, say=say)
+    return mapping_markdown(report), report.files
 
 
 def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,

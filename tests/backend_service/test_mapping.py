@@ -163,9 +163,9 @@ def test_bad_clouds_are_rejected_counted_and_change_nothing(site, room, case: st
 
 
 def test_robot_cloud_is_aligned_to_the_map_and_the_offset_reported(site, room) -> None:
-    """The fused pose is 10 cm / 5 deg off: ICP moves the cloud back onto the room, reports the
-    offset, and the labels land on the room's own voxels."""
-    mapping = fresh_mapping(site, room)
+    """The fused pose is 10 cm / 5 deg off: with ``placement: icp`` ICP moves the cloud back
+    onto the room, reports the offset, and the labels land on the room's own voxels."""
+    mapping = fresh_mapping(site, room, placement="icp")
     x, y, th = TRUE_POSE
     err = (0.08, -0.06, math.radians(5.0))
     for k in range(-3, 4):  # fused poses around the cloud's stamp, 20 ms apart
@@ -198,6 +198,43 @@ def test_robot_cloud_is_aligned_to_the_map_and_the_offset_reported(site, room) -
     unaligned_overlap = jaccard(labelled(unaligned), labelled(truth))
     assert aligned_overlap > 0.8 and unaligned_overlap < 0.4, (aligned_overlap,
                                                                 unaligned_overlap)
+
+
+def test_default_placement_fuses_where_the_fused_pose_puts_it_and_reports_the_offset(
+        site, room) -> None:
+    """``placement: fused`` (the default): ICP gates the cloud and measures the offset, the
+    cloud is fused as the fused pose places it."""
+    mapping = fresh_mapping(site, room)
+    x, y, th = TRUE_POSE
+    for k in range(-3, 4):
+        mapping.on_pose(fused(x + 0.05, y, th, T0 + k * 20_000_000))
+    msg, _ = robot_cloud(T0)
+    out = mapping.on_cloud(msg, "robot", ROBOT, T0)
+    assert out.accepted, out.reason
+    assert out.T_world_sensor is not None and out.T_world_sensor[0, 3] == pytest.approx(x + 0.05)
+    assert mapping.alignments[ROBOT].dx_m == pytest.approx(-0.05, abs=0.01)
+
+
+@pytest.mark.parametrize(("placement", "std_m", "fused_ok"), [
+    ("fused", 0.01, True), ("fused", 0.3, False), ("icp", 0.01, False)])
+def test_a_cloud_the_map_cannot_check_is_fused_only_on_a_confident_pose(
+        site, room, placement: str, std_m: float, fused_ok: bool) -> None:
+    """Floor only: ICP cannot verify x, y, yaw (degenerate). With the default placement it is
+    fused when the fused pose is confident, never with ``placement: icp``."""
+    mapping = fresh_mapping(site, room, placement=placement)
+    mapping.on_pose(PoseEstimate(ROBOT, T0, 0, 2.5, 2.5, 0.0, np.diag([std_m**2 / 2] * 2 + [1e-4]),
+                                 "fused"))
+    rng = np.random.default_rng(5)
+    floor_base = np.column_stack([rng.uniform(0.5, 2.0, 3000), rng.uniform(-0.7, 0.7, 3000),
+                                  np.full(3000, 0.01)])
+    msg = SemanticCloud(ROBOT, T0, 0, "base_link", floor_base.astype(np.float32),
+                        np.full(3000, 1, np.uint8), np.full(3000, 0.9, np.float32))
+    out = mapping.on_cloud(msg, "robot", ROBOT, T0)
+    assert out.accepted == fused_ok, out.reason
+    if not fused_ok:
+        assert "degenerate" in out.reason
+    else:
+        assert mapping.counter_snapshot()["map.fused.robot_unverified"] == 1
 
 
 def test_robot_cloud_from_the_wrong_place_is_rejected_and_not_fused(site, room) -> None:
