@@ -167,7 +167,7 @@ class Services:
         endpoint: str,
         rrd: str,
         camera_ids: Sequence[str],
-        out_dir: Path = Path("runs/demo"),
+        out_dir: Path | None = None,
     ) -> None:
         self.args = args
         self.out_dir = out_dir
@@ -213,14 +213,17 @@ class Services:
         # the robot's head camera: its clouds in base_link, made on the (simulated) robot
         robot_camera = ["robot-camera", *site, "--cloud-rate", f"{DEMO_CLOUD_RATE_HZ:g}",
                         "--threads", "1", *sim, *listen_any]
-        # the semantic map, from the empty room's prior model, kept in the output folder
-        mapper = ["mapper", *site, "--prior-model", str(self.out_dir / PRIOR_MODEL_FILE),
-                  "--snapshot", str(self.out_dir / MAP_FILE), *listen_any]
+        # the semantic map, from the empty room's prior model, kept in the output folder (only
+        # with one: run_demo writes the prior model there)
+        mapper = [] if self.out_dir is None else [
+            "mapper", *site, "--prior-model", str(self.out_dir / PRIOR_MODEL_FILE),
+            "--snapshot", str(self.out_dir / MAP_FILE), *listen_any]
         return [
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
             ("robot-bridge", bridge),
-            *([("robot-camera", robot_camera), ("mapper", mapper)] if clouds else []),
+            *([("robot-camera", robot_camera)] if clouds else []),
+            *([("mapper", mapper)] if clouds and mapper else []),
             *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
 

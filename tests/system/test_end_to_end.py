@@ -36,8 +36,8 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     )
     seen = result.seen
     # every service ran as a process and stopped cleanly on SIGTERM
-    # 4 edge agents, backend, bridge, robot camera, viewer
-    assert result.exit_codes == [0] * 8, result.exit_codes
+    # 4 edge agents, backend, bridge, robot camera, mapper, viewer
+    assert result.exit_codes == [0] * 9, result.exit_codes
     assert {"backend/main", "robot-bridge/hsr"} <= set(seen.status)
     assert sum(k.startswith("edge-agent/") for k in seen.status) == 4
     # the default closed loop: rendered images through the shipped ONNX models, keeping up
@@ -52,6 +52,13 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     assert result.figures["cameras, 1 frame"] < 0.04
     assert result.figures["fused (pose graph)"] < 0.04
     assert seen.corrections and all(c.kind == "correction" for c in seen.corrections)
+    # the semantic map: the cameras' and the robot's clouds fused, saved when the mapper
+    # stopped, and scored against the simulation's ground truth
+    mapper = seen.status["mapper/main"]
+    assert mapper.counters.get("map.fused.edge", 0) >= 4, mapper.counters
+    assert mapper.counters.get("map.fused.robot", 0) >= 1, mapper.counters
+    assert (tmp_path / "semantic_map.npz").exists()
+    assert result.figures["map_coverage"] > 0.02 and result.figures["map_accuracy"] > 0.7
     bridge = seen.status["robot-bridge/hsr"]
     assert (
         bridge.counters.get("bridge.corrections_accepted", 0) >= 1
