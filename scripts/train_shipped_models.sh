@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
 # Train the shipped detector and keypoint models for the built-in robot on this machine's CPU
-# (both networks at once, one torch thread each, sharing one render cache), then copy the ONNX
-# files and model cards into edge_agent/models/. Run again to resume after an interruption.
-#   scripts/train_shipped_models.sh [OUT] [MINUTES]
+# (both networks at once, one torch thread each, sharing one render cache), then the semantic
+# segmentation network (one thread, one render worker, its own render sets), and copy the ONNX
+# files, model cards and export references into edge_agent/models/. Run again to resume after
+# an interruption.
+#   scripts/train_shipped_models.sh [OUT] [MINUTES] [SEGMENTATION_MINUTES]
 set -euo pipefail
 OUT=${1:-runs/models}
 MINUTES=${2:-55}
+SEG_MINUTES=${3:-40}
 VIEWS=(--train-views 4000 --site-views 1200 --val-views 200)
 mkdir -p "$OUT"
 smartedge train detector --out "$OUT" --minutes "$MINUTES" --threads 1 "${VIEWS[@]}" \
@@ -20,8 +23,13 @@ smartedge train keypoints --out "$OUT" --minutes "$MINUTES" --threads 1 "${VIEWS
     > "$OUT/keypoints.log" 2>&1 &
 kp=$!
 wait "$det" "$kp"
+# whole frames with label images; the site views spread over 4 texture seeds
+smartedge train segmentation --out "$OUT" --minutes "$SEG_MINUTES" --threads 1 --workers 1 \
+    --train-views 3000 --site-views 2000 --site-seeds 4 --val-views 200 \
+    > "$OUT/segmentation.log" 2>&1
 mkdir -p edge_agent/models
-for kind in detector keypoints; do
-    cp "$OUT/$kind.onnx" "$OUT/$kind.json" "$OUT/$kind.md" edge_agent/models/
+for kind in detector keypoints segmentation; do
+    cp "$OUT/$kind.onnx" "$OUT/$kind.json" "$OUT/$kind.md" "$OUT/$kind.reference.npz" \
+        edge_agent/models/
 done
 echo "shipped models updated in edge_agent/models/"
