@@ -23,13 +23,17 @@ smartedge train keypoints --out "$OUT" --minutes "$MINUTES" --threads 1 "${VIEWS
     > "$OUT/keypoints.log" 2>&1 &
 kp=$!
 wait "$det" "$kp"
-# whole frames with label images; the site views spread over 4 texture seeds
-smartedge train segmentation --out "$OUT" --minutes "$SEG_MINUTES" --threads 1 --workers 1 \
-    --train-views 3000 --site-views 2000 --site-seeds 4 --val-views 200 \
-    > "$OUT/segmentation.log" 2>&1
+# whole frames with label images; the site views spread over 4 texture seeds, then a fine-tune
+# with the site views spread over 8 (more floor and wall textures)
+SEG=(--threads 1 --workers 1 --train-views 3000 --site-views 2000 --val-views 200)
+smartedge train segmentation --out "$OUT/seg" --minutes "$SEG_MINUTES" --site-seeds 4 \
+    "${SEG[@]}" > "$OUT/segmentation.log" 2>&1
+smartedge train segmentation --out "$OUT/seg_ft" --init-from "$OUT/seg/segmentation.ckpt" \
+    --lr 8e-4 --steps 1100 --site-seeds 8 "${SEG[@]}" > "$OUT/segmentation_ft.log" 2>&1
 mkdir -p edge_agent/models
-for kind in detector keypoints segmentation; do
+for kind in detector keypoints; do
     cp "$OUT/$kind.onnx" "$OUT/$kind.json" "$OUT/$kind.md" "$OUT/$kind.reference.npz" \
         edge_agent/models/
 done
+cp "$OUT"/seg_ft/segmentation.{onnx,json,md,reference.npz} edge_agent/models/
 echo "shipped models updated in edge_agent/models/"
