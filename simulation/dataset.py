@@ -9,7 +9,14 @@ Modes:
   pose as the site file says), the robot at a random free pose in the room, sometimes people
   standing around;
 - ``randomized``: :func:`simulation.scenes.randomized_view` plus image-space augmentation
-  (colour jitter, blur, sensor noise, JPEG compression).
+  (colour jitter, blur, sensor noise, JPEG compression);
+- ``robot``: what the robot's own head camera (the robot model's ``head_camera`` in the site
+  file) sees from a random free pose in the room with a random heading: the site without the
+  robot itself (as :meth:`simulation.site_cameras.SiteCameraRenderer.render_head` draws it),
+  sometimes people standing around and sometimes another instance of the robot in front of it.
+  ``robots`` is empty unless that other robot is there; these views exist for the semantic
+  segmentation network, whose furniture looks different from a 1 m high camera than from the
+  ceiling (for the detector they are views without a robot, or with the other one).
 
 :func:`write_dataset` writes ``images/``, ``depth/`` (uint16 millimetres, 0 = nothing),
 ``class/`` (uint8 class ids, legend in ``dataset.json``), ``instance/`` (uint16),
@@ -48,7 +55,11 @@ from simulation.world import World
 
 log = logging.getLogger(__name__)
 
-MODES: Final = ("site", "randomized")
+MODES: Final = ("site", "randomized", "robot")
+#: chance that a robot-mode view has another instance of the robot in front of the camera
+OTHER_ROBOT_CHANCE: Final = 0.25
+#: chance that each person of a robot-mode view stands in front of the camera (else anywhere)
+PERSON_IN_VIEW_CHANCE: Final = 0.6
 
 
 class DatasetError(SmartedgeError):
@@ -86,7 +97,9 @@ class RobotLabel:
 class Sample:
     """A rendered image and its labels. ``image_rgb`` (H, W, 3) uint8 (augmented in
     randomized mode), ``depth_m`` (H, W) float32 (inf: nothing), ``class_id`` / ``instance_id``
-    (H, W) int32; ``robot_pose`` (3,) x, y, theta in the scene's world frame."""
+    (H, W) int32; ``robot_pose`` (3,) x, y, theta in the scene's world frame (robot mode: the
+    pose of the robot whose head camera took the view, not drawn); ``robots``: the robots in the
+    scene (robot mode: none, or the other instance in front of the camera)."""
 
     index: int
     seed: int
@@ -158,8 +171,9 @@ class SampleGenerator:
     """Index → :class:`Sample`, deterministic per (``seed``, index).
 
     ``scenario``: a :class:`simulation.scenario.Scenario` (site, room, obstacles);
-    ``mode``: ``site`` or ``randomized``; ``width``/``height``: image size (default: each
-    site camera's own in site mode, 848x480 randomized); ``robot_mesh``: the robot's mesh
+    ``mode``: ``site``, ``randomized`` or ``robot`` (see the module docstring); ``width``/
+    ``height``: image size (default: each site camera's own in site mode, the head camera's in
+    robot mode, 848x480 randomized); ``robot_mesh``: the robot's mesh
     (default: the built-in HSR-like mesh of the scenario's robot model); ``robot_model``: its
     keypoints (default: the site's model of the scenario's robot). The GL renderer is created on
     first use, in the process that renders.
@@ -187,8 +201,12 @@ class SampleGenerator:
         self.robot_mesh = robot_mesh
         self.randomization = randomization or RandomizationConfig()
         self.camera_ids = tuple(sorted(scenario.site.cameras))
-        self._geometry = site_geometry(scenario, seed=self.seed) if mode == "site" else None
-        self._world = World(scenario) if mode == "site" else None
+        if mode == "robot" and self.model.head_camera is None:
+            raise DatasetError(f"robot model {self.model.name!r} has no head_camera in the site "
+                               "file: robot-mode views need one")
+        in_site = mode in ("site", "robot")
+        self._geometry = site_geometry(scenario, seed=self.seed) if in_site else None
+        self._world = World(scenario) if in_site else None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._environments: tuple[Any, ...] | None = None
 
@@ -205,6 +223,12 @@ class SampleGenerator:
 
     def __call__(self, index: int) -> Sample:
         rng = self.rng(index)
+        if self.mode == "robot":
+            scene, camera, pose, other = self._robot_view(rng)
+            out = self._renderer(camera.width, camera.height).render(scene, camera)
+            robots = () if other is None else (self._label(out, camera, other),)
+            return Sample(index, self.seed, self.mode, camera, out.color_rgb, out.depth_m,
+                          out.class_id, out.instance_id, robots, pose)
         if self.mode == "site":
             scene, camera, pose = self._site_view(rng)
         else:
@@ -226,20 +250,77 @@ class SampleGenerator:
             yield self(index)
             index += 1
 
-    def _site_view(self, rng: np.random.Generator) -> tuple[Any, CameraModel, np.ndarray]:
+    def _free_pose(self, rng: np.random.Generator) -> np.ndarray:
+        """(3,) x, y, theta: a random robot pose whose footprint is clear of the obstacles and
+        walls (after 100 tries, the last one drawn)."""
         sc = self.scenario
-        cam = sc.site.cameras[self.camera_ids[int(rng.integers(len(self.camera_ids)))]]
-        if self.width is not None:
-            cam = scaled_camera(cam, self.width, self.height)  # type: ignore[arg-type]
         world = self._world
         assert world is not None
         lo = np.asarray(sc.room_min_xy_m) + self.model.footprint_radius_m
         hi = np.asarray(sc.room_max_xy_m) - self.model.footprint_radius_m
         pose = np.zeros(3)
-        for _ in range(100):  # a free pose: not inside an obstacle
+        for _ in range(100):
             pose = np.array([*rng.uniform(lo, hi), rng.uniform(-np.pi, np.pi)])
             if not world.footprint_collides(pose[:2], self.model.footprint_radius_m):
                 break
+        return pose
+
+    def _robot_view(self, rng: np.random.Generator
+                    ) -> tuple[Any, CameraModel, np.ndarray, np.ndarray | None]:
+        """The head camera of the robot at a free pose: (scene without that robot, camera in
+        the world frame, its pose (3,), the pose (3,) of another robot instance in the scene or
+        ``None``)."""
+        from protocol.geometry import se3_from_planar
+        from simulation.mesh import Scene
+
+        sc = self.scenario
+        head = self.model.head_camera
+        pose = self._free_pose(rng)
+        cam = head.camera_model("head", se3_from_planar(*(float(v) for v in pose)))
+        if self.width is not None:
+            cam = scaled_camera(cam, self.width, self.height)  # type: ignore[arg-type]
+        world = self._world
+        assert world is not None and self._geometry is not None
+        lo, hi = np.asarray(sc.room_min_xy_m), np.asarray(sc.room_max_xy_m)
+
+        def in_front(rng: np.random.Generator) -> np.ndarray:
+            # a point 0.8-4 m ahead, within about the camera's horizontal field of view
+            a = pose[2] + rng.uniform(-0.5, 0.5)
+            return pose[:2] + rng.uniform(0.8, 4.0) * np.array([np.cos(a), np.sin(a)])
+
+        objects: list[SceneObject] = list(self._geometry.objects)
+        other: np.ndarray | None = None
+        r = self.model.footprint_radius_m
+        if rng.uniform() < OTHER_ROBOT_CHANCE:
+            for _ in range(20):
+                xy = in_front(rng)
+                if (not world.footprint_collides(xy, r)
+                        and np.hypot(*(xy - pose[:2])) > 2 * r + 0.2):
+                    other = np.array([*xy, rng.uniform(-np.pi, np.pi)])
+                    break
+            if other is not None:
+                objects.append(SceneObject(self.robot_mesh, se3_from_planar(*other),
+                                           ROBOT_INSTANCE, CLASS_ID["robot"]))
+        for k in range(int(rng.integers(0, 3))):  # people standing around
+            p = in_front(rng) if rng.uniform() < PERSON_IN_VIEW_CHANCE else rng.uniform(lo, hi)
+            if (np.hypot(*(p - pose[:2])) < r + 0.35
+                    or (other is not None and np.hypot(*(p - other[:2])) < r + 0.35)
+                    or world.footprint_collides(p, 0.2)):
+                continue
+            mesh = person_mesh(float(rng.uniform(1.5, 1.9)), rng.uniform(0.1, 0.9, 3))
+            T = np.eye(4)
+            T[:2, 3] = p
+            objects.append(SceneObject(mesh, T, FIRST_OTHER_INSTANCE + k, CLASS_ID["person"]))
+        return Scene(tuple(objects)), cam, pose, other
+
+    def _site_view(self, rng: np.random.Generator) -> tuple[Any, CameraModel, np.ndarray]:
+        sc = self.scenario
+        cam = sc.site.cameras[self.camera_ids[int(rng.integers(len(self.camera_ids)))]]
+        if self.width is not None:
+            cam = scaled_camera(cam, self.width, self.height)  # type: ignore[arg-type]
+        lo = np.asarray(sc.room_min_xy_m) + self.model.footprint_radius_m
+        hi = np.asarray(sc.room_max_xy_m) - self.model.footprint_radius_m
+        pose = self._free_pose(rng)  # a free pose: not inside an obstacle
         occluders: list[SceneObject] = []
         for k in range(int(rng.integers(0, 3))):  # people standing around
             p = rng.uniform(lo, hi)

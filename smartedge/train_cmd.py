@@ -1,7 +1,8 @@
 """``smartedge train detector|keypoints|segmentation``: train a network on synthetic renders only.
 
-Renders (once, cached in ``OUT/cache``) domain-randomized scenes and views from the site's own
-cameras, trains with a progress line and checkpoints (run the same command again to resume an
+Renders (once, cached in ``OUT/cache``) domain-randomized scenes, views from the site's own
+cameras and (``--robot-views``) from the robot's own head camera, trains with a progress line
+and checkpoints (run the same command again to resume an
 interrupted run), validates on held-out seeds, exports one ONNX file, checks onnxruntime
 against torch and writes the model card (``OUT/<kind>.json`` + ``.md``). Needs the ``train``
 extra (torch). Uses CUDA when torch sees a GPU.
@@ -49,10 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--site-seeds", type=int, default=1,
                    help="spread the site views over this many seeds (seed + 1, + 2, ...), each "
                    "its own textures and obstacle colours of the site (default 1)")
+    p.add_argument("--robot-views", type=int, default=0,
+                   help="training views from the robot's own head camera at random free poses "
+                   "(default 0), spread over the demo site's textures (seed 0) and the site "
+                   "views' seeds; a held-out robot-view set (seed + "
+                   f"{HELD_OUT_SEED_OFFSET + 2}) is added when > 0")
     p.add_argument("--val-views", type=int, default=200,
                    help="held-out views of each kind (default 200)")
     p.add_argument("--seed", type=int, default=1, help="training seed (default 1); held-out "
-                   f"sets use seed + {HELD_OUT_SEED_OFFSET} and + {HELD_OUT_SEED_OFFSET + 1}")
+                   f"sets use seed + {HELD_OUT_SEED_OFFSET}, + {HELD_OUT_SEED_OFFSET + 1} "
+                   f"(and + {HELD_OUT_SEED_OFFSET + 2} for robot views)")
     p.add_argument("--steps", type=int, default=3000, help="optimizer steps (default 3000)")
     p.add_argument("--minutes", type=float, help="time budget instead of --steps (the step count "
                    "is set from the speed measured in the first steps)")
@@ -99,11 +106,20 @@ def main(argv: Sequence[str]) -> int:
         site_sets = [SetSpec("site", args.seed + 1 + k,
                              args.site_views // n_site + (k < args.site_views % n_site))
                      for k in range(n_site)]
+        # the robot's head camera sees the demo site (texture seed 0) too: train on it as well
+        robot_seeds = [0, *(s.seed for s in site_sets if s.seed != 0)]
+        n_robot = len(robot_seeds)
+        robot_sets = [SetSpec("robot", seed, args.robot_views // n_robot
+                              + (k < args.robot_views % n_robot))
+                      for k, seed in enumerate(robot_seeds)]
         train_sets = tuple(s for s in (SetSpec("randomized", args.seed, args.train_views),
-                                       *site_sets)
+                                       *site_sets, *robot_sets)
                            if s.count > 0)
         val_sets = (SetSpec("randomized", args.seed + HELD_OUT_SEED_OFFSET, args.val_views),
                     SetSpec("site", args.seed + HELD_OUT_SEED_OFFSET + 1, args.val_views))
+        if args.robot_views > 0:
+            val_sets += (SetSpec("robot", args.seed + HELD_OUT_SEED_OFFSET + 2,
+                                 args.val_views),)
         batch = args.batch or (32 if args.kind == "keypoints" else 16)
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,

@@ -34,7 +34,8 @@ SHARD = 200  # views per shard file
 
 @dataclasses.dataclass(frozen=True)
 class SetSpec:
-    """One rendered set: ``count`` views of ``mode`` (``site``/``randomized``) from ``seed``."""
+    """One rendered set: ``count`` views of ``mode`` (``site``/``randomized``/``robot``: the
+    robot's own head camera) from ``seed``."""
 
     mode: str
     seed: int
@@ -122,8 +123,9 @@ class ViewSource(Protocol):
 
     ``robot_model``: the :class:`protocol.site.RobotModel` whose keypoints are labelled;
     ``renderer(spec, geometry)``: a function index → sample (``image_rgb`` (H, W, 3) uint8,
-    ``mode``, ``robots[0]`` with ``bbox_xyxy`` (box edges or None), ``keypoints_px``,
-    ``visible``, ``in_image``), the same sample for the same (spec, index);
+    ``mode``, ``robots`` (none, e.g. the robot's own head camera, or ``robots[0]`` with
+    ``bbox_xyxy`` (box edges or None), ``keypoints_px``, ``visible``, ``in_image``), ``class_id``
+    for segmentation sets), the same sample for the same (spec, index);
     ``augment(image, rng)``: photometric augmentation of a clean image; ``identity()``: what
     the render cache is of (robot, scenario), as a JSON-able dict."""
 
@@ -136,22 +138,29 @@ class ViewSource(Protocol):
     def identity(self) -> dict[str, Any]: ...
 
 
+#: modes whose renders are clean (no image-space augmentation yet)
+CLEAN_MODES = ("site", "robot")
+
+
 def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
-                 augment: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None
-                 ) -> RenderedSet:
-    """One rendered sample → its rows; ``augment`` (if given) is applied to un-augmented site
-    views."""
+                 augment: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
+                 num_keypoints: int = 0) -> RenderedSet:
+    """One rendered sample → its rows; ``augment`` (if given) is applied to un-augmented
+    (site and robot-head) views. A sample without robots (the robot's own head camera) gives a
+    view without a box (NaN: a negative for the detector) and no keypoint crops of
+    ``num_keypoints`` keypoints (the robot model's count, so sets concatenate)."""
     g = geometry
     image = sample.image_rgb
-    if augment is not None and sample.mode == "site":
+    if augment is not None and sample.mode in CLEAN_MODES:
         image = augment(image, rng)
     h, w = image.shape[:2]
     det = resize_for_detector(image, g.det_w, g.det_h)
-    robot = sample.robots[0]
-    box = (np.full(4, np.nan) if robot.bbox_xyxy is None
+    robot = sample.robots[0] if sample.robots else None
+    box = (np.full(4, np.nan) if robot is None or robot.bbox_xyxy is None
            else np.asarray(robot.bbox_xyxy, np.float64))
     crops, kps, scales = [], [], []
-    big_enough = robot.bbox_xyxy is not None and (box[2] - box[0]) * (box[3] - box[1]) >= 64
+    big_enough = (robot is not None and robot.bbox_xyxy is not None
+                  and (box[2] - box[0]) * (box[3] - box[1]) >= 64)
     if big_enough and g.crops_per_robot > 0:
         n = g.crops_per_robot if g.crop_jitter else 1
         for _ in range(n):
@@ -161,9 +170,11 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
                           "zoom": float(rng.uniform(0.85, 1.3))}
             tf = crop_transform(box, g.crop_w, g.crop_h, **jitter)
             crops.append(extract_crop(image, tf, g.crop_w, g.crop_h))
-            kps.append(tf.to_crop(robot.keypoints_px))
+            kps.append(tf.to_crop(robot.keypoints_px))  # type: ignore[union-attr]
             scales.append(tf.scale)
-    k = len(robot.visible)
+    k = num_keypoints if robot is None else len(robot.visible)
+    in_image = np.zeros(k, bool) if robot is None else np.asarray(robot.in_image, bool)
+    visible = np.zeros(k, bool) if robot is None else np.asarray(robot.visible, bool)
     m = len(crops)
     seg = (downscale_labels(sample.class_id, g.seg_w, g.seg_h)[None] if g.seg_w > 0
            else np.zeros((1, 0, 0), np.uint8))
@@ -173,8 +184,8 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
         frame_size=np.array([[w, h]], np.int32),
         crops=np.asarray(crops, np.uint8).reshape(m, g.crop_h, g.crop_w, 3),
         crop_kp=np.asarray(kps, np.float32).reshape(m, k, 2),
-        crop_in_image=np.repeat(robot.in_image[None], m, 0).astype(bool),
-        crop_visible=np.repeat(robot.visible[None], m, 0).astype(bool),
+        crop_in_image=np.repeat(in_image[None], m, 0),
+        crop_visible=np.repeat(visible[None], m, 0),
         crop_scale=np.asarray(scales, np.float32),
         crop_view=np.zeros(m, np.int64),
         seg_labels=seg,
@@ -199,7 +210,8 @@ def _render_shard(spec: SetSpec, start: int, stop: int, geometry: Geometry,
     for i in range(start, stop):
         rng = np.random.default_rng(np.random.SeedSequence([spec.seed, i, 4242]))
         parts.append(view_records(render(i), geometry, rng,
-                                  views.augment if augment_clean else None))
+                                  views.augment if augment_clean else None,
+                                  num_keypoints=views.robot_model.num_keypoints))
     return RenderedSet.concatenate(parts)
 
 

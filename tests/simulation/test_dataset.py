@@ -154,3 +154,48 @@ def test_render_command_with_a_user_robot_from_a_registry_urdf(tmp_path: Path) -
     assert all(len(d["robots"][0]["keypoints_px"]) == 5 for d in docs)
     assert sum(any(d["robots"][0]["visible"]) for d in docs) >= 2
     assert main(["render", "--out", str(out), "--robot", str(urdf)]) == 1  # no --keypoints
+
+
+def test_robot_head_views_from_inside_the_room_label_floor_and_furniture(scenario) -> None:
+    """Robot mode: the head camera of the robot at a free pose looks into the room from about
+    1 m above the floor; floor and walls or furniture are labelled, the robot itself is not in
+    its own view, and a training row of such a view is a detector negative without crops (or
+    labels the other robot instance when one stands in front)."""
+    from edge_agent.training.data import Geometry, view_records
+    from simulation.world import World
+
+    gen = SampleGenerator(scenario, "robot", seed=2, width=160, height=120)
+    world = World(scenario)
+    r = scenario.site.robot_model(scenario.robot_id).footprint_radius_m
+    furniture = [CLASS_ID[c] for c in ("table", "shelf", "cabinet", "box")]
+    seen_furniture = seen_wall = 0
+    for i in range(8):
+        sample = gen(i)
+        assert sample.mode == "robot" and sample.image_rgb.shape == (120, 160, 3)
+        assert not world.footprint_collides(sample.robot_pose[:2], r)
+        T_world_cam = np.linalg.inv(sample.camera.T_cam_world)
+        assert 0.8 < T_world_cam[2, 3] < 1.3  # camera above the floor, at head height
+        assert np.all(T_world_cam[:2, 3] > scenario.room_min_xy_m)
+        assert np.all(T_world_cam[:2, 3] < scenario.room_max_xy_m)
+        assert T_world_cam[2, 2] < 0.0  # optical axis tilted down
+        assert np.mean(sample.class_id == CLASS_ID["floor"]) > 0.05
+        seen_wall += bool(np.any(sample.class_id == CLASS_ID["wall"]))
+        seen_furniture += bool(np.isin(sample.class_id, furniture).any())
+        rows = view_records(sample, Geometry(det_w=64, det_h=48, seg_w=32, seg_h=24),
+                            np.random.default_rng(0), num_keypoints=12)
+        assert rows.seg_labels.shape == (1, 24, 32) and rows.crop_kp.shape[1:] == (12, 2)
+        if not sample.robots:
+            assert np.isnan(rows.boxes).all() and len(rows.crops) == 0
+            assert not np.any(sample.class_id == CLASS_ID["robot"])
+        else:
+            _check_label_matches_render(sample)
+    assert seen_wall >= 4 and seen_furniture >= 2
+    np.testing.assert_array_equal(gen(3).class_id, gen(3).class_id)  # deterministic
+
+
+def test_robot_mode_needs_a_head_camera(scenario) -> None:
+    import dataclasses
+
+    model = dataclasses.replace(scenario.site.robot_model(scenario.robot_id), head_camera=None)
+    with pytest.raises(DatasetError, match="head_camera"):
+        SampleGenerator(scenario, "robot", robot_model=model)
