@@ -37,7 +37,7 @@ from typing import Any, Final
 import numpy as np
 
 from backend_service.cloud_alignment import align_to_map, consistency
-from backend_service.mapping import MappingConfig, SemanticMapping, interpolate_pose
+from backend_service.mapping import PLACEMENTS, MappingConfig, SemanticMapping, interpolate_pose
 from backend_service.semantic_map import SemanticMapConfig, SemanticVoxelMap, pack_voxel_keys
 from protocol.geometry import se3_from_planar, wrap_angle_array
 from protocol.messages import PoseEstimate, SemanticCloud
@@ -67,7 +67,8 @@ class MappingExperimentConfig:
     cloud rate (the paper's HSR: ~1 Hz); ``consistency_rate_hz``: clouds per second of each
     run used for the consistency comparison; ``threads``: onnxruntime threads;
     ``model``: another segmentation model (ONNX); ``max_route_s``: stop the route early
-    (``None``: the whole route)."""
+    (``None``: the whole route); ``compare_placements``: also fuse the robot's clouds with the
+    other placement rule (:data:`backend_service.mapping.PLACEMENTS`) for the comparison."""
 
     route: str = "robustness_route"
     seed: int = 0
@@ -77,6 +78,7 @@ class MappingExperimentConfig:
     threads: int = 2
     model: str | None = None
     max_route_s: float | None = None
+    compare_placements: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,6 +214,8 @@ class MappingReport:
     cloud_points_mean: float
     wall_s: float
     files: list[Path] = dataclasses.field(default_factory=list)
+    #: placement rule -> (scores after the route, robot clouds fused)
+    placements: dict[str, tuple[MapScores, int]] = dataclasses.field(default_factory=dict)
 
 
 class _CloudSource:
@@ -361,6 +365,23 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
         say(f"mapping: after the robot's route ({config.route}, {len(stamps)} clouds, "
             f"{accepted} fused): coverage {with_robot.coverage:.1%}, label accuracy "
             f"{with_robot.accuracy:.1%}")
+        placements = {mcfg.placement: (with_robot, accepted)}
+        if config.compare_placements:
+            # the same clouds and poses once more, from the static map, with the other rule
+            for other in PLACEMENTS:
+                if other in placements:
+                    continue
+                alt = SemanticMapping(site, dataclasses.replace(mcfg, placement=other),
+                                      initial_map=static_map.copy())
+                for t, x, y, th in published:
+                    alt.on_pose(PoseEstimate(scenario.robot_id, int(t), 0, float(x), float(y),
+                                             float(th), np.eye(3) * 1e-4, "fused"))
+                fused_n = sum(alt.on_cloud(c, "robot", scenario.robot_id, s).accepted
+                              for s, c in clouds_fb.items())
+                placements[other] = (map_scores(alt.map, gt), fused_n)
+                sc_ = placements[other][0]
+                say(f"mapping: placement {other}: coverage {sc_.coverage:.1%}, label accuracy "
+                    f"{sc_.accuracy:.1%}, off the surfaces {sc_.off_surface_share:.1%}")
 
         # consistency (Fig. 7): robot observations placed by each pose source vs the map
         final_points, final_normals = mapping.map.means(), mapping.map.normals()
@@ -369,11 +390,11 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
         rows = []
         fused_poses = [PoseEstimate(scenario.robot_id, int(t), 0, float(x), float(y), float(th),
                                     np.eye(3), "fused") for t, x, y, th in published]
-        placements = (("robot localization, without feedback", run_nofb, "robot"),
-                      ("robot localization, with feedback", run_fb, "robot"),
-                      ("fused pose (smartedge)", run_fb, "fused"),
-                      ("true pose (reference)", run_fb, "truth"))
-        for name, run, which in placements:
+        sources = (("robot localization, without feedback", run_nofb, "robot"),
+                   ("robot localization, with feedback", run_fb, "robot"),
+                   ("fused pose (smartedge)", run_fb, "fused"),
+                   ("true pose (reference)", run_fb, "truth"))
+        for name, run, which in sources:
             fits, rmses, offs, yaws = [], [], [], []
             for seq, stamp in enumerate(_cloud_stamps(run, config.consistency_rate_hz,
                                                       config.max_route_s)):
@@ -411,7 +432,7 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
                       if k.startswith("map.rejected.")},
             alignment_offsets_m=offsets, consistency=rows,
             segmentation_ms=_mean(source.seg_ms), cloud_points_mean=_mean(source.points),
-            wall_s=time.perf_counter() - wall0)
+            wall_s=time.perf_counter() - wall0, placements=placements)
         report.files = write_mapping_outputs(out, report, mapping.map, static_map, scenario)
         report.wall_s = time.perf_counter() - wall0
         return report
@@ -453,6 +474,14 @@ def mapping_markdown(report: MappingReport) -> str:
     for name, (cov, acc, total) in sorted(r.per_class.items(), key=lambda kv: -kv[1][2]):
         cov_s = s.per_class.get(name, (math.nan, math.nan, 0))[0]
         lines.append(f"| {name} | {total} | {_pct(cov_s)} | {_pct(cov)} | {_pct(acc)} |")
+    if len(report.placements) > 1:
+        lines += ["", "Where the robot's clouds are fused (`map.placement`; the same clouds and "
+                  "poses, from the static map):\n",
+                  "| placement | coverage | label accuracy | labelled off the surfaces | "
+                  "clouds fused |", "|---|---|---|---|---|"]
+        for name, (sc, n) in report.placements.items():
+            lines.append(f"| {name} | {_pct(sc.coverage)} | {_pct(sc.accuracy)} | "
+                         f"{_pct(sc.off_surface_share)} | {n} |")
     lines += [
         "",
         "### Consistency of robot observations with the map (Fig. 7)\n",
@@ -533,6 +562,8 @@ def write_mapping_outputs(out: Path, report: MappingReport, final: SemanticVoxel
         "median_icp_offset_m": float(np.median(report.alignment_offsets_m))
         if report.alignment_offsets_m else None,
         "consistency": [dataclasses.asdict(r) for r in report.consistency],
+        "placements": {k: {"scores": dataclasses.asdict(v[0]), "clouds_fused": v[1]}
+                       for k, v in report.placements.items()},
         "segmentation_ms": report.segmentation_ms, "wall_s": report.wall_s,
         "paper": PAPER_COVERAGE,
     }

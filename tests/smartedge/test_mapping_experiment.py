@@ -123,3 +123,5 @@ def test_consistency_rows_and_outputs(report) -> None:
     assert int(saved.has_semantics().sum()) == rep.with_robot.labelled_voxels
     text = (out / "mapping.md").read_text()
     assert "static sensors alone" in text and "true pose (reference)" in text
+    assert set(rep.placements) == {"fused", "icp"}  # the other rule, on the same clouds
+    assert "| icp |" in text
