@@ -119,7 +119,10 @@ class ModelCard:
             "## Training",
             "",
             "Trained only on synthetic renders of smartedge's renderer "
-            "(`smartedge train`, domain-randomized scenes plus views from the site's cameras).",
+            "(`smartedge train`, domain-randomized scenes plus views from the site's cameras"
+            + (" and from the robot's own head camera"
+               if any(s.get("mode") == "robot" for s in t.get("train_sets", [])) else "")
+            + ").",
             "",
         ]
         for key in ("train_sets", "val_sets"):
