@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Train the shipped detector and keypoint models for the built-in robot on this machine's CPU
 # (both networks at once, one torch thread each, sharing one render cache), then the semantic
-# segmentation network (one thread, one render worker, its own render sets), and copy the ONNX
-# files, model cards and export references into edge_agent/models/. Run again to resume after
-# an interruption.
+# segmentation network (one thread, one render worker, its own render sets, three legs), and
+# copy the ONNX files, model cards and export references into edge_agent/models/. Run again to
+# resume after an interruption.
 #   scripts/train_shipped_models.sh [OUT] [MINUTES] [SEGMENTATION_MINUTES]
 set -euo pipefail
 OUT=${1:-runs/models}
@@ -30,10 +30,15 @@ smartedge train segmentation --out "$OUT/seg" --minutes "$SEG_MINUTES" --site-se
     "${SEG[@]}" > "$OUT/segmentation.log" 2>&1
 smartedge train segmentation --out "$OUT/seg_ft" --init-from "$OUT/seg/segmentation.ckpt" \
     --lr 8e-4 --steps 1100 --site-seeds 8 "${SEG[@]}" > "$OUT/segmentation_ft.log" 2>&1
+# then what the robot's own head camera sees (furniture from ~1 m up, not from the ceiling):
+# 2,000 head-camera views over texture seeds 0 and 2-9, keeping the site and randomized views
+smartedge train segmentation --out "$OUT/seg_robot" --init-from "$OUT/seg_ft/segmentation.ckpt" \
+    --lr 8e-4 --steps 1863 --site-seeds 8 --robot-views 2000 "${SEG[@]}" \
+    > "$OUT/segmentation_robot.log" 2>&1
 mkdir -p edge_agent/models
 for kind in detector keypoints; do
     cp "$OUT/$kind.onnx" "$OUT/$kind.json" "$OUT/$kind.md" "$OUT/$kind.reference.npz" \
         edge_agent/models/
 done
-cp "$OUT"/seg_ft/segmentation.{onnx,json,md,reference.npz} edge_agent/models/
+cp "$OUT"/seg_robot/segmentation.{onnx,json,md,reference.npz} edge_agent/models/
 echo "shipped models updated in edge_agent/models/"
