@@ -31,7 +31,7 @@ SEMANTIC_CLASS_COLORS: Final[np.ndarray] = np.array(
         (8, 255, 51),     # door
         (255, 6, 82),     # table
         (204, 70, 3),     # chair
-        (255, 7, 71),     # shelf
+        (0, 160, 160),    # shelf
         (224, 5, 255),    # cabinet
         (255, 184, 6),    # box
         (120, 120, 70),   # obstacle
