@@ -168,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--id", default="main", help="instance id (default: main)")
     parser.add_argument("--snapshot", default=None, metavar="FILE.npz",
                         help="where the map is kept (default: the site file's "
-                        "map.snapshot_path; none: not kept)")
+                        "map.snapshot_path; an empty string: not kept)")
     parser.add_argument("--prior-model", default=None, metavar="FILE.ply",
                         help="prior geometric model of the empty room (default: the site "
                         "file's map.prior_model)")
@@ -181,8 +181,13 @@ def build_node(args: argparse.Namespace) -> MapperNode:
     config = MappingConfig.from_site(site)
     if args.prior_model is not None:
         config = dataclasses.replace(config, prior_model=str(Path(args.prior_model).resolve()))
-    snapshot_text = args.snapshot if args.snapshot is not None else config.snapshot_path
-    snapshot = site_relative(site, snapshot_text) if snapshot_text else None
+    # paths on the command line are relative to the working directory, those in the site file
+    # to the site file's folder
+    if args.snapshot is not None:
+        snapshot = Path(args.snapshot).expanduser().resolve() if args.snapshot else None
+    else:
+        snapshot = (site_relative(site, config.snapshot_path) if config.snapshot_path
+                    else None)
     if snapshot is not None and snapshot.suffix != ".npz":
         raise UsageError(f"map snapshot {snapshot}: expected a .npz file")
     try:

@@ -35,7 +35,12 @@ from typing import Final
 
 import numpy as np
 
-from backend_service.cloud_alignment import AlignmentConfig, AlignmentResult, align_to_map
+from backend_service.cloud_alignment import (
+    AlignmentConfig,
+    AlignmentResult,
+    align_to_map,
+    consistency,
+)
 from backend_service.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
 from protocol.geometry import se3_from_planar, wrap_angle
 from protocol.messages import PoseEstimate, SemanticCloud
@@ -49,9 +54,10 @@ POSE_BUFFER: Final = 4096
 CLOUD_SCOPES: Final = ("edge", "robot")
 #: Where a robot cloud is fused: as the fused pose places it, or moved by the ICP correction.
 PLACEMENTS: Final = ("fused", "icp")
-#: ICP outcomes that say nothing about the pose (the map does not constrain it there), as
-#: opposed to those that contradict it (low fitness, high RMSE, large offset)
-_UNVERIFIABLE: Final = ("degenerate", "too_few_map_points", "too_few_points")
+#: ICP outcomes that say nothing about the pose (nothing to align to), as opposed to those that
+#: contradict it (low fitness, high RMSE, large offset); a degenerate alignment is judged by
+#: how well the cloud fits the map as placed
+_UNVERIFIABLE: Final = ("too_few_map_points", "too_few_points")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,9 +78,9 @@ class MappingConfig:
     rejected. ``align_robot_clouds``: ICP-gate robot clouds (off: fuse them as the pose puts
     them, for the comparison of Fig. 7). ``placement``: ``"fused"`` (default) fuses an accepted
     robot cloud where the fused pose puts it and uses ICP as the gate (a cloud that ICP finds
-    elsewhere, or that does not fit, is rejected; one the map cannot check, e.g. floor only,
-    is fused when the fused pose's position standard deviation is at most
-    ``max_unverified_std_m``); ``"icp"`` moves it by the ICP correction and rejects what ICP
+    elsewhere, or that does not fit, is rejected; one the map cannot check (nothing mapped
+    there yet, or floor only: then it must fit the map as placed) is fused when the fused
+    pose's position standard deviation is at most ``max_unverified_std_m``); ``"icp"`` moves it by the ICP correction and rejects what ICP
     cannot check. Measured on the simulated lab (docs/semantic_mapping.md): against the prior
     model of the empty room plus the static cameras' clouds, ICP moves clouds taken at the
     true pose by 5-20 cm (furniture the map lacks pulls it), more than the fused pose's error,
@@ -306,7 +312,14 @@ class SemanticMapping:
             self._report_alignment(sensor_id, msg.stamp_ns, alignment, T_world_sensor)
             if not alignment.accepted:
                 failed = [r.split(":")[0].strip() for r in alignment.reason.split(";")]
-                unverifiable = all(f in _UNVERIFIABLE for f in failed)
+                if "degenerate" in failed:
+                    # ICP had nothing to hold on to in some direction (floor only): its offset
+                    # and fitness mean nothing; the cloud as placed must agree with the map
+                    fit, _ = consistency(points_world, map_points,
+                                         cfg.alignment.max_correspondence_m[-1])
+                    unverifiable = fit >= cfg.alignment.min_fitness
+                else:
+                    unverifiable = all(f in _UNVERIFIABLE for f in failed)
                 if not (unverifiable and cfg.placement == "fused"
                         and pose_std_m <= cfg.max_unverified_std_m):
                     return reject(f"alignment: {alignment.reason}",

@@ -384,3 +384,25 @@ def test_ply_prior_round_trip_and_errors(tmp_path: Path, room) -> None:
                     "property float y\nend_header\n1 2\n")
     with pytest.raises(MapError, match=r"\['z'\] missing"):
         read_ply_points(no_z)
+
+
+def test_command_line_paths_are_relative_to_the_working_directory(
+        room, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--snapshot`` / ``--prior-model`` given on the command line are the user's paths (the
+    working directory), not relative to the site file; a bad prior model is a config error."""
+    from backend_service.map_service import build_node, build_parser
+    from protocol.errors import SmartedgeError
+
+    points, normals, _ = room
+    monkeypatch.chdir(tmp_path)
+    SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals).to_ply(
+        tmp_path / "room.ply")
+    args = build_parser().parse_args(["--site", str(EXAMPLE_SITE), "--prior-model", "room.ply",
+                                      "--snapshot", "maps/lab.npz"])
+    node = build_node(args)
+    assert node.snapshot_path == tmp_path / "maps" / "lab.npz"
+    assert node.started_from.startswith("prior model room.ply")
+    assert node.save_snapshot() and (tmp_path / "maps" / "lab.npz").exists()
+    bad = build_parser().parse_args(["--site", str(EXAMPLE_SITE), "--prior-model", "none.ply"])
+    with pytest.raises(SmartedgeError, match=r"none\.ply"):
+        build_node(bad)
