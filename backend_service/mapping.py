@@ -78,12 +78,13 @@ class MappingConfig:
     rejected. ``align_robot_clouds``: ICP-gate robot clouds (off: fuse them as the pose puts
     them, for the comparison of Fig. 7). ``placement``: ``"fused"`` (default) fuses an accepted
     robot cloud where the fused pose puts it and uses ICP as the gate (a cloud that ICP finds
-    elsewhere, or that does not fit, is rejected; one the map cannot check (nothing mapped
-    there yet, or floor only: then it must fit the map as placed) is fused when the fused
-    pose's position standard deviation is at most ``max_unverified_std_m``); ``"icp"`` moves it by the ICP correction and rejects what ICP
-    cannot check. Measured on the simulated lab (docs/semantic_mapping.md): against the prior
-    model of the empty room plus the static cameras' clouds, ICP moves clouds taken at the
-    true pose by 5-20 cm (furniture the map lacks pulls it), more than the fused pose's error,
+    elsewhere, or that does not fit, is rejected; one the map cannot check (nothing mapped there
+    yet, or floor only: then it must fit the map as placed) is fused when the fused pose's
+    position standard deviation is at most ``max_unverified_std_m``); ``"icp"`` moves it by the
+    ICP correction and rejects what ICP cannot check. Measured on the simulated lab
+    (docs/semantic_mapping.md): against the prior model of the empty room plus the static
+    cameras' clouds, ICP moves clouds taken at the true pose by 5-20 cm (furniture the map lacks
+    pulls it), more than the fused pose's error,
     hence ``fused``. ``max_voxels_published``: cap of the published map.
     """
 
