@@ -7,12 +7,16 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
 from typing import Final
 
 from smartedge import __version__
+
+#: exit status when the reader of our output closed the pipe (128 + SIGPIPE, as a shell reports)
+EXIT_BROKEN_PIPE: Final = 141
 
 #: subcommand → (module, function taking argv and returning an exit code, one-line help).
 #: The edge agent and the robot bridge start through :mod:`smartedge.plugins`, which registers
@@ -107,7 +111,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    return int(getattr(module, func_name)(rest) or 0)
+    try:
+        return int(getattr(module, func_name)(rest) or 0)
+    except BrokenPipeError:
+        # the reader went away (`smartedge evaluate ate ... | head`): no traceback; stdout is
+        # pointed at /dev/null so that the interpreter's final flush does not fail again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

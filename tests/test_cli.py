@@ -129,3 +129,16 @@ def test_json_log_lines_parse(capsys: pytest.CaptureFixture[str]) -> None:
     doc = json.loads(line)
     assert doc["level"] == "ERROR" and doc["msg"] == "failed 3" and "boom" in doc["exc"]
     assert doc["logger"] == "smartedge.test" and doc["ts"].endswith("Z")
+
+
+def test_a_closed_pipe_ends_the_command_without_a_traceback() -> None:
+    """``smartedge site reference | head -1`` where the reader is gone before the command
+    writes: the command stops with 141 (as a shell reports SIGPIPE) and no traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "smartedge", "site", "reference"],
+                            cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader leaves before the first line (the imports take longer)
+    _, err_bytes = proc.communicate(timeout=60)
+    err = err_bytes.decode()
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+    assert proc.returncode == cli.EXIT_BROKEN_PIPE
