@@ -278,11 +278,25 @@ def _calib_matrix(
     return ctx.matrix(key, value, rows, cols)
 
 
+#: ROS ``distortion_model`` names of OpenCV's standard lens model (5 or 8 coefficients)
+SUPPORTED_DISTORTION_MODELS: Final = ("plumb_bob", "rational_polynomial")
+
+
+def _check_K(ctx: ConfigReader, key: str, K: np.ndarray) -> np.ndarray:
+    """``K`` if it is a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with f > 0 (whether
+    it came inline or from a calibration file), else a :class:`SiteConfigError` naming ``key``."""
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise ctx.fail(key, "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
+    return K
+
+
 def load_camera_calibration(path: str | Path) -> CameraCalibration:
     """Read intrinsics from an OpenCV ``FileStorage`` YAML (``camera_matrix``,
     ``distortion_coefficients``, ``image_width``, ``image_height``; the ``%YAML:1.0`` header and
     ``!!opencv-matrix`` tags are understood) or a ROS ``camera_info`` YAML (same key names with
-    plain ``{rows, cols, data}`` maps). An optional ``T_cam_world`` 4x4 matrix is read too."""
+    plain ``{rows, cols, data}`` maps). An optional ``T_cam_world`` 4x4 matrix is read too. The
+    camera matrix gets the same checks as an inline ``K``; a ``distortion_model`` other than
+    OpenCV's standard one (e.g. ROS's ``equidistant`` fisheye) is refused with the reason."""
     ctx = ConfigReader(str(path))
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -294,7 +308,15 @@ def load_camera_calibration(path: str | Path) -> CameraCalibration:
     except yaml.YAMLError as exc:
         raise ctx.fail("", f"not valid YAML: {exc}") from None
     doc = ctx.mapping("", doc)
-    K = _calib_matrix(ctx, "camera_matrix", ctx.require("", doc, "camera_matrix"), 3, 3)
+    K = _check_K(ctx, "camera_matrix",
+                 _calib_matrix(ctx, "camera_matrix", ctx.require("", doc, "camera_matrix"), 3, 3))
+    model = doc.get("distortion_model", "plumb_bob")
+    if model not in SUPPORTED_DISTORTION_MODELS:
+        raise ctx.fail("distortion_model", f"{model!r} is not supported: smartedge projects with "
+                       f"OpenCV's standard (radial-tangential) model "
+                       f"({', '.join(SUPPORTED_DISTORTION_MODELS)}); a fisheye (equidistant) "
+                       "calibration would be misread. Recalibrate with the standard model or "
+                       "rectify the images first")
     dist_node = doc.get("distortion_coefficients", [])
     dist = _calib_matrix(ctx, "distortion_coefficients", dist_node, None, None).reshape(-1)
     if dist.size not in DISTORTION_LENGTHS:
@@ -350,9 +372,7 @@ def _parse_K(ctx: ConfigReader, key: str, node: Mapping[str, Any]) -> np.ndarray
         raise ctx.fail(
             join_key(key, "K"), "required key is missing (or give intrinsics/calibration_file)"
         )
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise ctx.fail(join_key(key, "K"), "not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]], f>0")
-    return K
+    return _check_K(ctx, join_key(key, "K"), K)
 
 
 def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> CameraModel:

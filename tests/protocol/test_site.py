@@ -223,3 +223,27 @@ def test_bad_robot_models_entry_names_the_key(tmp_path: Path, models: object, ke
         load_site(_write(tmp_path, doc, "bad_models.yaml"))
     assert f"robot_models.{name}.{key}" in str(info.value)
     assert "bad_models.yaml" in str(info.value)
+
+
+@pytest.mark.parametrize(("change", "key", "reason"), [
+    (("data: [500, 0, 320, 0, 500, 240, 0, 0, 1]", "data: [500, 0, 320, 0, -500, 240, 0, 0, 1]"),
+     "camera_matrix", "not a camera matrix"),
+    (("data: [500, 0, 320, 0, 500, 240, 0, 0, 1]", "data: [500, 0, 320, 0, 500, 240, 0, 1, 1]"),
+     "camera_matrix", "not a camera matrix"),
+    (("distortion_model: plumb_bob", "distortion_model: equidistant"),
+     "distortion_model", "fisheye"),
+], ids=["negative focal length", "last row not 0 0 1", "fisheye"])
+def test_calibration_files_get_the_inline_checks_and_no_fisheye(
+        tmp_path: Path, change: tuple[str, str], key: str, reason: str) -> None:
+    """A camera matrix from a calibration file is checked like an inline K; a ROS fisheye
+    (equidistant) calibration is refused instead of being read as plumb_bob."""
+    path = tmp_path / "cam_ros.yaml"
+    assert change[0] in ROS_CALIB
+    path.write_text(ROS_CALIB.replace(*change))
+    with pytest.raises(SiteConfigError, match=reason) as info:
+        load_camera_calibration(path)
+    assert info.value.path == str(path) and info.value.key == key
+    rational = tmp_path / "rational.yaml"
+    rational.write_text(ROS_CALIB.replace("plumb_bob", "rational_polynomial").replace(
+        "cols: 5, data: [0.1, -0.2, 0, 0, 0]", "cols: 8, data: [0.1, -0.2, 0, 0, 0, 0, 0, 0]"))
+    assert load_camera_calibration(rational).dist.size == 8
