@@ -115,6 +115,8 @@ class RosAdapterPlugin:
             topics = dataclasses.replace(topics, correction_topic=args.correction_topic)
         if args.odom_topic:
             topics = dataclasses.replace(topics, odometry_topic=args.odom_topic)
+        # corrections are poses in the site's world frame: say so in their header
+        topics = dataclasses.replace(topics, map_frame=site.world_frame)
         return AdapterSetup(lambda session: RosZenohAdapter(session, topics))
 
 

@@ -292,7 +292,8 @@ class RosTopics:
     ``None`` when the robot does not publish one (then every stop may send an initial pose).
     ``namespace``: the ``namespace`` of zenoh-bridge-ros2dds (or of zenoh-plugin-ros1).
     ``ros1``: ROS 1 serialization and zenoh-plugin-ros1 keys instead of CDR / ros2dds keys.
-    ``map_frame``: frame id written into corrections.
+    ``map_frame``: frame id written into corrections (the bridge sets the site's
+    ``world_frame``).
     """
 
     odometry_topic: str = "odom"

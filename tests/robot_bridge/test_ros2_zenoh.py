@@ -130,3 +130,22 @@ def test_bridge_over_zenoh_corrects_a_static_ros_robot(zenoh_pair) -> None:
         assert initialpose.try_recv() is None
     finally:
         adapter.close()
+
+
+def test_corrections_carry_the_sites_world_frame(zenoh_pair, example_site) -> None:
+    """The ROS adapter the bridge builds stamps corrections with the site file's
+    ``world_frame``, not a fixed "map"."""
+    import argparse
+    import dataclasses
+
+    from robot_bridge.adapters.registry import ROS_ADAPTERS
+
+    bridge_side, _, _ = zenoh_pair
+    site = dataclasses.replace(example_site, world_frame="lab_map")
+    args = argparse.Namespace(adapter="ros2", robot_profile="nav2", ros_namespace="",
+                              correction_topic=None, odom_topic=None)
+    adapter = ROS_ADAPTERS.build(args, site).factory(bridge_side)
+    try:
+        assert adapter.topics.map_frame == "lab_map"
+    finally:
+        adapter.close()
