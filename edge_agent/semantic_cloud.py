@@ -50,6 +50,8 @@ ROBOT_BASE_FRAME: Final = "base_link"
 #: largest ``max_points`` a config may ask for (well below the protocol's limit: a cloud a
 #: second of this size is already ~1.5 MB on the wire)
 MAX_POINTS_LIMIT: Final = MAX_CLOUD_POINTS // 10
+#: frames a service cannot make a cloud of that are logged in full (then only counted)
+BAD_FRAMES_LOGGED: Final = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -358,6 +360,7 @@ class SemanticCloudMaker:
         self._period_ns = round(1e9 / self.rate_hz)
         self._last_stamp_ns: int | None = None
         self.seq = 0
+        self._bad_frames = 0
 
     def due(self, stamp_ns: int) -> bool:
         """Whether a frame taken at ``stamp_ns`` should become a cloud."""
@@ -379,3 +382,29 @@ class SemanticCloudMaker:
         t2 = time.perf_counter()
         self.seq += 1
         return cloud, CloudTiming((t1 - t0) * 1e3, (t2 - t1) * 1e3)
+
+    def make_for_service(self, image_rgb: np.ndarray, depth_m: np.ndarray, stamp_ns: int,
+                         stats: Any) -> SemanticCloud | None:
+        """:meth:`make` with a service's bookkeeping on ``stats`` (a
+        :class:`protocol.runtime.Stats`): segmentation and cloud latencies, the counters
+        ``clouds_published``, ``cloud_points``, ``clouds_skipped_empty`` and
+        ``clouds_skipped_bad_input`` (the first :data:`BAD_FRAMES_LOGGED` such frames logged).
+        Returns the cloud to publish, or ``None``."""
+        try:
+            cloud, timing = self.make(image_rgb, depth_m, stamp_ns)
+        except ValueError as exc:  # a frame the network or the builder cannot take
+            stats.count("clouds_skipped_bad_input")
+            self._bad_frames += 1
+            if self._bad_frames <= BAD_FRAMES_LOGGED:
+                log.warning("%s: no cloud from the frame at %d ns: %s", self.sensor_id,
+                            stamp_ns, exc)
+            return None
+        stats.latency("segmentation", timing.segmentation_ms * 1e-3)
+        stats.latency("cloud", timing.cloud_ms * 1e-3)
+        if len(cloud.points_xyz) == 0:
+            stats.count("clouds_skipped_empty")
+            return None
+        stats.count("clouds_published")
+        stats.count("cloud_points", len(cloud.points_xyz))
+        stats.event("clouds")
+        return cloud

@@ -46,8 +46,6 @@ __all__ = ["EdgeAgentNode", "FrameSource", "build_node", "build_parser", "main"]
 
 #: semantic clouds per second of a source with depth when ``--cloud-rate`` is not given
 DEFAULT_CLOUD_RATE_HZ: Final = 1.0
-#: bad-input cloud failures logged in full (then only counted)
-_CLOUD_ERRORS_LOGGED: Final = 5
 
 
 class EdgeAgentNode(ServiceNode):
@@ -76,7 +74,6 @@ class EdgeAgentNode(ServiceNode):
             bind(self.stats)
         self.clouds = clouds
         self._cloud_key = keys.edge_cloud_key(site.name, camera_id)
-        self._cloud_errors = 0
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         out = []
@@ -100,23 +97,9 @@ class EdgeAgentNode(ServiceNode):
         frame = rgbd() if rgbd is not None else None
         if frame is None or not self.clouds.due(frame.stamp_ns):
             return []
-        try:
-            cloud, timing = self.clouds.make(frame.image_rgb, frame.depth_m, frame.stamp_ns)
-        except ValueError as exc:  # a frame the network or the builder cannot take
-            self.stats.count("clouds_skipped_bad_input")
-            self._cloud_errors += 1
-            if self._cloud_errors <= _CLOUD_ERRORS_LOGGED:
-                log.warning("%s: no cloud from frame %d: %s", self.camera_id, frame.seq, exc)
-            return []
-        self.stats.latency("segmentation", timing.segmentation_ms * 1e-3)
-        self.stats.latency("cloud", timing.cloud_ms * 1e-3)
-        if len(cloud.points_xyz) == 0:
-            self.stats.count("clouds_skipped_empty")
-            return []
-        self.stats.count("clouds_published")
-        self.stats.count("cloud_points", len(cloud.points_xyz))
-        self.stats.event("clouds")
-        return [Outgoing(self._cloud_key, cloud, reliable=True)]
+        cloud = self.clouds.make_for_service(frame.image_rgb, frame.depth_m, frame.stamp_ns,
+                                             self.stats)
+        return [] if cloud is None else [Outgoing(self._cloud_key, cloud, reliable=True)]
 
     def _preview(self, now_ns: int) -> list[Outgoing]:
         """The last processed frame as a JPEG for the viewer, at most at the preview rate."""

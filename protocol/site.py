@@ -375,6 +375,24 @@ def _parse_K(ctx: ConfigReader, key: str, node: Mapping[str, Any]) -> np.ndarray
     return _check_K(ctx, join_key(key, "K"), K)
 
 
+def _parse_inline_intrinsics(ctx: ConfigReader, key: str, node: Mapping[str, Any]
+                             ) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """``resolution`` [width, height], ``K`` or ``intrinsics``, ``distortion`` of a camera
+    node (a site camera or a robot's head camera)."""
+    res_key = join_key(key, "resolution")
+    res = ctx.require(key, node, "resolution")
+    if not isinstance(res, list) or len(res) != 2:
+        raise ctx.fail(res_key, "expected [width, height] in pixels")
+    width = ctx.integer(res_key, res[0], lo=1, hi=65535)
+    height = ctx.integer(res_key, res[1], lo=1, hi=65535)
+    K = _parse_K(ctx, key, node)
+    dist = ctx.matrix(join_key(key, "distortion"), node.get("distortion", []), None, None)
+    if dist.size not in DISTORTION_LENGTHS:
+        raise ctx.fail(join_key(key, "distortion"), f"length {dist.size} not in "
+                       f"{DISTORTION_LENGTHS}")
+    return width, height, K, dist
+
+
 def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> CameraModel:
     node = ctx.mapping(key, value)
     ctx.no_unknown(key, node, _CAMERA_KEYS)
@@ -391,18 +409,7 @@ def _parse_camera(ctx: ConfigReader, key: str, value: Any, base_dir: Path) -> Ca
         width, height, K, dist = calib.width, calib.height, calib.K, calib.dist
         T_cam_world = calib.T_cam_world
     else:
-        res_key = join_key(key, "resolution")
-        res = ctx.require(key, node, "resolution")
-        if not isinstance(res, list) or len(res) != 2:
-            raise ctx.fail(res_key, "expected [width, height] in pixels")
-        width = ctx.integer(res_key, res[0], lo=1, hi=65535)
-        height = ctx.integer(res_key, res[1], lo=1, hi=65535)
-        K = _parse_K(ctx, key, node)
-        dist = ctx.matrix(join_key(key, "distortion"), node.get("distortion", []), None, None)
-        if dist.size not in DISTORTION_LENGTHS:
-            raise ctx.fail(
-                join_key(key, "distortion"), f"length {dist.size} not in {DISTORTION_LENGTHS}"
-            )
+        width, height, K, dist = _parse_inline_intrinsics(ctx, key, node)
     given = [k for k in ("T_cam_world", "T_world_cam") if k in node]
     if len(given) > 1:
         raise ctx.fail(key, "give T_cam_world or T_world_cam, not both")
@@ -479,17 +486,7 @@ def _parse_head_camera(ctx: ConfigReader, key: str, value: Any) -> HeadCamera:
     quaternion_xyzw / matrix, or position_m + look_at_m in the base frame)."""
     node = ctx.mapping(key, value)
     ctx.no_unknown(key, node, set(_HEAD_CAMERA_KEYS))
-    res_key = join_key(key, "resolution")
-    res = ctx.require(key, node, "resolution")
-    if not isinstance(res, list) or len(res) != 2:
-        raise ctx.fail(res_key, "expected [width, height] in pixels")
-    width = ctx.integer(res_key, res[0], lo=1, hi=65535)
-    height = ctx.integer(res_key, res[1], lo=1, hi=65535)
-    K = _parse_K(ctx, key, node)
-    dist = ctx.matrix(join_key(key, "distortion"), node.get("distortion", []), None, None)
-    if dist.size not in DISTORTION_LENGTHS:
-        raise ctx.fail(join_key(key, "distortion"), f"length {dist.size} not in "
-                       f"{DISTORTION_LENGTHS}")
+    width, height, K, dist = _parse_inline_intrinsics(ctx, key, node)
     T = _parse_transform(ctx, join_key(key, "T_base_cam"), ctx.require(key, node, "T_base_cam"))
     for arr in (K, dist, T):
         arr.setflags(write=False)

@@ -33,7 +33,6 @@ from protocol.site import Site, load_site
 log = logging.getLogger(__name__)
 
 DEFAULT_HEAD_CLOUD_RATE_HZ: Final = 1.0
-_ERRORS_LOGGED: Final = 5
 
 
 class RobotCameraNode(ServiceNode):
@@ -54,7 +53,6 @@ class RobotCameraNode(ServiceNode):
         self.clouds = clouds
         self.unavailable = unavailable
         self._key = keys.robot_cloud_key(site.name, robot_id)
-        self._errors = 0
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         if self.clouds is None:  # nothing to make: do not render either
@@ -66,23 +64,10 @@ class RobotCameraNode(ServiceNode):
         image, depth_m, _ = self.feed.render(capture_ns)
         self.stats.latency("render", time.perf_counter() - t0)
         self.stats.count("frames")
-        try:
-            cloud, timing = self.clouds.make(image, depth_m, capture_ns)
-        except ValueError as exc:
-            self.stats.count("clouds_skipped_bad_input")
-            self._errors += 1
-            if self._errors <= _ERRORS_LOGGED:
-                log.warning("%s: no cloud from the head camera: %s", self.robot_id, exc)
+        cloud = self.clouds.make_for_service(image, depth_m, capture_ns, self.stats)
+        if cloud is None:
             return []
-        self.stats.latency("segmentation", timing.segmentation_ms * 1e-3)
-        self.stats.latency("cloud", timing.cloud_ms * 1e-3)
         self.stats.latency("capture_to_publish", max(0, time.time_ns() - capture_ns) * 1e-9)
-        if len(cloud.points_xyz) == 0:
-            self.stats.count("clouds_skipped_empty")
-            return []
-        self.stats.count("clouds_published")
-        self.stats.count("cloud_points", len(cloud.points_xyz))
-        self.stats.event("clouds")
         return [Outgoing(self._key, cloud, reliable=True)]
 
     def state(self) -> tuple[str, str]:

@@ -74,3 +74,50 @@ def ring_camera(camera_id: str, position_m: list[float], target_m: list[float],
     T_world_cam = look_at_T_world_cam(np.array(position_m), np.array(target_m))
     return CameraModel(camera_id, template.width, template.height, template.K.copy(),
                        template.dist.copy(), invert_transform(T_world_cam))
+
+
+#: the error model both covariance tests draw from (``SolverConfig``'s error terms)
+SIGMA_PX = 1.0
+SHIFT_PX = 0.5
+SCALE = 0.02
+EXTRINSIC_M = 0.01
+EXTRINSIC_DEG = 0.1
+ERRORS = dict(detection_shift_sigma_px=SHIFT_PX, detection_scale_sigma=SCALE,
+              extrinsic_sigma_m=EXTRINSIC_M, extrinsic_sigma_deg=EXTRINSIC_DEG)
+
+
+def true_camera(site: Site, camera_id: str, rng: np.random.Generator) -> CameraModel:
+    """The camera as it really is: the calibrated one rotated about its optical centre
+    (rotation vector, world axes) and moved, each component with ``EXTRINSIC_DEG`` /
+    ``EXTRINSIC_M`` (as :func:`simulation.detections.true_cameras` draws it)."""
+    import dataclasses
+
+    from protocol.geometry import rotation_from_rotvec
+
+    cam = site.camera(camera_id)
+    T_world_cam = cam.T_world_cam.copy()
+    dR = rotation_from_rotvec(rng.normal(0.0, math.radians(EXTRINSIC_DEG), 3))
+    T_world_cam[:3, :3] = dR @ T_world_cam[:3, :3]
+    T_world_cam[:3, 3] += rng.normal(0.0, EXTRINSIC_M, 3)
+    return dataclasses.replace(cam, T_cam_world=invert_transform(T_world_cam))
+
+
+def detect_with_errors(truth: PlanarPose, cam: CameraModel, keypoints_base_m: np.ndarray,
+                       rng: np.random.Generator, stamp_ns: int = 1_000_000_000
+                       ) -> CameraObservation | None:
+    """One detection of ``truth`` by the (true) camera ``cam`` under the error model: a common
+    shift (``SHIFT_PX``), a scale about the in-image keypoints' centroid (``SCALE``) and
+    independent pixel noise (``SIGMA_PX``); keypoints outside the image or behind the camera
+    get score 0. ``None`` when no keypoint is in the image."""
+    T = truth.T()
+    pts = keypoints_base_m @ T[:3, :3].T + T[:3, 3]
+    uv, depth = cam.project(pts)
+    ok = (depth > 0) & cam.in_image(uv)
+    if not ok.any():
+        return None
+    centroid = uv[ok].mean(axis=0)
+    scale = 1.0 + rng.normal(0.0, SCALE)
+    shift = rng.normal(0.0, SHIFT_PX, 2)
+    uv = centroid + scale * (uv - centroid) + shift + rng.normal(0.0, SIGMA_PX, uv.shape)
+    uv = np.where(ok[:, None], uv, 0.0)
+    return CameraObservation(cam.camera_id, stamp_ns, uv, ok.astype(np.float64))

@@ -21,22 +21,22 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager
 from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rotvec, wrap_angle
-from tests.backend_service.pose_synth import ROBOT, example_site, project_pose
+from protocol.geometry import wrap_angle
+from tests.backend_service.pose_synth import (
+    ERRORS,
+    ROBOT,
+    detect_with_errors,
+    example_site,
+    project_pose,
+    true_camera,
+)
 
 SITE = example_site()
 KP_BASE = np.asarray(SITE.robot_model(ROBOT).keypoints_base_m, dtype=np.float64)
 
-SIGMA_PX = 1.0
-SHIFT_PX = 0.5
-SCALE = 0.02
-EXTRINSIC_M = 0.01
-EXTRINSIC_DEG = 0.1
-ERRORS = dict(detection_shift_sigma_px=SHIFT_PX, detection_scale_sigma=SCALE,
-              extrinsic_sigma_m=EXTRINSIC_M, extrinsic_sigma_deg=EXTRINSIC_DEG)
 CONFIG = SolverConfig(robust_loss="none", **ERRORS)
 
 #: mean NEES of a consistent 3-DoF covariance is 3; accepted band
@@ -57,39 +57,16 @@ CASES = [
 
 
 def true_cameras(camera_ids: tuple[str, ...], rng: np.random.Generator) -> dict[str, CameraModel]:
-    """The cameras as they really are: the calibrated ones with a fresh extrinsic error (as
-    :func:`simulation.detections.true_cameras` draws it)."""
-    out: dict[str, CameraModel] = {}
-    for cid in camera_ids:
-        cam = SITE.camera(cid)
-        T_world_cam = cam.T_world_cam.copy()
-        dR = rotation_from_rotvec(rng.normal(0.0, math.radians(EXTRINSIC_DEG), 3))
-        T_world_cam[:3, :3] = dR @ T_world_cam[:3, :3]
-        T_world_cam[:3, 3] += rng.normal(0.0, EXTRINSIC_M, 3)
-        out[cid] = dataclasses.replace(cam, T_cam_world=invert_transform(T_world_cam))
-    return out
+    """The cameras as they really are: the calibrated ones with a fresh extrinsic error."""
+    return {cid: true_camera(SITE, cid, rng) for cid in camera_ids}
 
 
 def draw_frame_set(truth: PlanarPose, cameras: dict[str, CameraModel], rng: np.random.Generator,
                    stamp_ns: int = 1_000_000_000) -> FrameSet:
-    """One frame-set of ``truth`` seen by the (true) ``cameras`` with fresh detection errors:
-    per camera a common shift, a scale about the in-image keypoints' centroid, independent
-    noise; keypoints outside the image or behind the camera get score 0."""
-    T = truth.T()
-    pts = KP_BASE @ T[:3, :3].T + T[:3, 3]
-    obs = []
-    for cid, cam in cameras.items():
-        uv, depth = cam.project(pts)
-        ok = (depth > 0) & cam.in_image(uv)
-        if not ok.any():
-            continue
-        centroid = uv[ok].mean(axis=0)
-        scale = 1.0 + rng.normal(0.0, SCALE)
-        shift = rng.normal(0.0, SHIFT_PX, 2)
-        uv = centroid + scale * (uv - centroid) + shift + rng.normal(0.0, SIGMA_PX, uv.shape)
-        uv = np.where(ok[:, None], uv, 0.0)
-        obs.append(CameraObservation(cid, stamp_ns, uv, ok.astype(np.float64)))
-    return FrameSet.from_observations(ROBOT, obs)
+    """One frame-set of ``truth`` seen by the (true) ``cameras`` with fresh detection errors
+    (:func:`pose_synth.detect_with_errors`)."""
+    obs = [detect_with_errors(truth, cam, KP_BASE, rng, stamp_ns) for cam in cameras.values()]
+    return FrameSet.from_observations(ROBOT, [o for o in obs if o is not None])
 
 
 def seen_by(frame_set: FrameSet) -> int:

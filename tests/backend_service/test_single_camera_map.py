@@ -18,22 +18,22 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import FrameSet, PlanarPose
 from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rotvec
-from tests.backend_service.pose_synth import ROBOT, example_site, pose_error, project_pose
+from tests.backend_service.pose_synth import (
+    ERRORS,
+    ROBOT,
+    detect_with_errors,
+    example_site,
+    pose_error,
+    project_pose,
+    true_camera,
+)
 
 SITE = example_site()
 KP_BASE = np.asarray(SITE.robot_model(ROBOT).keypoints_base_m, dtype=np.float64)
 CAMERA = "cam_sw"  # at (7, 3, 2.5)
 
-SIGMA_PX = 1.0
-SHIFT_PX = 0.5
-SCALE = 0.02
-EXTRINSIC_M = 0.01
-EXTRINSIC_DEG = 0.1
-ERRORS = dict(detection_shift_sigma_px=SHIFT_PX, detection_scale_sigma=SCALE,
-              extrinsic_sigma_m=EXTRINSIC_M, extrinsic_sigma_deg=EXTRINSIC_DEG)
 MAP = SolverConfig(single_camera="map", **ERRORS)  # the default robust loss
 PLAIN = dataclasses.replace(MAP, single_camera="plain")
 
@@ -56,31 +56,11 @@ TRIALS = 200
 MARGIN = 0.10
 
 
-def true_camera(rng: np.random.Generator) -> CameraModel:
-    """The camera as it really is: the calibrated one with a fresh extrinsic error."""
-    cam = SITE.camera(CAMERA)
-    T_world_cam = cam.T_world_cam.copy()
-    dR = rotation_from_rotvec(rng.normal(0.0, math.radians(EXTRINSIC_DEG), 3))
-    T_world_cam[:3, :3] = dR @ T_world_cam[:3, :3]
-    T_world_cam[:3, 3] += rng.normal(0.0, EXTRINSIC_M, 3)
-    return dataclasses.replace(cam, T_cam_world=invert_transform(T_world_cam))
-
-
 def draw_frame_set(truth: PlanarPose, cam: CameraModel, rng: np.random.Generator) -> FrameSet:
-    """One detection of ``truth`` by the (true) camera ``cam``: a common shift, a scale about
-    the in-image keypoints' centroid, independent noise; keypoints outside the image or behind
-    the camera get score 0."""
-    T = truth.T()
-    pts = KP_BASE @ T[:3, :3].T + T[:3, 3]
-    uv, depth = cam.project(pts)
-    ok = (depth > 0) & cam.in_image(uv)
-    assert ok.sum() >= 3
-    centroid = uv[ok].mean(axis=0)
-    scale = 1.0 + rng.normal(0.0, SCALE)
-    shift = rng.normal(0.0, SHIFT_PX, 2)
-    uv = centroid + scale * (uv - centroid) + shift + rng.normal(0.0, SIGMA_PX, uv.shape)
-    uv = np.where(ok[:, None], uv, 0.0)
-    obs = CameraObservation(cam.camera_id, 1_000_000_000, uv, ok.astype(np.float64))
+    """One detection of ``truth`` by the (true) camera ``cam`` with fresh detection errors
+    (:func:`pose_synth.detect_with_errors`)."""
+    obs = detect_with_errors(truth, cam, KP_BASE, rng)
+    assert obs is not None and int(np.count_nonzero(obs.keypoint_scores)) >= 3
     return FrameSet.from_observations(ROBOT, [obs])
 
 
@@ -116,7 +96,7 @@ def test_map_is_no_worse_than_the_better_of_solve_and_prior(geometry: str,
     err: dict[str, list[tuple[float, float]]] = {"map": [], "plain": [], "prior": []}
     used = 0
     for _ in range(TRIALS):
-        fs = draw_frame_set(truth, true_camera(rng), rng)
+        fs = draw_frame_set(truth, true_camera(SITE, CAMERA, rng), rng)
         prior = draw_prior(truth, P, rng)
         a = estimate_pose(fs, SITE, prior, MAP, P)
         b = estimate_pose(fs, SITE, prior, PLAIN, P)
@@ -146,7 +126,7 @@ def test_without_prior_covariance_map_is_the_plain_solve(geometry: str) -> None:
     truth, _ = GEOMETRIES[geometry]
     rng = np.random.default_rng(8)
     for _ in range(50):
-        fs = draw_frame_set(truth, true_camera(rng), rng)
+        fs = draw_frame_set(truth, true_camera(SITE, CAMERA, rng), rng)
         prior = draw_prior(truth, P_GOOD, rng)
         a = estimate_pose(fs, SITE, prior, MAP, None)
         b = estimate_pose(fs, SITE, prior, PLAIN, None)
@@ -161,7 +141,7 @@ def test_prior_far_outside_its_covariance_is_rejected(geometry: str) -> None:
     truth, _ = GEOMETRIES[geometry]
     rng = np.random.default_rng(9)
     for k in range(24):
-        fs = draw_frame_set(truth, true_camera(rng), rng)
+        fs = draw_frame_set(truth, true_camera(SITE, CAMERA, rng), rng)
         angle = 2 * math.pi * k / 24  # 1 m off in every direction, along and across the ray
         prior = PlanarPose(truth.x + math.cos(angle), truth.y + math.sin(angle), truth.theta)
         a = estimate_pose(fs, SITE, prior, MAP, P_GOOD)
@@ -184,7 +164,7 @@ def test_invalid_prior_covariance_is_ignored(cov: np.ndarray) -> None:
     truth, _ = GEOMETRIES["far"]
     rng = np.random.default_rng(10)
     for _ in range(5):
-        fs = draw_frame_set(truth, true_camera(rng), rng)
+        fs = draw_frame_set(truth, true_camera(SITE, CAMERA, rng), rng)
         prior = draw_prior(truth, P_GOOD, rng)
         a = estimate_pose(fs, SITE, prior, MAP, cov)
         b = estimate_pose(fs, SITE, prior, PLAIN, None)

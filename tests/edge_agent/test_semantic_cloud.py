@@ -4,11 +4,10 @@ downsampling (counts, majority class, confidence), the cap, frames, config and i
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
+from edge_agent.models import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
     SemanticCloudConfig,
@@ -24,19 +23,6 @@ from protocol.codec import decode, encode
 from protocol.geometry import invert_transform, rotation_from_rpy, undistort_normalized
 from protocol.messages import SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
-
-try:
-    from edge_agent.models import Segmentation
-except ImportError:  # the runtime class is being written; same fields
-
-    @dataclasses.dataclass(frozen=True)
-    class Segmentation:  # type: ignore[no-redef]
-        class_ids: np.ndarray
-        confidence: np.ndarray
-        image_width: int
-        image_height: int
-        infer_ms: float = 0.0
-
 
 FLOOR, WALL, TABLE = SEMANTIC_CLASS_ID["floor"], SEMANTIC_CLASS_ID["wall"], SEMANTIC_CLASS_ID[
     "table"]

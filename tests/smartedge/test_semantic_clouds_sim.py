@@ -7,7 +7,6 @@ without a segmentation model runs on without clouds."""
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import threading
 import time
@@ -18,6 +17,7 @@ import pytest
 
 pytest.importorskip("moderngl")
 
+from edge_agent.models import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
     SemanticCloudConfig,
@@ -29,19 +29,6 @@ from protocol.geometry import se3_from_planar
 from protocol.messages import RobotDetections, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
 from tests.conftest import free_tcp_port, wait_until
-
-try:
-    from edge_agent.models import Segmentation
-except ImportError:  # the runtime class is being written; same fields
-
-    @dataclasses.dataclass(frozen=True)
-    class Segmentation:  # type: ignore[no-redef]
-        class_ids: np.ndarray
-        confidence: np.ndarray
-        image_width: int
-        image_height: int
-        infer_ms: float = 0.0
-
 
 with contextlib.suppress(ImportError):  # the tiny trained segmentation model (session-scoped)
     from tests.edge_agent.conftest import tiny_segmentation  # noqa: F401
@@ -337,27 +324,15 @@ def test_edge_agent_without_a_segmentation_model_logs_and_runs_without_clouds(
     assert np.allclose(maker.T_frame_sensor, live.site.camera("cam1").T_world_cam)
 
 
-def test_the_segmentation_network_feeds_the_cloud_builder(request) -> None:
-    """The real :class:`SemanticSegmenter` (onnxruntime; the shipped model, else a tiny trained
-    one) on a rendered RGB-D frame: its output, at its own scale, becomes a valid cloud in the
-    world frame within the camera's range, of the legend's classes, without dynamic ones."""
-    pytest.importorskip("onnxruntime")
-    try:
-        from edge_agent.models import SemanticSegmenter, default_model_dir
-    except ImportError:
-        pytest.skip("edge_agent.models has no SemanticSegmenter yet")
+def test_the_segmentation_network_feeds_the_cloud_builder() -> None:
+    """The real :class:`SemanticSegmenter` (onnxruntime, the shipped model) on a rendered RGB-D
+    frame: its output, at its own scale, becomes a valid cloud in the world frame within the
+    camera's range, of the legend's classes, without dynamic ones."""
+    from edge_agent.models import SemanticSegmenter
     from protocol.semantic_classes import NUM_SEMANTIC_CLASSES
     from simulation.live import RenderedCameraFeed
 
-    shipped = default_model_dir() / "segmentation.onnx"
-    if shipped.exists():
-        segmenter = SemanticSegmenter(threads=1)
-    else:
-        try:
-            folder = request.getfixturevalue("tiny_segmentation")
-        except pytest.FixtureLookupError:
-            pytest.skip("no shipped segmentation model and no tiny one to train")
-        segmenter = SemanticSegmenter(folder / "segmentation.onnx", threads=1)
+    segmenter = SemanticSegmenter(threads=1)
     live = _live()
     feed = RenderedCameraFeed(live, "cam1")
     camera = live.site.camera("cam1")
