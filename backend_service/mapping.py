@@ -232,7 +232,6 @@ class SemanticMapping:
         self._poses: dict[str, collections.deque[PoseEstimate]] = {
             rid: collections.deque(maxlen=POSE_BUFFER) for rid in site.robots}
         self._warned: set[tuple[str, str]] = set()
-        self._geometry: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- inputs --------------------------------------------------------------------------------
 
@@ -307,7 +306,7 @@ class SemanticMapping:
                           else T_world_frame)
         alignment = None
         if scope == "robot" and cfg.align_robot_clouds:
-            map_points, map_normals = self._map_geometry()
+            map_points, map_normals = self._map_geometry(points_world)
             alignment = align_to_map(points_world, map_points, map_normals, cfg.alignment,
                                      pivot_world=T_world_sensor[:3, 3].copy())
             self._report_alignment(sensor_id, msg.stamp_ns, alignment, T_world_sensor)
@@ -336,7 +335,6 @@ class SemanticMapping:
         except MapError as exc:
             return reject(f"bad_cloud: {exc}", T_world_sensor=T_world_sensor,
                           alignment=alignment)
-        self._geometry = None
         return CloudOutcome(scope, sensor_id, msg.stamp_ns, True, "", report.points_fused,
                             T_world_sensor, alignment)
 
@@ -365,12 +363,17 @@ class SemanticMapping:
         std = math.sqrt(max(float(np.trace(cov)), 0.0)) if np.isfinite(cov).all() else math.inf
         return se3_from_planar(*pose), std
 
-    def _map_geometry(self) -> tuple[np.ndarray, np.ndarray]:
-        """Voxel means and normals of the occupied voxels (cached until the map changes)."""
-        if self._geometry is None:
-            occupied = self.map.occupied()
-            self._geometry = (self.map.means()[occupied], self.map.normals()[occupied])
-        return self._geometry
+    def _map_geometry(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel means and normals of the occupied voxels the ICP gate can use for a cloud:
+        those within its crop margin (plus a voxel) of the cloud's bounding box, a superset of
+        what :func:`align_to_map` keeps."""
+        a = self.config.alignment
+        margin = (a.crop_margin_m if a.crop_margin_m is not None
+                  else a.max_offset_m + max(a.max_correspondence_m))
+        margin += self.map.config.voxel_size_m
+        lo = np.array([points_world[:, k].min() for k in range(3)]) - margin
+        hi = np.array([points_world[:, k].max() for k in range(3)]) + margin
+        return self.map.geometry_in_box(lo, hi)
 
     def _report_alignment(self, robot_id: str, stamp_ns: int, res: AlignmentResult,
                           T_world_sensor: np.ndarray) -> None:

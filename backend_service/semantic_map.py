@@ -705,12 +705,31 @@ class SemanticVoxelMap:
             self._normals_cache = self._compute_normals()
         return self._normals_cache.copy()
 
-    def _compute_normals(self) -> np.ndarray:
+    def geometry_in_box(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Means and normals ((V, 3) each, world metres / unit vectors; see :meth:`means` and
+        :meth:`normals`) of the occupied voxels whose centres lie in the axis-aligned box
+        ``[lo, hi]`` (3,) world metres. Costs O(K) for the selection and the normals only of
+        the voxels in the box (the ICP gate's per-cloud query: a whole map's normals take
+        ~0.5 s at 350k voxels)."""
         n = self._n
-        count = self._count[:n].astype(np.float64)
+        centres = self.voxel_centers()
+        inside = self.occupied()
+        for a in range(3):
+            inside &= (centres[:, a] >= lo[a]) & (centres[:, a] <= hi[a])
+        rows = np.flatnonzero(inside)
+        means = centres[rows] + self._sum_d[rows] / self._count[rows, None]
+        if self._normals_cache is not None and len(self._normals_cache) == n:
+            return means, self._normals_cache[rows].copy()
+        return means, self._compute_normals(rows)
+
+    def _compute_normals(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Normals of all voxels, or of ``rows`` (in that order)."""
+        sel = slice(0, self._n) if rows is None else rows
+        count = self._count[sel].astype(np.float64)
+        n = len(count)
         safe = np.maximum(count, 1.0)
-        mean = self._sum_d[:n] / safe[:, None]
-        s = self._sum_dd[:n] / safe[:, None]
+        mean = self._sum_d[sel] / safe[:, None]
+        s = self._sum_dd[sel] / safe[:, None]
         cov = np.empty((n, 3, 3))
         for col, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
             cov[:, a, b] = cov[:, b, a] = s[:, col] - mean[:, a] * mean[:, b]
@@ -720,7 +739,7 @@ class SemanticVoxelMap:
         eigval, eigvec = np.linalg.eigh(cov)
         ok = (count >= 3) & (eigval[:, 1] > (1e-3 * self.config.voxel_size_m) ** 2)
         out[ok] = eigvec[ok, :, 0]
-        hint = self._prior_normal_sum[:n]
+        hint = self._prior_normal_sum[sel]
         hint_len = np.linalg.norm(hint, axis=1)
         has_hint = hint_len > 1e-9
         hint_unit = np.divide(hint, hint_len[:, None], out=np.zeros_like(hint),

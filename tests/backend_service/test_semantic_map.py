@@ -407,3 +407,19 @@ def test_class_legend_matches_the_simulation() -> None:
     assert tuple(CLASSES) == SEMANTIC_CLASSES
     assert SEMANTIC_CLASS_COLORS.shape == (len(SEMANTIC_CLASSES), 3)
     assert SemanticMapConfig().num_classes == len(SEMANTIC_CLASSES)
+
+
+def test_geometry_in_a_box_is_the_whole_maps_geometry_there() -> None:
+    """The ICP gate's per-cloud query: the same means and normals as the whole map's, for the
+    occupied voxels with centres in the box (computed without the rest of the map)."""
+    m = _busy_map()
+    lo, hi = np.array([0.2, 0.1, -0.1]), np.array([0.7, 0.8, 0.3])
+    means, normals = m.geometry_in_box(lo, hi)
+    c = m.voxel_centers()
+    inside = m.occupied() & np.all((c >= lo) & (c <= hi), axis=1)
+    assert 0 < inside.sum() < len(m)
+    np.testing.assert_array_equal(means, m.means()[inside])
+    np.testing.assert_allclose(normals, m.normals()[inside], equal_nan=True)
+    cached_means, cached_normals = m.geometry_in_box(lo, hi)  # now from the normals cache
+    np.testing.assert_array_equal(cached_means, means)
+    np.testing.assert_allclose(cached_normals, normals, equal_nan=True)
