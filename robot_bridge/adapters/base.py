@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from protocol.messages import PoseCorrection
+from protocol.messages import PoseCorrection, PoseEstimate
 
 
 def _zero_cov() -> np.ndarray:
@@ -68,6 +68,28 @@ class LocalizationPose:
         )
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class MapToOdom:
+    """The transform from the world (map) frame to the robot's odometry frame, as a
+    localization stack publishes it on ``/tf``: the pose of ``child_frame`` (``odom``) in
+    ``parent_frame`` (the site's world frame), planar: ``x``, ``y`` (m), ``theta`` (rad).
+
+    ``stamp_ns``: the time it is valid from (the estimate's time plus the configured
+    ``transform_tolerance_s``, as AMCL does, so ``map -> base_link`` lookups at "now" succeed).
+    """
+
+    stamp_ns: int
+    x: float
+    y: float
+    theta: float
+    parent_frame: str = "map"
+    child_frame: str = "odom"
+
+
+#: the pose-output streams: the fused estimate and the camera-only one
+POSE_STREAMS: tuple[str, ...] = ("fused", "cameras")
+
+
 class RobotAdapter(abc.ABC):
     """What the bridge needs from a robot. Implementations must never block and never raise
     on bad data from the robot (they drop and count it in :attr:`counters`)."""
@@ -94,6 +116,17 @@ class RobotAdapter(abc.ABC):
     def apply_correction(self, correction: PoseCorrection) -> bool:
         """Hand a pose correction / initial pose to the robot's localization. ``True`` when it
         was sent (or accepted, for robots that can say so), ``False`` when it was refused."""
+
+    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
+        """Publish a backend estimate as the robot's continuous pose input (a
+        ``PoseWithCovarianceStamped`` topic robot_localization can fuse). ``stream`` is one of
+        :data:`POSE_STREAMS`. ``True`` when it went out; the default (an adapter with no pose
+        output) says ``False`` and the bridge counts ``pose_output_unsupported``."""
+        return False
+
+    def publish_transform(self, transform: MapToOdom) -> bool:
+        """Publish the map -> odom transform (``/tf``); ``False`` when the adapter cannot."""
+        return False
 
     def close(self) -> None:  # noqa: B027 (optional hook, default does nothing)
         """Release transport resources; idempotent."""

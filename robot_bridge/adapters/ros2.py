@@ -30,8 +30,13 @@ from typing import Any, Final
 import numpy as np
 
 from protocol.geometry import quaternion_to_yaw, yaw_to_quaternion
-from protocol.messages import PoseCorrection
-from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
+from protocol.messages import PoseCorrection, PoseEstimate
+from robot_bridge.adapters.base import (
+    LocalizationPose,
+    MapToOdom,
+    OdometrySample,
+    RobotAdapter,
+)
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +44,17 @@ ODOMETRY_TYPE: Final = "nav_msgs/msg/Odometry"
 POSE_WITH_COVARIANCE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseWithCovarianceStamped"
 POSE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseStamped"
 LOCALIZATION_TYPES: Final = (POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_STAMPED_TYPE)
+TF_MESSAGE_TYPE: Final = "tf2_msgs/msg/TFMessage"
+#: variance written on the z, roll and pitch diagonal of the continuous pose output: the
+#: cameras do not measure them (robot_localization in 2D mode ignores them anyway)
+UNOBSERVED_VARIANCE: Final = 1.0e6
 
 HSR_CORRECTION_TOPIC: Final = "laser_2d_correct_pose"
 NAV2_INITIALPOSE_TOPIC: Final = "initialpose"
+#: continuous pose output topics (fused, camera-only) and the transform topic
+POSE_OUTPUT_TOPIC: Final = "smartedge/pose"
+CAMERA_POSE_OUTPUT_TOPIC: Final = "smartedge/camera_pose"
+TF_TOPIC: Final = "tf"
 
 #: (x, y, yaw) → index in the row-major 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
 _COV6_INDEX: Final = (0, 1, 5)
@@ -111,9 +124,14 @@ def ros_frame_to_id(frame_id: str, default: str) -> str:
 @functools.cache
 def typestore(ros1: bool = False) -> Any:
     """The ``rosbags`` typestore: ROS 2 Humble message definitions (CDR), or ROS 1 Noetic."""
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if TF_MESSAGE_TYPE not in store.types:
+        # Noetic's store lacks tf2_msgs; its TFMessage is one field, defined as in tf2_msgs
+        store.register(get_types_from_msg(
+            "geometry_msgs/TransformStamped[] transforms", TF_MESSAGE_TYPE))
+    return store
 
 
 def stamp_ns_to_ros(stamp_ns: int) -> tuple[int, int]:
@@ -164,30 +182,55 @@ def covariance_6x6_to_3x3(covariance: Any) -> np.ndarray:
     return cov3
 
 
+def pose_with_covariance_to_ros(
+    stamp_ns: int, x: float, y: float, theta: float, covariance: np.ndarray, *,
+    frame_id: str = "map", ros1: bool = False, seq: int = 0,
+    unobserved_variance: float = 0.0,
+) -> Any:
+    """A planar pose as a ``geometry_msgs/msg/PoseWithCovarianceStamped`` (rosbags object).
+
+    Header stamp ``stamp_ns`` (the estimate's time: AMCL and robot_localization compensate
+    motion since then), frame ``frame_id``; ROS 1 headers get ``seq``. The 6x6 covariance is
+    REP-103 ordered (x, y, z, roll, pitch, yaw) with the (x, y, yaw) block from
+    ``covariance``; z, roll and pitch get ``unobserved_variance`` on the diagonal (0 for AMCL's
+    initial pose, a large value for a measurement robot_localization may fuse)."""
+    ts = typestore(ros1)
+    t = ts.types
+    sec, nanosec = stamp_ns_to_ros(stamp_ns)
+    stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+    if ros1:
+        header = t["std_msgs/msg/Header"](seq=int(seq) % 2**32, stamp=stamp, frame_id=frame_id)
+    else:
+        header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+    qx, qy, qz, qw = yaw_to_quaternion(theta)
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+    cov6 = covariance_3x3_to_6x6(covariance)
+    if unobserved_variance:
+        for i in (2, 3, 4):
+            cov6[i * 6 + i] = float(unobserved_variance)
+    pwc = t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov6)
+    return t[POSE_WITH_COVARIANCE_STAMPED_TYPE](header=header, pose=pwc)
+
+
 def correction_to_ros(
     correction: PoseCorrection, *, frame_id: str = "map", ros1: bool = False
 ) -> Any:
     """A :class:`PoseCorrection` as a ``geometry_msgs/msg/PoseWithCovarianceStamped`` (rosbags
     message object). Header stamp = the estimate's time (AMCL compensates motion since then),
     frame ``frame_id``; ROS 1 headers get ``seq`` = the correction's seq."""
+    return pose_with_covariance_to_ros(
+        correction.stamp_ns, correction.x, correction.y, correction.theta,
+        correction.covariance, frame_id=frame_id, ros1=ros1, seq=correction.seq)
+
+
+def _serialize(msg: Any, ros_type: str, ros1: bool) -> bytes:
     ts = typestore(ros1)
-    t = ts.types
-    sec, nanosec = stamp_ns_to_ros(correction.stamp_ns)
-    stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     if ros1:
-        header = t["std_msgs/msg/Header"](
-            seq=correction.seq % 2**32, stamp=stamp, frame_id=frame_id)
-    else:
-        header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
-    qx, qy, qz, qw = yaw_to_quaternion(correction.theta)
-    pose = t["geometry_msgs/msg/Pose"](
-        position=t["geometry_msgs/msg/Point"](x=correction.x, y=correction.y, z=0.0),
-        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-    )
-    pwc = t["geometry_msgs/msg/PoseWithCovariance"](
-        pose=pose, covariance=covariance_3x3_to_6x6(correction.covariance)
-    )
-    return t[POSE_WITH_COVARIANCE_STAMPED_TYPE](header=header, pose=pwc)
+        return bytes(ts.serialize_ros1(msg, ros_type))
+    return bytes(ts.serialize_cdr(msg, ros_type))
 
 
 def serialize_correction(
@@ -195,11 +238,51 @@ def serialize_correction(
 ) -> bytes:
     """Wire bytes of :func:`correction_to_ros`: CDR (little endian, with the encapsulation
     header) for ROS 2, ROS 1 serialization when ``ros1``."""
-    msg = correction_to_ros(correction, frame_id=frame_id, ros1=ros1)
+    return _serialize(correction_to_ros(correction, frame_id=frame_id, ros1=ros1),
+                      POSE_WITH_COVARIANCE_STAMPED_TYPE, ros1)
+
+
+def serialize_pose_estimate(
+    estimate: PoseEstimate, *, frame_id: str = "map", ros1: bool = False,
+    unobserved_variance: float = UNOBSERVED_VARIANCE,
+) -> bytes:
+    """Wire bytes of a backend estimate as the continuous pose topic's
+    ``PoseWithCovarianceStamped`` (see :func:`pose_with_covariance_to_ros`): stamped with the
+    estimate's time, ``seq`` the estimate's, unobserved axes at ``unobserved_variance``."""
+    msg = pose_with_covariance_to_ros(
+        estimate.stamp_ns, estimate.x, estimate.y, estimate.theta, estimate.covariance,
+        frame_id=frame_id, ros1=ros1, seq=estimate.seq,
+        unobserved_variance=unobserved_variance)
+    return _serialize(msg, POSE_WITH_COVARIANCE_STAMPED_TYPE, ros1)
+
+
+def map_to_odom_to_ros(transform: MapToOdom, *, ros1: bool = False) -> Any:
+    """A :class:`MapToOdom` as a ``tf2_msgs/msg/TFMessage`` holding one
+    ``geometry_msgs/msg/TransformStamped`` (``parent_frame`` -> ``child_frame``)."""
     ts = typestore(ros1)
+    t = ts.types
+    sec, nanosec = stamp_ns_to_ros(transform.stamp_ns)
+    stamp = t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     if ros1:
-        return bytes(ts.serialize_ros1(msg, POSE_WITH_COVARIANCE_STAMPED_TYPE))
-    return bytes(ts.serialize_cdr(msg, POSE_WITH_COVARIANCE_STAMPED_TYPE))
+        header = t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=transform.parent_frame)
+    else:
+        header = t["std_msgs/msg/Header"](stamp=stamp, frame_id=transform.parent_frame)
+    qx, qy, qz, qw = yaw_to_quaternion(transform.theta)
+    tf = t["geometry_msgs/msg/TransformStamped"](
+        header=header,
+        child_frame_id=transform.child_frame,
+        transform=t["geometry_msgs/msg/Transform"](
+            translation=t["geometry_msgs/msg/Vector3"](
+                x=float(transform.x), y=float(transform.y), z=0.0),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        ),
+    )
+    return t[TF_MESSAGE_TYPE](transforms=[tf])
+
+
+def serialize_map_to_odom(transform: MapToOdom, *, ros1: bool = False) -> bytes:
+    """Wire bytes of :func:`map_to_odom_to_ros` (``tf2_msgs/msg/TFMessage``)."""
+    return _serialize(map_to_odom_to_ros(transform, ros1=ros1), TF_MESSAGE_TYPE, ros1)
 
 
 def _deserialize(payload: Any, ros_type: str, ros1: bool) -> Any:
@@ -292,8 +375,11 @@ class RosTopics:
     ``None`` when the robot does not publish one (then every stop may send an initial pose).
     ``namespace``: the ``namespace`` of zenoh-bridge-ros2dds (or of zenoh-plugin-ros1).
     ``ros1``: ROS 1 serialization and zenoh-plugin-ros1 keys instead of CDR / ros2dds keys.
-    ``map_frame``: frame id written into corrections (the bridge sets the site's
-    ``world_frame``).
+    ``map_frame``: frame id written into corrections and pose outputs (the bridge sets the
+    site's ``world_frame``). ``pose_topic`` / ``camera_pose_topic``: the continuous pose
+    output (fused / camera-only ``PoseWithCovarianceStamped``), ``tf_topic`` the map -> odom
+    transform (``tf2_msgs/msg/TFMessage``); whether and how often they are published is the
+    bridge's ``pose_output`` section.
     """
 
     odometry_topic: str = "odom"
@@ -303,6 +389,9 @@ class RosTopics:
     namespace: str = ""
     ros1: bool = False
     map_frame: str = "map"
+    pose_topic: str = POSE_OUTPUT_TOPIC
+    camera_pose_topic: str = CAMERA_POSE_OUTPUT_TOPIC
+    tf_topic: str = TF_TOPIC
 
     @classmethod
     def hsr(cls, *, ros1: bool = False, namespace: str = "") -> RosTopics:
@@ -332,6 +421,20 @@ class RosTopics:
             return ros1_key(self.correction_topic, POSE_WITH_COVARIANCE_STAMPED_TYPE,
                             self.namespace)
         return ros2dds_key(self.correction_topic, self.namespace)
+
+    def output_key(self, topic: str, ros_type: str) -> str:
+        """Key of a topic the bridge publishes (``ros_type`` picks the ROS 1 md5 prefix)."""
+        if self.ros1:
+            return ros1_key(topic, ros_type, self.namespace)
+        return ros2dds_key(topic, self.namespace)
+
+    def pose_output_topic(self, stream: str) -> str:
+        """The topic of pose-output ``stream`` (``fused`` or ``cameras``)."""
+        if stream == "fused":
+            return self.pose_topic
+        if stream == "cameras":
+            return self.camera_pose_topic
+        raise ValueError(f"unknown pose stream {stream!r}: expected 'fused' or 'cameras'")
 
     def localization_key(self) -> str | None:
         if self.localization_topic is None:
@@ -382,6 +485,55 @@ class RosZenohAdapter(RobotAdapter):
             congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
         )
+        # Pose outputs are a stream: the newest matters, congestion may drop (declared on use).
+        self._output_publishers: dict[str, Any] = {}
+
+    def _output_publisher(self, topic: str, ros_type: str) -> Any:
+        pub = self._output_publishers.get(topic)
+        if pub is None:
+            import zenoh
+
+            pub = self._session.declare_publisher(
+                self.topics.output_key(topic, ros_type),
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+            self._output_publishers[topic] = pub
+        return pub
+
+    def _publish(self, topic: str, ros_type: str, payload: bytes, what: str) -> bool:
+        try:
+            self._output_publisher(topic, ros_type).put(payload)
+        except Exception as exc:  # a dead session must not take the bridge down
+            self._count(f"{what}_publish_failed")
+            log.warning("could not publish %s on %s: %s", what, topic, exc)
+            return False
+        self._count(f"{what}_published")
+        return True
+
+    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
+        if self._closed:
+            return False
+        topic = self.topics.pose_output_topic(stream)
+        try:
+            payload = serialize_pose_estimate(
+                estimate, frame_id=self.topics.map_frame, ros1=self.topics.ros1)
+        except RosConversionError as exc:
+            self._count("pose_output_invalid")
+            log.warning("pose output: %s", exc)
+            return False
+        return self._publish(topic, POSE_WITH_COVARIANCE_STAMPED_TYPE, payload,
+                             f"pose_{stream}")
+
+    def publish_transform(self, transform: MapToOdom) -> bool:
+        if self._closed:
+            return False
+        try:
+            payload = serialize_map_to_odom(transform, ros1=self.topics.ros1)
+        except RosConversionError as exc:
+            self._count("tf_invalid")
+            log.warning("map -> odom: %s", exc)
+            return False
+        return self._publish(self.topics.tf_topic, TF_MESSAGE_TYPE, payload, "tf")
 
     @staticmethod
     def _drain(subscriber: Any) -> list[bytes]:
@@ -437,7 +589,8 @@ class RosZenohAdapter(RobotAdapter):
         if self._closed:
             return
         self._closed = True
-        for entity in (self._odom_sub, self._loc_sub, self._publisher):
+        outputs = list(self._output_publishers.values())
+        for entity in (self._odom_sub, self._loc_sub, self._publisher, *outputs):
             if entity is not None:
                 try:
                     entity.undeclare()
