@@ -27,6 +27,7 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "backend": ("backend_service.service", "main", "run the backend service"),
     "mapper": ("backend_service.map_service", "main",
                "run the semantic mapping service (clouds in, one semantic voxel map out)"),
+    "router": ("smartedge.router", "main", "run the site's Zenoh router (zenohd optional)"),
     "map": ("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
     "robot-bridge": ("smartedge.plugins", "robot_bridge_main", "run the robot bridge"),
     "robot-camera": ("smartedge.robot_camera", "main",
