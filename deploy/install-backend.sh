@@ -2,7 +2,8 @@
 # Install smartedge on the backend host: a venv in /opt/smartedge with the `backend` and `bridge`
 # extras (plus libusb-1.0-0, which open3d needs at import), the system user `smartedge`,
 # /etc/smartedge (site file, zenoh router and client configs, settings), the site's Zenoh router
-# (zenohd, or the backend's own session), smartedge-backend.service, smartedge-mapper.service
+# (`smartedge router` by default; zenohd or the backend's own session when asked),
+# smartedge-backend.service, smartedge-mapper.service
 # (the semantic map), smartedge-viewer.service
 # (Rerun drawing of the site; optional, --no-viewer) and one smartedge-robot-bridge@<robot>.service
 # per robot id. Safe to re-run. Walkthrough: docs/deployment.md.
@@ -23,15 +24,20 @@ Required:
   --site FILE              site file; installed as $ETC/site.yaml
 
 Options:
-  --router zenohd|backend|external
-                           who is the site's Zenoh router (default: zenohd when found, else
-                           backend):
-                             zenohd    smartedge-zenohd.service runs zenohd with
-                                       $ETC/zenoh-router.json5 (recommended: the backend can
-                                       restart without dropping the edge boards' links)
-                             backend   the backend's own session is the router (no zenohd)
+  --router smartedge|zenohd|backend|external
+                           who is the site's Zenoh router (default: smartedge, or zenohd when
+                           --zenohd PATH is given):
+                             smartedge smartedge-router.service runs \`smartedge router\`
+                                       with $ETC/zenoh-router.json5: from the
+                                       smartedge package itself, nothing else to install
+                                       (the backend can restart without dropping the edge
+                                       boards' links)
+                             zenohd    smartedge-zenohd.service runs zenohd with the same
+                                       config (zenohd installed separately, see
+                                       docs/deployment.md)
+                             backend   the backend's own session is the router (no router unit)
                              external  a router elsewhere (--router-host); nothing here
-  --zenohd PATH            zenohd executable (default: zenohd on PATH)
+  --zenohd PATH            zenohd executable for --router zenohd (default: zenohd on PATH)
   --router-host HOST       router the local services connect to (default 127.0.0.1)
   --tls DIR                Zenoh over TLS (mTLS): DIR holds ca.crt, router.crt, router.key and,
                            for the local services, client.crt, client.key (see docs)
@@ -59,7 +65,7 @@ USAGE
 }
 
 SITE=""
-ROUTER=auto
+ROUTER=""
 ZENOHD=""
 ROUTER_HOST=127.0.0.1
 TLS_DIR=""
@@ -73,7 +79,7 @@ while [ $# -gt 0 ]; do
   case "$1" in
     -h | --help) usage; exit 0 ;;
     --site) SITE="${2:?--site needs a file}"; shift 2 ;;
-    --router) ROUTER="${2:?--router needs zenohd, backend or external}"; shift 2 ;;
+    --router) ROUTER="${2:?--router needs smartedge, zenohd, backend or external}"; shift 2 ;;
     --zenohd) ZENOHD="${2:?--zenohd needs a path}"; shift 2 ;;
     --router-host) ROUTER_HOST="${2:?--router-host needs a host}"; shift 2 ;;
     --tls) TLS_DIR="${2:?--tls needs a directory}"; shift 2 ;;
@@ -93,12 +99,30 @@ for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do
   [[ "$robot" =~ ^[A-Za-z0-9_.-]+$ ]] || die "robot id $robot: only [A-Za-z0-9_.-] allowed"
 done
 case "$ADAPTER" in ros2 | sim) ;; *) die "--adapter $ADAPTER: expected ros2 or sim" ;; esac
-[ -n "$ZENOHD" ] || ZENOHD="$(command -v zenohd || true)"
+# The router and why (printed below): zenohd only when asked for, since `smartedge router` comes
+# with the package this script installs and zenohd is in no package registry a lab has by default.
+if [ -z "$ROUTER" ]; then
+  if [ -n "$ZENOHD" ]; then ROUTER=zenohd; router_why="--zenohd $ZENOHD given"
+  else ROUTER=smartedge; router_why="the default; zenohd not requested"; fi
+else
+  router_why="--router $ROUTER"
+fi
 case "$ROUTER" in
-  auto) if [ -n "$ZENOHD" ]; then ROUTER=zenohd; else ROUTER=backend; fi ;;
-  zenohd) [ -n "$ZENOHD" ] || die "--router zenohd: zenohd not found (install it, see docs/deployment.md, or give --zenohd PATH)" ;;
-  backend | external) ;;
-  *) die "--router $ROUTER: expected zenohd, backend or external" ;;
+  zenohd)
+    [ -n "$ZENOHD" ] || ZENOHD="$(command -v zenohd || true)"
+    [ -n "$ZENOHD" ] || die "--router zenohd: zenohd not found (install it, see docs/deployment.md, or give --zenohd PATH; --router smartedge needs nothing else)"
+    [ -x "$ZENOHD" ] || die "--zenohd $ZENOHD: not an executable file"
+    ;;
+  smartedge | backend | external)
+    [ -z "$ZENOHD" ] || die "--zenohd goes with --router zenohd, not --router $ROUTER"
+    ;;
+  *) die "--router $ROUTER: expected smartedge, zenohd, backend or external" ;;
+esac
+case "$ROUTER" in
+  smartedge) router_note="smartedge-router.service (smartedge router, from the smartedge package; $router_why)" ;;
+  zenohd) router_note="smartedge-zenohd.service (zenohd $ZENOHD; $router_why)" ;;
+  backend) router_note="the backend's own session, smartedge-backend.service with zenoh-router.json5 ($router_why)" ;;
+  external) router_note="external, at $ROUTER_HOST; none runs here ($router_why)" ;;
 esac
 [ "$ROUTER" = external ] || [ "$ROUTER_HOST" = 127.0.0.1 ] \
   || die "--router-host only goes with --router external"
@@ -115,6 +139,7 @@ ensure_root_privileges
 viewer_note=""
 [ "$VIEWER" = 1 ] || viewer_note=", no viewer"
 log "backend host: router $ROUTER, robots ${ROBOTS[*]:-none}$viewer_note, package $PACKAGE[backend,bridge]"
+log "router: $router_note"
 
 # 1. system packages (open3d needs libusb-1.0 at import time) and user
 ensure_apt python3-venv libusb-1.0-0 libgomp1
@@ -158,18 +183,30 @@ install_if_missing 0640 "$DEPLOY_DIR/smartedge.env.example" "$ETC/smartedge.env"
 system_dir "$UNIT_DIR"
 dropin="$UNIT_DIR/smartedge-backend.service.d"
 units=()
+# One router unit at most: the one chosen is installed, the other is stopped, disabled and
+# removed (both would listen on port 7447).
+zenohd_path_dropin="$UNIT_DIR/smartedge-zenohd.service.d/zenohd-path.conf"
+if [ "$ROUTER" = smartedge ]; then
+  install_system_file "$DEPLOY_DIR/systemd/smartedge-router.service" "$UNIT_DIR/smartedge-router.service"
+  units+=(smartedge-router.service)
+else
+  remove_unit smartedge-router.service
+fi
 if [ "$ROUTER" = zenohd ]; then
   install_system_file "$DEPLOY_DIR/systemd/smartedge-zenohd.service" "$UNIT_DIR/smartedge-zenohd.service"
   if [ "$ZENOHD" != /usr/bin/zenohd ]; then
     run install -d -m 0755 "$(staged "$UNIT_DIR/smartedge-zenohd.service.d")"
     tmp="$(mktemp)"
     printf '[Service]\nExecStart=\nExecStart=%s -c ${ZENOHD_CONFIG}\n' "$ZENOHD" > "$tmp"
-    install_system_file "$tmp" "$UNIT_DIR/smartedge-zenohd.service.d/zenohd-path.conf"
+    install_system_file "$tmp" "$zenohd_path_dropin"
     rm -f "$tmp"
+  else
+    remove_file "$zenohd_path_dropin"
   fi
   units+=(smartedge-zenohd.service)
 else
-  system systemctl disable --now smartedge-zenohd.service 2>/dev/null || true
+  remove_unit smartedge-zenohd.service
+  remove_file "$zenohd_path_dropin"
 fi
 install_system_file "$DEPLOY_DIR/systemd/smartedge-backend.service" "$UNIT_DIR/smartedge-backend.service"
 if [ "$ROUTER" = backend ]; then
@@ -191,8 +228,7 @@ if [ "$VIEWER" = 1 ]; then
   install_system_file "$DEPLOY_DIR/systemd/smartedge-viewer.service" "$UNIT_DIR/smartedge-viewer.service"
   units+=(smartedge-viewer.service)
 else
-  system systemctl disable --now smartedge-viewer.service 2>/dev/null || true
-  remove_file "$UNIT_DIR/smartedge-viewer.service"
+  remove_unit smartedge-viewer.service
 fi
 install_system_file "$DEPLOY_DIR/systemd/smartedge-robot-bridge@.service" \
   "$UNIT_DIR/smartedge-robot-bridge@.service"
@@ -202,5 +238,7 @@ units_start "${units[@]}"
 log "done. Check with:"
 log "  systemctl status 'smartedge-*'    journalctl -u smartedge-backend -f"
 log "  mapper: journalctl -u smartedge-mapper (map kept in /var/lib/smartedge/semantic_map.npz)"
+log "router: $router_note"
+[ "$ROUTER" != smartedge ] || log "  router: journalctl -u smartedge-router"
 [ "$ROUTER" != zenohd ] || log "  zenohd: journalctl -u smartedge-zenohd"
 [ "$VIEWER" = 0 ] || log "  viewer: journalctl -u smartedge-viewer (Rerun sink: SMARTEDGE_RERUN)"

@@ -110,6 +110,13 @@ remove_file() {
   if [ -e "$(staged "$1")" ]; then run rm -f "$(staged "$1")"; fi
 }
 
+# remove_unit UNIT: stop, disable and delete a unit this installer manages when it is no longer
+# wanted (a router unit not chosen, the viewer under --no-viewer).
+remove_unit() {
+  system systemctl disable --now "$1" 2>/dev/null || true
+  remove_file "$UNIT_DIR/$1"
+}
+
 ensure_root_privileges() {
   if live_system && [ "$DRY_RUN" = 0 ] && [ "$(id -u)" -ne 0 ]; then
     die "run as root (sudo $PROG ...), or use --dry-run / --root DIR"

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from protocol.runtime import EXIT_CONFIG
 from smartedge.cli import COMMANDS
 from tests.conftest import EXAMPLE_SITE, REPO_ROOT, free_tcp_port, wait_until
 
@@ -33,7 +34,8 @@ SERVICE_UNITS = {
     "smartedge-robot-bridge@.service": "robot-bridge",
     "smartedge-viewer.service": "viewer",
 }
-ALL_UNITS = (*SERVICE_UNITS, "smartedge-zenohd.service")
+ROUTER_UNITS = ("smartedge-router.service", "smartedge-zenohd.service")
+ALL_UNITS = (*SERVICE_UNITS, *ROUTER_UNITS)
 #: file → (mode, connect endpoints, listen endpoints) after BACKEND_HOST → 127.0.0.1
 ZENOH_EXPECTED = {
     "router.json5": ("router", [], ["tcp/0.0.0.0:7447"]),
@@ -320,6 +322,62 @@ def test_viewer_unit_is_independent_of_the_backend() -> None:
     assert "SMARTEDGE_RERUN" not in _env_defaults(backend)
 
 
+def test_router_unit_runs_smartedge_router_on_the_installed_router_config() -> None:
+    """smartedge-router.service: ``smartedge router --config`` on the file install-backend.sh
+    writes, Type=notify like the services, no restart on a config error, never beside zenohd."""
+    unit = parse_unit(UNIT_DIR / "smartedge-router.service")
+    sub, args = _subcommand(_exec_words("smartedge-router.service"))
+    assert sub == "router" and sub in COMMANDS
+    assert args == ["--config", "${SMARTEDGE_ROUTER_CONFIG}"]
+    assert _env_defaults(unit)["SMARTEDGE_ROUTER_CONFIG"] == "/etc/smartedge/zenoh-router.json5"
+    assert "ZENOH_CONFIG" not in _env_defaults(unit)  # the router is nobody's client
+    assert _one(unit, "Service", "Type") == "notify"
+    assert _one(unit, "Service", "NotifyAccess") == "main"
+    assert re.fullmatch(r"\d+s", _one(unit, "Service", "WatchdogSec"))
+    assert _one(unit, "Service", "Restart") == "on-failure"
+    assert _one(unit, "Service", "User") == "smartedge"
+    assert unit["Service"]["EnvironmentFile"] == [
+        "/etc/smartedge/smartedge.env", "-/etc/smartedge/router.env"
+    ]
+    assert "smartedge-zenohd.service" in _one(unit, "Unit", "Conflicts").split()
+    assert "smartedge-backend.service" in _one(unit, "Unit", "Before").split()
+    assert _one(unit, "Install", "WantedBy") == "multi-user.target"
+    proc = subprocess.run(
+        [sys.executable, "-m", "smartedge", "router", "--help"],
+        capture_output=True, text=True, timeout=60, cwd=REPO_ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "--config" in proc.stdout and "--listen" in proc.stdout
+
+
+@pytest.mark.parametrize("name", [*sorted(SERVICE_UNITS), "smartedge-router.service"])
+def test_units_do_not_restart_on_a_configuration_error(name: str) -> None:
+    unit = parse_unit(UNIT_DIR / name)
+    statuses = _one(unit, "Service", "RestartPreventExitStatus").split()
+    assert statuses == ["2", str(EXIT_CONFIG)]
+
+
+@pytest.mark.parametrize("name", sorted(SERVICE_UNITS))
+def test_a_bad_site_file_exits_with_the_status_the_unit_does_not_restart_on(
+    name: str, tmp_path: Path
+) -> None:
+    """The unit's command line with a site file that is not valid YAML: the service names the
+    file on stderr and exits 78 (EX_CONFIG), not with a traceback systemd would restart forever."""
+    instance, settings = SERVICE_RUNS.get(name, ("", {}))
+    unit = parse_unit(UNIT_DIR / name)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(EXAMPLE_SITE.read_text() + "\ncameras: [\n")
+    env = {**_example_env(), **_env_defaults(unit), **settings, "SMARTEDGE_SITE": str(bad)}
+    argv = expand_exec_start(_one(unit, "Service", "ExecStart"), env, instance)
+    assert argv[0] == SMARTEDGE_BIN
+    proc = subprocess.run(
+        [sys.executable, "-m", "smartedge", *argv[1:]],
+        capture_output=True, text=True, timeout=120, cwd=REPO_ROOT,
+    )  # fmt: skip
+    assert proc.returncode == EXIT_CONFIG, proc.stderr[-2000:]
+    assert str(bad) in proc.stderr and "Traceback" not in proc.stderr
+
+
 @pytest.mark.parametrize("name", sorted(SERVICE_UNITS))
 def test_exec_start_flags_are_accepted_by_the_service(name: str) -> None:
     """Cross-check with the service's own argument parser once it exists."""
@@ -505,8 +563,11 @@ def test_viewer_rerun_serve_runs_with_write_xor_execute() -> None:
 SCRIPTS = ("install-edge.sh", "install-backend.sh", "install-common.sh")
 
 
-def _run_script(name: str, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": os.environ.get("PATH", "/usr/bin:/bin")}
+def _run_script(
+    name: str, *args: str, timeout: float = 60, path: str | None = None
+) -> subprocess.CompletedProcess:
+    """Run an install script; ``path``: its $PATH (default: this process's)."""
+    env = {**os.environ, "PATH": path or os.environ.get("PATH", "/usr/bin:/bin")}
     return subprocess.run(
         ["bash", str(DEPLOY / name), *args],
         capture_output=True, text=True, timeout=timeout, env=env,
@@ -712,6 +773,8 @@ def test_backend_staged_install_router_modes_and_tls(tmp_path: Path) -> None:
     assert stat.S_IMODE((etc / "tls" / "router.key").stat().st_mode) == 0o640
     assert (units / "smartedge-robot-bridge@.service").exists()
     assert not (units / "smartedge-zenohd.service").exists()
+    assert not (units / "smartedge-router.service").exists()
+    assert "router: the backend's own session" in proc.stdout
 
     fake_zenohd = tmp_path / "bin" / "zenohd"
     fake_zenohd.parent.mkdir()
@@ -724,8 +787,80 @@ def test_backend_staged_install_router_modes_and_tls(tmp_path: Path) -> None:
     assert (units / "smartedge-zenohd.service").exists()
     path_dropin = (units / "smartedge-zenohd.service.d" / "zenohd-path.conf").read_text()
     assert f"ExecStart={fake_zenohd} -c" in path_dropin
+    assert not (units / "smartedge-router.service").exists()
     router = zenoh.Config.from_file(str(etc / "zenoh-router.json5"))
     assert json.loads(router.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
+
+
+def test_backend_install_router_is_smartedge_unless_zenohd_is_asked_for(tmp_path: Path) -> None:
+    """The default router is ``smartedge router`` (smartedge-router.service), even with a zenohd
+    on PATH; zenohd only with --router zenohd or --zenohd PATH. The installer says which router
+    it set up and why, and removes the router unit it no longer uses."""
+    zenoh = pytest.importorskip("zenoh")
+    root = tmp_path / "root"
+    _fake_venv(root)
+    fake_zenohd = tmp_path / "bin" / "zenohd"
+    fake_zenohd.parent.mkdir()
+    fake_zenohd.write_text("#!/bin/sh\n")
+    fake_zenohd.chmod(0o755)
+    with_zenohd = f"{fake_zenohd.parent}:{os.environ.get('PATH', '/usr/bin:/bin')}"
+    base = ("--root", str(root), "--skip-pip", "--site", str(EXAMPLE_SITE), "--no-start")
+    units = root / "etc" / "systemd" / "system"
+    etc = root / "etc" / "smartedge"
+    router_unit = units / "smartedge-router.service"
+    zenohd_unit = units / "smartedge-zenohd.service"
+    path_dropin = units / "smartedge-zenohd.service.d" / "zenohd-path.conf"
+
+    proc = _run_script("install-backend.sh", *base, "hsr", path=with_zenohd)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert ("router: smartedge-router.service (smartedge router, from the smartedge package; "
+            "the default; zenohd not requested)") in proc.stdout
+    assert router_unit.read_bytes() == (UNIT_DIR / "smartedge-router.service").read_bytes()
+    assert not zenohd_unit.exists()
+    assert not (units / "smartedge-backend.service.d" / "zenoh-router.conf").exists()
+    assert "systemctl enable smartedge-router.service smartedge-backend.service" in proc.stdout
+    # the config the unit's ExecStart names is the one installed
+    config = _env_defaults(parse_unit(router_unit))["SMARTEDGE_ROUTER_CONFIG"]
+    installed = zenoh.Config.from_file(str(root / config.lstrip("/")))
+    assert json.loads(installed.get_json("mode")) == "router"
+    assert (etc / "zenoh-router.json5").exists()
+
+    proc = _run_script("install-backend.sh", *base, "--router", "zenohd", "hsr", path=with_zenohd)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"router: smartedge-zenohd.service (zenohd {fake_zenohd}; --router zenohd)" in (
+        proc.stdout
+    )
+    assert zenohd_unit.exists() and path_dropin.exists()
+    assert not router_unit.exists()
+    assert "systemctl disable --now smartedge-router.service" in proc.stdout
+
+    proc = _run_script("install-backend.sh", *base, "--zenohd", str(fake_zenohd), "hsr")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"(zenohd {fake_zenohd}; --zenohd {fake_zenohd} given)" in proc.stdout
+
+    proc = _run_script("install-backend.sh", *base, "--router", "smartedge", "hsr")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "(smartedge router, from the smartedge package; --router smartedge)" in proc.stdout
+    assert router_unit.exists()
+    assert not zenohd_unit.exists() and not path_dropin.exists()
+
+    proc = _run_script("install-backend.sh", *base, "--router", "external", "--router-host",
+                       "router.lab", "hsr")  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "router: external, at router.lab; none runs here (--router external)" in proc.stdout
+    assert not router_unit.exists() and not zenohd_unit.exists()
+    assert not (etc / "zenoh-router.json5").exists()
+
+    for bad, why in ((["--router", "zenohd", "--zenohd", str(tmp_path / "nope")], "not an exec"),
+                     (["--router", "backend", "--zenohd", str(fake_zenohd)], "--zenohd goes"),
+                     (["--router", "mosquitto"], "expected smartedge, zenohd")):
+        proc = _run_script("install-backend.sh", "--dry-run", "--site", str(EXAMPLE_SITE), *bad)
+        assert proc.returncode == 2 and why in proc.stderr, (bad, proc.stderr)
+    if shutil.which("zenohd", path="/usr/bin:/bin") is None:
+        proc = _run_script("install-backend.sh", "--dry-run", "--site", str(EXAMPLE_SITE),
+                           "--router", "zenohd", path="/usr/bin:/bin")  # fmt: skip
+        assert proc.returncode == 2
+        assert "zenohd not found" in proc.stderr and "--router smartedge" in proc.stderr
 
 
 def test_backend_staged_install_viewer_sink_and_no_viewer(tmp_path: Path) -> None:
@@ -889,3 +1024,56 @@ def test_unit_command_line_notifies_ready_watchdog_and_stops_cleanly(
     if name == "smartedge-viewer.service":
         recording = tmp_path / "recordings" / "viewer.rrd"
         assert recording.is_file() and recording.stat().st_size > 0, output
+
+
+def test_router_unit_command_line_notifies_carries_traffic_and_stops_cleanly(
+    tmp_path: Path,
+) -> None:
+    """smartedge-router.service's ExecStart (expanded like systemd does, on the shipped router
+    config moved to a free loopback port): READY=1 once listening, the watchdog pinged, two
+    clients with the shipped client config reach each other through it, SIGTERM → STOPPING=1
+    and exit 0."""
+    zenoh = pytest.importorskip("zenoh")
+    import signal
+
+    unit = parse_unit(UNIT_DIR / "smartedge-router.service")
+    smartedge = Path(sys.executable).with_name("smartedge")
+    if not smartedge.exists():
+        pytest.skip("no smartedge executable next to the interpreter")
+    port = free_tcp_port()
+    router_conf = _render("router.json5", tmp_path, **{"0.0.0.0:7447": f"127.0.0.1:{port}"})
+    env = {**_example_env(), **_env_defaults(unit), "SMARTEDGE_ROUTER_CONFIG": str(router_conf)}
+    argv = expand_exec_start(_one(unit, "Service", "ExecStart"), env, "")
+    assert argv[0] == SMARTEDGE_BIN
+    argv[0] = str(smartedge)
+    notify = NotifySocket(tmp_path / "notify.sock")
+    proc_env = {**os.environ, **env, "NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "1000000"}
+    proc = subprocess.Popen(
+        argv, env=proc_env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    got: list[bytes] = []
+    try:
+        ready = notify.wait_for("READY=1", timeout_s=30, proc=proc)
+        watchdog = ready and notify.wait_for("WATCHDOG=1", timeout_s=3, proc=proc)
+        if ready:
+            client_conf = _on_port("client.json5", tmp_path, port)
+            with zenoh.open(client_conf) as sub_session, zenoh.open(client_conf) as pub_session:
+                sub_session.declare_subscriber(
+                    "deploytest/**", lambda s: got.append(s.payload.to_bytes())
+                )
+                pub = pub_session.declare_publisher("deploytest/x")
+                wait_until(lambda: (pub.put(b"hello"), bool(got))[1], timeout_s=5.0, step_s=0.1)
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=20)
+        stopping = notify.wait_for("STOPPING=1", timeout_s=0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        output = proc.communicate()[0].decode(errors="replace")[-3000:]
+        notify.close()
+    assert ready, f"no READY=1: {notify.messages}\n{output}"
+    assert watchdog, f"no WATCHDOG=1 within 3 s: {notify.messages}\n{output}"
+    assert got[:1] == [b"hello"], output
+    assert stopping, notify.messages
+    assert code == 0, output
+    assert f"listening on tcp/127.0.0.1:{port}" in output
