@@ -35,6 +35,7 @@ from robot_bridge.policy import (
     CorrectionPolicy,
     localization_known,
 )
+from robot_bridge.pose_output import PoseOutput, PoseOutputConfig
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,7 @@ class BridgeConfig:
     ``backend_timeout_s``: no pose estimate or heartbeat from the backend for this long means
     the backend (or the link) is lost. ``robot_timeout_s``: the same for robot odometry.
     ``world_frame``: the frame estimates must be expressed in (the site's world frame).
+    ``pose_output``: the continuous pose output (site file section ``pose_output``).
     """
 
     robot_id: str
@@ -57,16 +59,21 @@ class BridgeConfig:
     backend_timeout_s: float = 3.0
     robot_timeout_s: float = 1.0
     world_frame: str = "map"
+    pose_output: PoseOutputConfig = dataclasses.field(default_factory=PoseOutputConfig)
 
     @classmethod
     def from_site(cls, site: Site, robot_id: str) -> BridgeConfig:
-        """The bridge of ``robot_id``: the site's thresholds and world frame, and its
-        ``bridge`` section (``backend_timeout_s``, ``robot_timeout_s``); errors name the file
-        and the key."""
-        return site.section_reader().section(
+        """The bridge of ``robot_id``: the site's thresholds and world frame, its ``bridge``
+        section (``backend_timeout_s``, ``robot_timeout_s``) and its ``pose_output`` section;
+        errors name the file and the key."""
+        reader = site.section_reader()
+        pose_output = reader.section("pose_output", site.section("pose_output"),
+                                     PoseOutputConfig)
+        return reader.section(
             "bridge", site.section("bridge"), cls,
             fields={"backend_timeout_s", "robot_timeout_s"},
-            base=cls(robot_id, site.thresholds, world_frame=site.world_frame))
+            base=cls(robot_id, site.thresholds, world_frame=site.world_frame,
+                     pose_output=pose_output))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,6 +140,7 @@ class RobotBridge:
         self._estimates: dict[str, PoseEstimate] = {}
         self._last_decision: CorrectionDecision = CorrectionDecision("moving")
         self._last_counted: tuple[Any, str] | None = None
+        self._pose_output = PoseOutput(config.pose_output, config.world_frame)
 
     # ---------------------------------------------------------------------------------------
     # inputs
@@ -265,6 +273,40 @@ class RobotBridge:
                 accepted = False
             self.on_correction_result(correction, accepted)
         return outbox
+
+    def publish_pose_output(self, adapter: RobotAdapter, now_ns: int) -> int:
+        """Hand the pose output due at ``now_ns`` (:class:`PoseOutput`) to the adapter: the
+        newest accepted estimates (``publish_pose``) and the map -> odom transform
+        (``publish_transform``). Counts ``pose_output_<stream>`` / ``pose_output_tf`` when
+        the adapter sent them, ``pose_output_unsupported`` / ``..._failed`` when it did not,
+        ``pose_output_stale_<stream>`` and ``pose_output_map_to_odom_no_odometry`` for what
+        was due but not sendable. Returns the number of messages sent; never raises."""
+        try:
+            batch = self._pose_output.due(int(now_ns))
+        except Exception:
+            log.exception("unexpected error in the pose output")
+            self._count("internal_error")
+            return 0
+        for why in batch.skipped:
+            self._count(f"pose_output_{why}")
+        sent = 0
+        calls = [(f"pose_output_{stream}", adapter.publish_pose, (est, stream))
+                 for stream, est in batch.poses]
+        if batch.transform is not None:
+            calls.append(("pose_output_tf", adapter.publish_transform, (batch.transform,)))
+        for counter, call, call_args in calls:
+            try:
+                ok = bool(call(*call_args))
+            except Exception:
+                log.exception("adapter %s: pose output failed", adapter.name)
+                self._count("adapter_error")
+                ok = False
+            if ok:
+                sent += 1
+                self._count(counter)
+            else:
+                self._count(f"{counter}_failed")
+        return sent
 
     # ---------------------------------------------------------------------------------------
     # status
@@ -403,6 +445,8 @@ class RobotBridge:
         self._last_odom_rx_ns = self._now_ns
         self._count("received_odometry")
         self._static.update(msg.stamp_ns, msg.vx, msg.vy, msg.wz)
+        if math.isfinite(msg.theta):
+            self._pose_output.on_odometry(msg.stamp_ns, msg.x, msg.y, msg.theta, msg.frame_id)
         return Outbox(odometry=(msg,)) + self._evaluate()
 
     def _on_estimate(self, estimate: Any, receive_ns: int | None) -> Outbox:
@@ -421,6 +465,7 @@ class RobotBridge:
         prev = self._estimates.get(estimate.source)
         if prev is None or estimate.stamp_ns >= prev.stamp_ns:
             self._estimates[estimate.source] = estimate
+            self._pose_output.on_estimate(estimate)
         else:
             self._count("late_estimate")
         return self._evaluate()

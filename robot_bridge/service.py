@@ -109,6 +109,7 @@ class RobotBridgeNode(ServiceNode):
         if self._advance is not None:
             self._advance(now_ns)
         out = self._outgoing(self.bridge.pump(self.adapter, now_ns))
+        self.bridge.publish_pose_output(self.adapter, now_ns)
         if now_ns >= self._next_localization_ns:
             self._next_localization_ns = now_ns + LOCALIZATION_PERIOD_NS
             out.extend(self._localization())

@@ -62,7 +62,9 @@ def sections() -> list[Section]:
     from backend_service.pipeline import PipelineConfig
     from backend_service.semantic_map import SemanticMapConfig
     from protocol.site import Thresholds
+    from robot_bridge.adapters.ros2 import RosConfig
     from robot_bridge.bridge import BridgeConfig
+    from robot_bridge.pose_output import PoseOutputConfig
 
     return [
         Section("thresholds", "protocol (shared by sync, pose and bridge)",
@@ -84,6 +86,14 @@ def sections() -> list[Section]:
                 "their defaults. Paths are relative to the site file."),
         Section("bridge", "robot_bridge",
                 ((BridgeConfig, frozenset({"backend_timeout_s", "robot_timeout_s"})),)),
+        Section("pose_output", "robot_bridge (continuous pose topic, map -> odom)",
+                ((PoseOutputConfig, None),),
+                "Published through the robot adapter (docs/robot_bridge.md, with a "
+                "robot_localization configuration)."),
+        Section("ros", "robot_bridge (ROS adapters: ros2, ros1, rmw_zenoh)",
+                ((RosConfig, None),),
+                "`smartedge robot-bridge --robot-profile/--ros-namespace/--correction-topic/"
+                "--odom-topic` override the file."),
     ]
 
 

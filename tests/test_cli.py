@@ -79,7 +79,7 @@ def test_simulation_plugin_registers_twice_harmlessly() -> None:
     args = edge_service.build_parser().parse_args(["--camera", "cam1", "--source", "sim"])
     assert args.sim_trajectory == "traj3"
     args = bridge_service.build_parser().parse_args(["--adapter", "ros1", "--kidnapped"])
-    assert args.kidnapped and args.robot_profile == "hsr"
+    assert args.kidnapped and args.robot_profile is None  # the site file's ros.profile
 
 
 def test_unknown_source_or_adapter_is_a_clear_argparse_error() -> None:

@@ -121,7 +121,7 @@ class RobotAdapter(abc.ABC):
         """Publish a backend estimate as the robot's continuous pose input (a
         ``PoseWithCovarianceStamped`` topic robot_localization can fuse). ``stream`` is one of
         :data:`POSE_STREAMS`. ``True`` when it went out; the default (an adapter with no pose
-        output) says ``False`` and the bridge counts ``pose_output_unsupported``."""
+        output) says ``False`` and the bridge counts ``pose_output_<stream>_failed``."""
         return False
 
     def publish_transform(self, transform: MapToOdom) -> bool:

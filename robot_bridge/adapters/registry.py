@@ -89,35 +89,53 @@ class RosAdapterPlugin:
     ``--adapter`` value says which."""
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        group = parser.add_argument_group("ROS adapters (ros2, ros1)")
+        group = parser.add_argument_group(
+            "ROS adapters (ros2, ros1, rmw_zenoh; default: the site file's ros section)")
         group.add_argument(
             "--robot-profile",
             choices=("hsr", "nav2"),
-            default="hsr",
-            help="ROS topic set: HSR (laser_2d_correct_pose) or Nav2 (initialpose)",
+            help="ROS topic set: HSR (laser_2d_correct_pose) or Nav2 (initialpose); "
+                 "default ros.profile, else hsr",
         )
-        group.add_argument("--ros-namespace", default="", help="zenoh-bridge namespace")
+        group.add_argument("--ros-namespace", help="zenoh-bridge namespace (ros.namespace)")
         group.add_argument("--correction-topic", help="override the correction topic")
         group.add_argument("--odom-topic", help="override the odometry topic")
 
     def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup:
-        # rosbags (the CDR codec) is an extra: imported only when a ROS adapter is chosen
-        from robot_bridge.adapters.ros2 import RosTopics, RosZenohAdapter
+        from robot_bridge.adapters.ros2 import RosZenohAdapter
 
-        if site is None:
-            raise UsageError(f"--site is required with --adapter {args.adapter}")
-        ros1 = args.adapter == "ros1"
-        if args.robot_profile == "hsr":
-            topics = RosTopics.hsr(ros1=ros1, namespace=args.ros_namespace)
-        else:
-            topics = dataclasses.replace(RosTopics.nav2(namespace=args.ros_namespace), ros1=ros1)
-        if args.correction_topic:
-            topics = dataclasses.replace(topics, correction_topic=args.correction_topic)
-        if args.odom_topic:
-            topics = dataclasses.replace(topics, odometry_topic=args.odom_topic)
-        # corrections are poses in the site's world frame: say so in their header
-        topics = dataclasses.replace(topics, map_frame=site.world_frame)
+        topics = ros_topics(args, site, ros1=args.adapter == "ros1")
         return AdapterSetup(lambda session: RosZenohAdapter(session, topics))
+
+
+def ros_config(args: argparse.Namespace, site: Site | None) -> Any:
+    """The site file's ``ros`` section with the command-line overrides applied (a
+    :class:`robot_bridge.adapters.ros2.RosConfig`); ``UsageError`` without a site."""
+    from robot_bridge.adapters.ros2 import RosConfig
+
+    if site is None:
+        raise UsageError(f"--site is required with --adapter {args.adapter}")
+    config = RosConfig.from_site(site)
+    overrides = {
+        "profile": getattr(args, "robot_profile", None),
+        "namespace": getattr(args, "ros_namespace", None),
+        "correction_topic": getattr(args, "correction_topic", None),
+        "odometry_topic": getattr(args, "odom_topic", None),
+    }
+    try:
+        return dataclasses.replace(
+            config, **{k: v for k, v in overrides.items() if v is not None})
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def ros_topics(args: argparse.Namespace, site: Site | None, *, ros1: bool = False) -> Any:
+    """The :class:`robot_bridge.adapters.ros2.RosTopics` for ``args`` and the site: its
+    ``ros`` section, the command-line overrides, and the site's ``world_frame`` as the frame
+    of corrections and pose outputs."""
+    config = ros_config(args, site)  # UsageError without a site
+    assert site is not None
+    return config.topics(ros1=ros1, map_frame=site.world_frame)
 
 
 ROS_ADAPTERS = RosAdapterPlugin()

@@ -55,6 +55,8 @@ NAV2_INITIALPOSE_TOPIC: Final = "initialpose"
 POSE_OUTPUT_TOPIC: Final = "smartedge/pose"
 CAMERA_POSE_OUTPUT_TOPIC: Final = "smartedge/camera_pose"
 TF_TOPIC: Final = "tf"
+#: the robot topic sets :class:`RosConfig` knows
+ROBOT_PROFILES: Final = ("hsr", "nav2")
 
 #: (x, y, yaw) → index in the row-major 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
 _COV6_INDEX: Final = (0, 1, 5)
@@ -442,6 +444,72 @@ class RosTopics:
         if self.ros1:
             return ros1_key_pattern(self.localization_topic, self.namespace)
         return ros2dds_key(self.localization_topic, self.namespace)
+
+
+@dataclasses.dataclass(frozen=True)
+class RosConfig:
+    """The robot's ROS side (site file section ``ros``), for the ``ros2``, ``ros1`` and
+    ``rmw_zenoh`` adapters; the bridge's command-line options override it.
+
+    ``profile``: ``hsr`` (corrections on ``laser_2d_correct_pose``, odometry
+    ``/switched_odom`` on ROS 2 or ``/hsrb/odom`` on ROS 1, localization ``global_pose``) or
+    ``nav2`` (``initialpose``, ``odom``, ``amcl_pose``). ``odometry_topic``,
+    ``correction_topic``, ``localization_topic``: override the profile's topics (empty: the
+    profile's; ``localization_topic: none`` when the robot publishes no map pose).
+    ``namespace``: zenoh-bridge-ros2dds's (or zenoh-plugin-ros1's) ``namespace``, or the
+    rmw_zenoh node namespace. ``domain_id``: the ROS domain (rmw_zenoh keys start with it).
+    ``pose_topic``, ``camera_pose_topic``, ``tf_topic``: where the continuous pose output
+    (section ``pose_output``) goes. Frames: corrections and pose outputs carry the site's
+    ``world_frame``.
+    """
+
+    profile: str = "hsr"
+    odometry_topic: str = ""
+    correction_topic: str = ""
+    localization_topic: str = ""
+    namespace: str = ""
+    domain_id: int = 0
+    pose_topic: str = POSE_OUTPUT_TOPIC
+    camera_pose_topic: str = CAMERA_POSE_OUTPUT_TOPIC
+    tf_topic: str = TF_TOPIC
+
+    def __post_init__(self) -> None:
+        if self.profile not in ROBOT_PROFILES:
+            raise ValueError(f"profile {self.profile!r}: expected one of {ROBOT_PROFILES}")
+        if not 0 <= self.domain_id <= 232:
+            raise ValueError(f"domain_id {self.domain_id}: ROS domains are 0..232")
+        for name in ("odometry_topic", "correction_topic", "pose_topic",
+                     "camera_pose_topic", "tf_topic"):
+            value = getattr(self, name)
+            if value:
+                _clean_topic(value)  # ValueError naming the bad topic
+        if self.localization_topic and self.localization_topic != "none":
+            _clean_topic(self.localization_topic)
+
+    @classmethod
+    def from_site(cls, site: Any) -> RosConfig:
+        """The ``ros`` section of a :class:`protocol.site.Site` (errors name file and key)."""
+        return site.section_reader().section("ros", site.section("ros"), cls)
+
+    def topics(self, *, ros1: bool = False, map_frame: str = "map") -> RosTopics:
+        """The :class:`RosTopics` of this configuration."""
+        if self.profile == "hsr":
+            topics = RosTopics.hsr(ros1=ros1, namespace=self.namespace)
+        else:
+            topics = dataclasses.replace(RosTopics.nav2(namespace=self.namespace), ros1=ros1)
+        changes: dict[str, Any] = {
+            "map_frame": map_frame, "pose_topic": self.pose_topic,
+            "camera_pose_topic": self.camera_pose_topic, "tf_topic": self.tf_topic,
+        }
+        if self.odometry_topic:
+            changes["odometry_topic"] = self.odometry_topic
+        if self.correction_topic:
+            changes["correction_topic"] = self.correction_topic
+        if self.localization_topic == "none":
+            changes["localization_topic"] = None
+        elif self.localization_topic:
+            changes["localization_topic"] = self.localization_topic
+        return dataclasses.replace(topics, **changes)
 
 
 class RosZenohAdapter(RobotAdapter):

@@ -27,8 +27,13 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from protocol.messages import Odometry, PoseCorrection
-from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
+from protocol.messages import Odometry, PoseCorrection, PoseEstimate
+from robot_bridge.adapters.base import (
+    LocalizationPose,
+    MapToOdom,
+    OdometrySample,
+    RobotAdapter,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +76,10 @@ class SimRobotAdapter(RobotAdapter):
         self.robot = robot
         self.localized = localized
         self._pending: list[OdometrySample] = []
+        #: the newest pose output per stream and transform (the simulated robot has no
+        #: robot_localization to feed; kept for inspection and tests)
+        self.published_poses: dict[str, PoseEstimate] = {}
+        self.published_transform: MapToOdom | None = None
 
     def advance_to(self, t_s: float) -> list[Odometry]:
         """Step the robot to ``t_s`` (s since the run start); its odometry is queued for
@@ -107,3 +116,13 @@ class SimRobotAdapter(RobotAdapter):
             self.localized = True
         self._count("corrections_accepted" if accepted else "corrections_refused")
         return accepted
+
+    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
+        self.published_poses[stream] = estimate
+        self._count(f"pose_{stream}_published")
+        return True
+
+    def publish_transform(self, transform: MapToOdom) -> bool:
+        self.published_transform = transform
+        self._count("tf_published")
+        return True
