@@ -17,10 +17,18 @@ camera, same stamp), ``future`` (stamp more than ``max_future_ms`` ahead of ``no
 ``image_size`` (the message's image size is not the camera's calibrated size nor an exact
 scale of it; an exact scale, e.g. a 424x240 stream of an 848x480 calibration, is converted to
 calibrated pixels, see :func:`~backend_service.frame_set.image_scale`),
+``rate_limited`` (a camera sending faster than ``max_camera_rate_hz``: its excess frames),
 ``not_seen`` (message without this robot), ``replaced`` (a camera sent two frames within one
 window; the one closer to the anchor is kept), ``overflow`` (too many open windows: the oldest is
 emitted early), ``empty`` (a window closed with no detection), ``emitted``. Memory is bounded by
 ``max_open_windows`` per robot and the site's camera count.
+
+Every counter that concerns one camera is also kept per camera (:attr:`camera_counters`), so a
+camera whose frames all come late or ahead is named. Each camera's clock is tracked too
+(:meth:`camera_clocks`: the median of arrival minus stamp over its recent frames); one that
+runs ahead is rejected as ``future`` rather than allowed to advance the shared window anchor
+past the others (which would make all their frames ``late``). :meth:`problems` turns this into
+status reasons: a camera gone silent, a rogue rate, stamps ahead or behind the others.
 
 Time: ``now_ns`` is supplied by the caller (the backend's clock on the common time base); the
 synchronizer never reads the wall clock.
@@ -46,8 +54,19 @@ log = logging.getLogger(__name__)
 
 COUNTER_NAMES: Final = (
     "received", "emitted", "late", "duplicate", "future", "unknown_camera", "bad_keypoints",
-    "image_size", "not_seen", "replaced", "overflow", "empty",
+    "image_size", "not_seen", "replaced", "overflow", "empty", "rate_limited",
 )
+#: the counters also kept per camera
+CAMERA_COUNTER_NAMES: Final = (
+    "received", "late", "duplicate", "future", "bad_keypoints", "image_size", "replaced",
+    "rate_limited",
+)
+#: a problem (late, future, rate-limited frames) is reported for this long after it happened
+PROBLEM_HOLD_NS: Final = 5_000_000_000
+#: a camera with more of its recent frames late than this fraction is reported
+LATE_PROBLEM_FRACTION: Final = 0.2
+#: frames whose latency (arrival - stamp) is kept per camera for its clock estimate
+CLOCK_SAMPLES: Final = 32
 
 
 @dataclasses.dataclass
@@ -88,6 +107,16 @@ class FrameSetSynchronizer:
         self._last_seen_ns: dict[str, int] = {}  # camera -> arrival time (now_ns)
         self._last_stamp: dict[str, collections.deque[int]] = {}  # camera -> recent stamps
         self._size_warned: set[str] = set()
+        self.camera_counters: dict[str, dict[str, int]] = {}
+        self.max_rate_hz = float(th.max_camera_rate_hz)
+        # token bucket per camera: (tokens, last refill ns); one second of frames deep
+        self._bucket: dict[str, tuple[float, int]] = {}
+        self._latency: dict[str, collections.deque[int]] = {}  # camera -> arrival - stamp
+        self._last_problem_ns: dict[tuple[str, str], int] = {}  # (camera, counter) -> now_ns
+        self._ever_seen: set[str] = set()
+        # camera -> arrival times of its recent frames / of those that came late
+        self._recent_rx: dict[str, collections.deque[int]] = {}
+        self._recent_late: dict[str, collections.deque[int]] = {}
 
     # -- input -------------------------------------------------------------------------------
 
@@ -106,9 +135,13 @@ class FrameSetSynchronizer:
         if cam is None:
             self.counters["unknown_camera"] += 1
             return self.poll(now_ns)
+        self._count_camera(msg.camera_id, "received", now_ns)
+        if not self._take_token(msg.camera_id, now_ns):
+            self._count(msg.camera_id, "rate_limited", now_ns)
+            return self.poll(now_ns)
         scale = image_scale(msg.image_width, msg.image_height, cam.width, cam.height)
         if scale is None:
-            self.counters["image_size"] += 1
+            self._count(msg.camera_id, "image_size", now_ns)
             if msg.camera_id not in self._size_warned:
                 self._size_warned.add(msg.camera_id)
                 log.warning("camera %s: detections for %dx%d images, calibrated %dx%d (not an "
@@ -117,25 +150,100 @@ class FrameSetSynchronizer:
                             cam.height)
             return self.poll(now_ns)
         stamp = int(msg.stamp_ns) + int(cam.clock_offset_ns)
+        latency = self._latency.setdefault(msg.camera_id, collections.deque(maxlen=CLOCK_SAMPLES))
+        latency.append(now_ns - stamp)
         if stamp - now_ns > self.max_future_ns:
-            self.counters["future"] += 1
+            self._count(msg.camera_id, "future", now_ns)
             return self.poll(now_ns)
         recent = self._last_stamp.setdefault(msg.camera_id, collections.deque(maxlen=16))
         if stamp in recent:
-            self.counters["duplicate"] += 1
+            self._count(msg.camera_id, "duplicate", now_ns)
             return self.poll(now_ns)
         recent.append(stamp)
+        self._ever_seen.add(msg.camera_id)
         self._last_seen_ns[msg.camera_id] = max(now_ns, self._last_seen_ns.get(msg.camera_id,
                                                                               now_ns))
         for robot_id in self.robot_ids:
             self._add(robot_id, msg, stamp, now_ns, scale)
         return self.poll(now_ns)
 
+    def _count_camera(self, camera_id: str, counter: str, now_ns: int) -> None:
+        per = self.camera_counters.setdefault(camera_id, dict.fromkeys(CAMERA_COUNTER_NAMES, 0))
+        per[counter] = per.get(counter, 0) + 1
+        if counter in ("received", "late"):
+            recent = self._recent_rx if counter == "received" else self._recent_late
+            recent.setdefault(camera_id, collections.deque(maxlen=256)).append(now_ns)
+        elif counter != "replaced":
+            self._last_problem_ns[(camera_id, counter)] = now_ns
+
+    def _count(self, camera_id: str, counter: str, now_ns: int) -> None:
+        self.counters[counter] += 1
+        self._count_camera(camera_id, counter, now_ns)
+
+    def _take_token(self, camera_id: str, now_ns: int) -> bool:
+        """Token bucket of ``max_camera_rate_hz``, one second deep: a burst of a second's worth
+        of frames passes, a sustained higher rate is cut to the limit."""
+        if self.max_rate_hz <= 0:
+            return True
+        tokens, last = self._bucket.get(camera_id, (self.max_rate_hz, now_ns))
+        tokens = min(self.max_rate_hz, tokens + max(0, now_ns - last) * 1e-9 * self.max_rate_hz)
+        if tokens < 1.0:
+            self._bucket[camera_id] = (tokens, now_ns)
+            return False
+        self._bucket[camera_id] = (tokens - 1.0, now_ns)
+        return True
+
+    # -- health ------------------------------------------------------------------------------
+
+    def camera_clocks(self) -> dict[str, float]:
+        """Per camera: the median latency (arrival minus corrected stamp, ms) over its recent
+        frames. Negative: its clock runs ahead of the backend's."""
+        out = {}
+        for cam, lat in self._latency.items():
+            if lat:
+                values = sorted(lat)
+                out[cam] = values[len(values) // 2] * 1e-6
+        return out
+
+    def problems(self, now_ns: int) -> list[str]:
+        """Status reasons, one per unhealthy camera (empty when all is well): a camera that
+        was seen and has gone silent, one whose frames were rejected as ahead of the clock,
+        late, or over the rate limit within the last few seconds, one whose clock differs from
+        the others' by more than the sync window."""
+        out = []
+        silent = sorted(c for c in self._ever_seen
+                        if now_ns - self._last_seen_ns.get(c, now_ns) > self.camera_timeout_ns)
+        for cam in silent:
+            out.append(f"camera {cam} lost")
+        clocks = self.camera_clocks()
+        consensus = sorted(clocks.values())[len(clocks) // 2] if len(clocks) >= 3 else None
+        for (cam, counter), at in sorted(self._last_problem_ns.items()):
+            if now_ns - at > PROBLEM_HOLD_NS or cam in silent:
+                continue
+            if counter == "future":
+                ahead = -clocks.get(cam, 0.0)
+                out.append(f"camera {cam} stamps {ahead:.0f} ms ahead of the clock (dropped)")
+            elif counter == "rate_limited":
+                out.append(f"camera {cam} above {self.max_rate_hz:g} Hz (rogue source?)")
+            else:
+                out.append(f"camera {cam}: {counter}")
+        for cam, late in sorted(self._recent_late.items()):
+            n_late = sum(1 for t in late if now_ns - t <= PROBLEM_HOLD_NS)
+            n_rx = sum(1 for t in self._recent_rx.get(cam, ()) if now_ns - t <= PROBLEM_HOLD_NS)
+            if cam not in silent and n_late >= 5 and n_late > LATE_PROBLEM_FRACTION * n_rx:
+                out.append(f"camera {cam}: {n_late} of {n_rx} frames late in "
+                           f"{PROBLEM_HOLD_NS * 1e-9:.0f} s")
+        if consensus is not None:
+            for cam, lat in sorted(clocks.items()):
+                if abs(lat - consensus) * 1e6 > max(self.window_ns, 1) and cam not in silent:
+                    out.append(f"camera {cam} clock {lat - consensus:+.0f} ms off the others")
+        return out
+
     def _add(self, robot_id: str, msg: RobotDetections, stamp: int, now_ns: int,
              scale: float = 1.0) -> None:
         emitted = self._emitted_anchor[robot_id]
         if emitted is not None and stamp <= emitted + self.window_ns:
-            self.counters["late"] += 1
+            self._count(msg.camera_id, "late", now_ns)
             return
         windows = self._windows[robot_id]
         win = None
@@ -152,11 +260,14 @@ class FrameSetSynchronizer:
         obs = observation_for_robot(msg, robot_id, self._num_keypoints.get(robot_id, -1),
                                     self._attribute_unnamed, stamp, scale)
         if isinstance(obs, str):
-            self.counters[obs] += 1
+            if obs in CAMERA_COUNTER_NAMES:
+                self._count(msg.camera_id, obs, now_ns)
+            else:
+                self.counters[obs] += 1
             return
         old = win.observations.get(msg.camera_id)
         if old is not None:
-            self.counters["replaced"] += 1
+            self._count(msg.camera_id, "replaced", now_ns)
             if abs(old.stamp_ns - win.anchor_ns) <= abs(stamp - win.anchor_ns):
                 return
         win.observations[msg.camera_id] = obs

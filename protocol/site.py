@@ -86,8 +86,10 @@ class Thresholds:
 
     Sync: ``sync_window_ms`` (stamps within this window form one frame-set),
     ``sync_max_wait_ms`` (how long a frame-set waits for late cameras), ``camera_timeout_s``
-    (a camera silent for longer is considered gone), ``max_future_ms`` (stamps further in the
-    future than this are rejected). Pose: ``min_keypoint_score``, ``min_keypoints`` (per view),
+    (a camera silent for longer is considered gone), ``max_future_ms`` (the site's clock
+    tolerance: stamps further in the future than this are rejected, by the backend's
+    synchronizer and fusion and by the robot bridge), ``max_camera_rate_hz`` (a camera sending
+    faster is flagged as a rogue source and its excess frames dropped). Pose: ``min_keypoint_score``, ``min_keypoints`` (per view),
     ``max_reprojection_rmse_px`` (estimates above are rejected), ``single_camera_max_dtheta_deg``
     and ``single_camera_max_ddepth_m`` (the paper's d_theta and d_depth), ``multi_frame_count``
     (frame-sets averaged while static). Robot bridge: ``static_max_speed_mps``,
@@ -99,7 +101,8 @@ class Thresholds:
     sync_window_ms: float = 20.0
     sync_max_wait_ms: float = 100.0
     camera_timeout_s: float = 2.0
-    max_future_ms: float = 500.0
+    max_future_ms: float = 100.0
+    max_camera_rate_hz: float = 60.0
     min_keypoint_score: float = 0.3
     min_keypoints: int = 4
     max_reprojection_rmse_px: float = 20.0
