@@ -72,6 +72,12 @@ class FusionConfig:
     to guard against over-confident estimates; estimates with a sigma above
     ``max_camera_sigma_m`` / ``max_camera_sigma_rad`` carry no information and are rejected.
 
+    Poisoned stamps: odometry is accepted in stamp order, so one message stamped far in the
+    future (the service drops those against its clock, but a replay has none) would make every
+    later message "out of order". After ``out_of_order_reset_count`` consecutive rejected
+    messages that are themselves in order, the newest accepted stamp is taken as the bad one:
+    the graph restarts from the new stream as after an odometry jump (``odometry_stamp_reset``).
+
     Window: keyframes older than ``window_s`` before the latest one, or beyond
     ``max_keyframes``, are marginalized in batches of ``marginalize_batch`` (so the graph holds
     at most ``max_keyframes + marginalize_batch - 1`` keyframes).
@@ -105,6 +111,7 @@ class FusionConfig:
     max_camera_sigma_rad: float = 3.0
     max_future_s: float = 1.0
     max_pending: int = 16
+    out_of_order_reset_count: int = 25
     extra_iterations: int = 1
     relinearize_threshold: float = 0.01
 
@@ -146,6 +153,8 @@ class FusionConfig:
         if self.max_keyframes < 2 or self.marginalize_batch < 1 or self.max_pending < 1:
             raise ValueError("FusionConfig: max_keyframes >= 2, marginalize_batch >= 1, "
                              "max_pending >= 1")
+        if self.out_of_order_reset_count < 1:
+            raise ValueError("FusionConfig.out_of_order_reset_count must be >= 1")
         if self.extra_iterations < 0 or self.max_future_s < 0:
             raise ValueError("FusionConfig: extra_iterations and max_future_s must be >= 0")
 
@@ -265,6 +274,8 @@ class PoseGraphFusion:
         self.robot_id = robot_id
         self.config = config if config is not None else FusionConfig()
         self.counters: collections.Counter[str] = collections.Counter()
+        self._ooo_run = 0  # consecutive out-of-order odometry messages
+        self._ooo_last_stamp = 0
         self.last_reject_reason = ""
         self._seq = 0
         self._next_key = 0
@@ -333,7 +344,16 @@ class PoseGraphFusion:
         if self._odom_stamps:
             last_stamp = self._odom_stamps[-1]
             if stamp <= last_stamp:
-                return self._reject("odometry_out_of_order")
+                if not self._out_of_order_run(stamp):
+                    return self._reject("odometry_out_of_order")
+                self.counters["odometry_stamp_reset"] += 1
+                logger.warning(
+                    "robot %s: %d odometry messages in a row older than the newest accepted "
+                    "stamp (%.3f s ahead of them): that stamp was bad; fusion restarts",
+                    self.robot_id, self.config.out_of_order_reset_count,
+                    (last_stamp - stamp) * 1e-9)
+                return self._restart_after_jump(stamp, T_odom, cov)
+            self._ooo_run = 0
             if self._is_jump(self._odom_poses[-1], T_odom, (stamp - last_stamp) / _NS_PER_S):
                 return self._restart_after_jump(stamp, T_odom, cov)
         self._odom_stamps.append(stamp)
@@ -418,6 +438,19 @@ class PoseGraphFusion:
     # ----------------------------------------------------------------------------------------
     # input checks
     # ----------------------------------------------------------------------------------------
+
+    def _out_of_order_run(self, stamp: int) -> bool:
+        """Count one more out-of-order odometry message; ``True`` once a run of
+        ``out_of_order_reset_count`` of them, in order among themselves, says the newest
+        accepted stamp is the one that is wrong."""
+        if self._ooo_run and stamp <= self._ooo_last_stamp:
+            self._ooo_run = 0  # not a consistent stream: plain duplicates or a replay
+        self._ooo_run += 1
+        self._ooo_last_stamp = stamp
+        if self._ooo_run >= self.config.out_of_order_reset_count:
+            self._ooo_run = 0
+            return True
+        return False
 
     def _reject(self, reason: str) -> None:
         self.counters[reason] += 1

@@ -315,3 +315,32 @@ def test_config_is_validated():
         FusionConfig(keyframe_distance_m=-1.0)
     with pytest.raises(ValueError, match="window_s"):
         FusionConfig(window_s=float("nan"))
+
+
+def test_a_poisoned_stamp_is_recovered_from():
+    """One odometry message stamped 2**63 - 1 (issue #17) used to make every later message
+    "out of order" forever. After out_of_order_reset_count consistent messages the fusion
+    restarts from them, keeps the map anchor, and follows the robot again."""
+    fusion = PoseGraphFusion(ROBOT, FusionConfig(out_of_order_reset_count=25))
+    _straight_line(fusion, 1.0, speed_m_s=0.0)
+    fusion.add_camera_estimate(_camera(T0 + 500 * MS, 3.0, 2.0))
+    anchored = fusion.add_odometry(_odom(T0 + 1100 * MS, 0.0, seq=40))
+    assert anchored is not None and anchored.x == pytest.approx(3.0, abs=0.05)
+    assert fusion.add_odometry(_odom(2**63 - 1, 0.0, seq=41)) is not None  # accepted, alas
+    out = []
+    for i in range(60):  # 2 s at 30 Hz, driving +x at 0.5 m/s
+        out.append(fusion.add_odometry(_odom(T0 + 1133 * MS + i * 33 * MS, 0.5 * i * 0.033,
+                                             seq=42 + i)))
+    assert fusion.counters["odometry_out_of_order"] == 24
+    assert fusion.counters["odometry_stamp_reset"] == 1
+    assert all(o is None for o in out[:24]) and all(o is not None for o in out[25:])
+    # the anchor survived: the fused pose moves with the odometry from x = 3 again (the 0.4 m
+    # driven while the messages were refused is lost until the next camera estimate)
+    assert out[-1].x == pytest.approx(3.0 + 0.5 * (59 - 24) * 0.033, abs=0.01)
+    assert out[-1].stamp_ns < 2**62
+    # duplicates and replays (not in order among themselves) never trigger a reset
+    fusion2 = PoseGraphFusion(ROBOT, FusionConfig(out_of_order_reset_count=5))
+    _straight_line(fusion2, 1.0, speed_m_s=0.0)
+    for _ in range(20):
+        fusion2.add_odometry(_odom(T0 + 500 * MS, 0.0))
+    assert fusion2.counters["odometry_stamp_reset"] == 0
