@@ -42,7 +42,7 @@ import numpy as np
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
-from backend_service.sync import FrameSetSynchronizer
+from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
 from protocol.geometry import MotionState, StaticDetector
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 from protocol.site import Site
@@ -89,6 +89,9 @@ class PipelineConfig:
     then the other source. ``fuse_while_moving``: also fuse single-frame estimates while the
     robot moves (the paper fuses only the averages at static waypoints). Static detection:
     ``static_max_speed_mps``, ``static_max_yaw_rate_radps`` for ``static_dwell_s``.
+    ``publish_max_age_s``: the backend service drops (and counts, ``stale_dropped``) a pose
+    older than this when it would be published, e.g. after a stall (the pipeline itself never
+    reads the clock; see :class:`~backend_service.service.BackendNode`).
     """
 
     solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
@@ -99,12 +102,15 @@ class PipelineConfig:
     static_max_speed_mps: float = 0.01
     static_max_yaw_rate_radps: float = 0.02
     static_dwell_s: float = 1.0
+    publish_max_age_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_SOURCES:
             raise ValueError(f"PipelineConfig.prior {self.prior!r} not in {PRIOR_SOURCES}")
         if not self.prior_max_age_s >= 0:
             raise ValueError("PipelineConfig.prior_max_age_s must be >= 0")
+        if not self.publish_max_age_s > 0:
+            raise ValueError("PipelineConfig.publish_max_age_s must be > 0")
 
     @classmethod
     def from_site(cls, site: Site, **overrides: object) -> PipelineConfig:
@@ -115,7 +121,7 @@ class PipelineConfig:
         th = site.thresholds
         reader = site.section_reader()
         pose = site.section("pose")
-        own = {"prior", "prior_max_age_s", "fuse_while_moving"}
+        own = {"prior", "prior_max_age_s", "fuse_while_moving", "publish_max_age_s"}
         solver_fields = {f.name for f in dataclasses.fields(SolverConfig)}
         reader.no_unknown("pose", pose, own | solver_fields)
         solver = reader.section("pose", {k: v for k, v in pose.items() if k in solver_fields},
@@ -290,19 +296,29 @@ class BackendPipeline:
             for rid in site.robots
         }
         self.counters: collections.Counter[str] = collections.Counter()
+        self._max_future_ns = round(site.thresholds.max_future_ms * 1e6)
+        self._future_at: dict[str, int] = {}  # counter -> arrival time of the last drop
+        self._fusion_resets_seen: dict[str, int] = {}
+        self._fusion_reset_at: dict[str, int] = {}
 
     # -- inputs ------------------------------------------------------------------------------
 
     def feed(self, message: Message, arrival_ns: int) -> PipelineOutput:
         """One wire message as it arrived (``arrival_ns`` on the backend's clock). Detections,
         odometry and the robot's own localization (``PoseEstimate`` with source ``robot``) are
-        used; anything else is ignored (counted ``ignored``)."""
+        used; anything else is ignored (counted ``ignored``). Odometry and localization stamped
+        further ahead of ``arrival_ns`` than the site's clock tolerance
+        (``thresholds.max_future_ms``) are dropped (``odometry_future``,
+        ``localization_future``): one such stamp would otherwise freeze the fusion."""
         if isinstance(message, RobotDetections):
             return self.on_detections(message, arrival_ns)
         if isinstance(message, Odometry):
+            if self._future(message.stamp_ns, arrival_ns, "odometry_future"):
+                return PipelineOutput()
             return self.on_odometry(message)
         if isinstance(message, PoseEstimate) and message.source == "robot":
-            self.on_localization(message)
+            if not self._future(message.stamp_ns, arrival_ns, "localization_future"):
+                self.on_localization(message)
             return PipelineOutput()
         self.counters["ignored"] += 1
         return PipelineOutput()
@@ -347,7 +363,33 @@ class BackendPipeline:
         if track is not None:
             track.add_localization(est)
 
+    def problems(self, now_ns: int) -> list[str]:
+        """Reasons the pipeline is unhealthy at ``now_ns`` (empty when healthy): the
+        synchronizer's camera problems, inputs dropped as ahead of the clock within the last
+        few seconds, a fusion that restarted on a bad odometry stamp."""
+        out = list(self.sync.problems(now_ns))
+        for what, at in sorted(self._future_at.items()):
+            if now_ns - at <= PROBLEM_HOLD_NS:
+                out.append(f"{what.replace('_', ' ')} stamps ahead of the clock (dropped)")
+        for rid, track in sorted(self.tracks.items()):
+            counters = getattr(track.fusion, "counters", None) or {}
+            resets = int(counters.get("odometry_stamp_reset", 0))
+            if resets > self._fusion_resets_seen.get(rid, 0):
+                self._fusion_resets_seen[rid] = resets
+                self._fusion_reset_at[rid] = now_ns
+            at = self._fusion_reset_at.get(rid)
+            if at is not None and now_ns - at <= PROBLEM_HOLD_NS:
+                out.append(f"fusion of {rid} restarted after a bad odometry stamp")
+        return out
+
     # -- internals ---------------------------------------------------------------------------
+
+    def _future(self, stamp_ns: int, arrival_ns: int, counter: str) -> bool:
+        if stamp_ns - arrival_ns <= self._max_future_ns:
+            return False
+        self.counters[counter] += 1
+        self._future_at[counter] = arrival_ns
+        return True
 
     def _track(self, robot_id: str) -> RobotTrack | None:
         track = self.tracks.get(robot_id)
@@ -422,6 +464,8 @@ class BackendPipeline:
         """Pipeline, synchronizer and pose-graph counters (flat, dotted names)."""
         out: dict[str, int] = dict(self.counters)
         out.update({f"sync.{k}": int(v) for k, v in self.sync.counters.items()})
+        for cam, per in self.sync.camera_counters.items():
+            out.update({f"sync.camera.{cam}.{k}": int(v) for k, v in per.items() if v})
         for rid, t in self.tracks.items():
             counters = getattr(t.fusion, "counters", None)
             if counters:

@@ -69,7 +69,7 @@ def test_simulation_plugin_registers_twice_harmlessly() -> None:
     registry.register_adapter("sim", plugins.SIM_ADAPTER)
     registry.register_adapter("ros2", registry.ROS_ADAPTERS)
     assert sources.source_names() == ("camera", "sim")
-    assert registry.adapter_names() == ("ros1", "ros2", "sim")
+    assert registry.adapter_names() == ("rmw_zenoh", "ros1", "ros2", "sim")
     # another plug-in under a taken name is a mistake, said so
     with pytest.raises(ValueError, match="already registered"):
         sources.register_source("sim", plugins.SimSourcePlugin())
@@ -90,7 +90,7 @@ def test_unknown_source_or_adapter_is_a_clear_argparse_error() -> None:
     proc = _run("robot-bridge", "--adapter", "ros3")
     assert proc.returncode == 2
     assert "--adapter: invalid choice: 'ros3'" in proc.stderr
-    assert all(f"'{name}'" in proc.stderr for name in ("ros1", "ros2", "sim"))
+    assert all(f"'{name}'" in proc.stderr for name in ("rmw_zenoh", "ros1", "ros2", "sim"))
 
 
 def test_services_alone_offer_no_simulation() -> None:
@@ -102,7 +102,7 @@ def test_services_alone_offer_no_simulation() -> None:
         "from edge_agent.sources import source_names\n"
         "from robot_bridge.adapters.registry import adapter_names\n"
         "assert source_names() == ('camera',), source_names()\n"
-        "assert adapter_names() == ('ros1', 'ros2'), adapter_names()\n"
+        "assert adapter_names() == ('rmw_zenoh', 'ros1', 'ros2'), adapter_names()\n"
         "assert not [m for m in sys.modules if m.split('.')[0] in ('simulation', 'smartedge')]\n"
         "edge().parse_args(['--camera', 'c', '--source', 'sim'])\n"
     )

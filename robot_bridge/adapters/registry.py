@@ -141,3 +141,13 @@ def ros_topics(args: argparse.Namespace, site: Site | None, *, ros1: bool = Fals
 ROS_ADAPTERS = RosAdapterPlugin()
 register_adapter("ros2", ROS_ADAPTERS)
 register_adapter("ros1", ROS_ADAPTERS)
+
+
+def _register_rmw_zenoh() -> None:
+    # imported here: the module needs this one's registry (AdapterSetup, ros_config) first
+    from robot_bridge.adapters.rmw_zenoh import RMW_ZENOH_ADAPTER
+
+    register_adapter("rmw_zenoh", RMW_ZENOH_ADAPTER)
+
+
+_register_rmw_zenoh()

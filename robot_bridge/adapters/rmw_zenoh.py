@@ -946,23 +946,19 @@ class RmwZenohAdapterPlugin:
 
     def build(self, args: argparse.Namespace, site: Site | None) -> AdapterSetup:
         # rosbags (the CDR codec and type hashes) is an extra: imported when the adapter is used
-        from robot_bridge.adapters.registry import AdapterSetup
+        from robot_bridge.adapters.registry import AdapterSetup, ros_config
 
-        if site is None:
-            raise UsageError(
-                f"--site is required with --adapter {getattr(args, 'adapter', 'rmw_zenoh')}")
-        namespace = getattr(args, "ros_namespace", "") or ""
-        if getattr(args, "robot_profile", "hsr") == "nav2":
-            topics = RosTopics.nav2(namespace=namespace)
-        else:
-            topics = RosTopics.hsr(namespace=namespace)
-        if getattr(args, "correction_topic", None):
-            topics = dataclasses.replace(topics, correction_topic=args.correction_topic)
-        if getattr(args, "odom_topic", None):
-            topics = dataclasses.replace(topics, odometry_topic=args.odom_topic)
-        # corrections and pose outputs are poses in the site's world frame
-        topics = dataclasses.replace(topics, map_frame=site.world_frame)
-        domain_id = resolve_domain_id(getattr(args, "ros_domain_id", None))
+        # the site file's ros section with the ROS plug-in's command-line overrides; corrections
+        # and pose outputs are poses in the site's world frame
+        config = ros_config(args, site)  # UsageError without a site
+        assert site is not None
+        topics = config.topics(map_frame=site.world_frame)
+        namespace = config.namespace
+        # --ros-domain-id, else $ROS_DOMAIN_ID when set, else the site file's ros.domain_id
+        domain_id = resolve_domain_id(getattr(args, "ros_domain_id", None),
+                                      {DOMAIN_ID_ENV: str(config.domain_id),
+                                       **{k: v for k, v in os.environ.items()
+                                          if k == DOMAIN_ID_ENV and v.strip()}})
         node_name = getattr(args, "ros_node_name", DEFAULT_NODE_NAME)
         attachment_format = getattr(args, "rmw_zenoh_attachment", "compact")
         # names are checked now, so a typo is a usage error before any session is opened

@@ -578,3 +578,39 @@ def test_adapter_rejects_ros1_and_bad_names(zenoh_pair) -> None:
                    {"node_name": "two words"}):
         with pytest.raises(ValueError):
             rz.RmwZenohAdapter(bridge_side, **kwargs)
+
+
+def test_plugin_reads_the_site_files_ros_section(zenoh_pair, tmp_path, example_site_path,
+                                                 monkeypatch) -> None:
+    """Topics, namespace and domain id come from the site file's ``ros`` section;
+    ``$ROS_DOMAIN_ID`` and the command line override it."""
+    from protocol.site import load_site
+
+    bridge_side, _, _ = zenoh_pair
+    path = tmp_path / "site.yaml"
+    path.write_text(example_site_path.read_text() + "\nros: {profile: nav2, domain_id: 7, "
+                    "odometry_topic: /wheel/odom, pose_topic: /lab/pose}\n")
+    site = load_site(path)
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    adapter = rz.RMW_ZENOH_ADAPTER.build(_parser().parse_args([]), site).factory(bridge_side)
+    try:
+        assert adapter.domain_id == 7
+        assert adapter.topics.correction_topic == "initialpose"
+        assert adapter.topics.odometry_topic == "/wheel/odom"
+        assert adapter.topics.pose_topic == "/lab/pose"
+        assert adapter.topics.map_frame == site.world_frame
+    finally:
+        adapter.close()
+    monkeypatch.setenv("ROS_DOMAIN_ID", "9")
+    adapter = rz.RMW_ZENOH_ADAPTER.build(_parser().parse_args([]), site).factory(bridge_side)
+    try:
+        assert adapter.domain_id == 9
+    finally:
+        adapter.close()
+    args = _parser().parse_args(["--ros-domain-id", "4", "--robot-profile", "hsr"])
+    adapter = rz.RMW_ZENOH_ADAPTER.build(args, site).factory(bridge_side)
+    try:
+        assert adapter.domain_id == 4
+        assert adapter.topics.correction_topic == "laser_2d_correct_pose"
+    finally:
+        adapter.close()
