@@ -22,6 +22,8 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "render": ("smartedge.bench.render", "main", "rendered images/s with exact labels"),
     "edge": ("smartedge.bench.edge", "main", "detector + keypoint latency with onnxruntime"),
     "map": ("smartedge.bench.map", "main", "semantic map fusion (M points/s) and ICP latency"),
+    "bridge": ("smartedge.bench.bridge", "main",
+               "robot bridge ROS output: encoding per flavour, loopback latency"),
 }
 
 
