@@ -40,7 +40,10 @@ Options:
   --zenohd PATH            zenohd executable for --router zenohd (default: zenohd on PATH)
   --router-host HOST       router the local services connect to (default 127.0.0.1)
   --tls DIR                Zenoh over TLS (mTLS): DIR holds ca.crt, router.crt, router.key and,
-                           for the local services, client.crt, client.key (see docs)
+                           for the local services, client.crt, client.key (see docs). A DIR made
+                           by \`smartedge certs\` (backend.crt, bridge-<robot>.crt,
+                           router-acl.json5) installs the router config with access control
+                           and gives each robot bridge its own certificate
   --adapter ros2|sim       SMARTEDGE_ADAPTER for a new smartedge.env (default: ros2)
   --rerun SINK             the viewer's Rerun sink, SMARTEDGE_RERUN for a new smartedge.env
                            (save:PATH.rrd, serve, connect:URL; default: a recording under
@@ -127,10 +130,23 @@ esac
 [ "$ROUTER" = external ] || [ "$ROUTER_HOST" = 127.0.0.1 ] \
   || die "--router-host only goes with --router external"
 [ "$VIEWER" = 1 ] || [ -z "$RERUN" ] || die "--rerun configures the viewer: not with --no-viewer"
+TLS_CLIENT=client
+TLS_ACL=0
 if [ -n "$TLS_DIR" ]; then
-  for f in ca.crt router.crt router.key client.crt client.key; do
+  # From `smartedge certs`: the identity `backend` and the generated router config with access
+  # control, under which each robot bridge needs its own identity (bridge-<robot>).
+  [ -f "$TLS_DIR/backend.crt" ] && TLS_CLIENT=backend
+  [ -f "$TLS_DIR/router-acl.json5" ] && TLS_ACL=1
+  for f in ca.crt router.crt router.key "$TLS_CLIENT.crt" "$TLS_CLIENT.key"; do
     [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing"
   done
+  if [ "$TLS_ACL" = 1 ]; then
+    for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do
+      for f in "bridge-$robot.crt" "bridge-$robot.key"; do
+        [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing: router-acl.json5 lets robot $robot's bridge in only with its own certificate (smartedge certs --site SITE --out $TLS_DIR)"
+      done
+    done
+  fi
 fi
 default_package
 normalize_root
@@ -157,17 +173,20 @@ for f in ${EXTRA_FILES[@]+"${EXTRA_FILES[@]}"}; do install_file 0640 "$f" "$ETC/
 if [ -n "$TLS_DIR" ]; then
   install_dir 0750 "$ETC/tls"
   install_file 0644 "$TLS_DIR/ca.crt" "$ETC/tls/ca.crt"
-  for f in router client; do
-    install_file 0644 "$TLS_DIR/$f.crt" "$ETC/tls/$f.crt"
-    install_file 0640 "$TLS_DIR/$f.key" "$ETC/tls/$f.key"
-  done
+  install_file 0644 "$TLS_DIR/router.crt" "$ETC/tls/router.crt"
+  install_file 0640 "$TLS_DIR/router.key" "$ETC/tls/router.key"
+  install_file 0644 "$TLS_DIR/$TLS_CLIENT.crt" "$ETC/tls/client.crt"
+  install_file 0640 "$TLS_DIR/$TLS_CLIENT.key" "$ETC/tls/client.key"
   router_template=router-tls.json5
   client_template=client-tls.json5
 else
   router_template=router.json5
   client_template=client.json5
 fi
-if [ "$ROUTER" != external ]; then
+if [ "$ROUTER" != external ] && [ "$TLS_ACL" = 1 ]; then
+  log "router config: $TLS_DIR/router-acl.json5 (TLS with access control by certificate name)"
+  install_rendered 0640 "$TLS_DIR/router-acl.json5" "$ETC/zenoh-router.json5"
+elif [ "$ROUTER" != external ]; then
   install_rendered 0640 "$DEPLOY_DIR/zenoh/$router_template" "$ETC/zenoh-router.json5"
 else
   remove_file "$ETC/zenoh-router.json5"
@@ -232,7 +251,26 @@ else
 fi
 install_system_file "$DEPLOY_DIR/systemd/smartedge-robot-bridge@.service" \
   "$UNIT_DIR/smartedge-robot-bridge@.service"
-for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do units+=("smartedge-robot-bridge@$robot.service"); done
+for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do
+  # With its own certificate (smartedge certs), a bridge connects as identity bridge-<robot>: its
+  # client config and a drop-in pointing ZENOH_CONFIG at it.
+  bridge_dropin="$UNIT_DIR/smartedge-robot-bridge@$robot.service.d/zenoh-identity.conf"
+  if [ -n "$TLS_DIR" ] && [ -f "$TLS_DIR/bridge-$robot.crt" ] && [ -f "$TLS_DIR/bridge-$robot.key" ]; then
+    install_file 0644 "$TLS_DIR/bridge-$robot.crt" "$ETC/tls/bridge-$robot.crt"
+    install_file 0640 "$TLS_DIR/bridge-$robot.key" "$ETC/tls/bridge-$robot.key"
+    install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client-bridge-$robot.json5" \
+      "s/BACKEND_HOST/$ROUTER_HOST/g" "s|/etc/smartedge/tls/client\\.|$ETC/tls/bridge-$robot.|g"
+    run install -d -m 0755 "$(staged "$(dirname "$bridge_dropin")")"
+    tmp="$(mktemp)"
+    printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-client-bridge-%s.json5\n' "$ETC" "$robot" > "$tmp"
+    install_system_file "$tmp" "$bridge_dropin"
+    rm -f "$tmp"
+  else
+    remove_file "$bridge_dropin"
+    remove_file "$ETC/zenoh-client-bridge-$robot.json5"
+  fi
+  units+=("smartedge-robot-bridge@$robot.service")
+done
 units_start "${units[@]}"
 
 log "done. Check with:"

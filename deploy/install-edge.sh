@@ -21,7 +21,9 @@ Required:
 
 Options:
   --tls DIR              Zenoh over TLS (mTLS): DIR holds ca.crt, client.crt, client.key
-                         (installed to $ETC/tls; uses deploy/zenoh/client-tls.json5)
+                         (installed to $ETC/tls; uses deploy/zenoh/client-tls.json5), or, made
+                         by \`smartedge certs\`, ca.crt and edge-<camera>.crt/.key for each
+                         CAMERA_ID: each agent then connects with its own certificate
   --with FILE            another file the site file refers to (calibration_file), copied next
                          to it; repeatable
   --source camera|sim    SMARTEDGE_SOURCE for a new smartedge.env (default: camera)
@@ -105,8 +107,19 @@ case "$JETSON" in
   yes | no) ;;
   *) die "--jetson $JETSON: expected auto, yes or no" ;;
 esac
+# --tls: one certificate per camera (edge-<camera>, from `smartedge certs`) when DIR has them
+# all, else the board's client.crt
+TLS_PER_CAMERA=0
 if [ -n "$TLS_DIR" ]; then
-  for f in ca.crt client.crt client.key; do [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing"; done
+  TLS_PER_CAMERA=1
+  for cam in "${CAMERAS[@]}"; do
+    [ -f "$TLS_DIR/edge-$cam.crt" ] && [ -f "$TLS_DIR/edge-$cam.key" ] || TLS_PER_CAMERA=0
+  done
+  tls_files=(ca.crt client.crt client.key)
+  [ "$TLS_PER_CAMERA" = 0 ] || tls_files=(ca.crt)
+  for f in "${tls_files[@]}"; do
+    [ -f "$TLS_DIR/$f" ] || die "--tls: $TLS_DIR/$f missing (or edge-<camera>.crt/.key for every camera)"
+  done
 fi
 default_package
 normalize_root
@@ -130,8 +143,10 @@ for f in ${EXTRA_FILES[@]+"${EXTRA_FILES[@]}"}; do install_file 0640 "$f" "$ETC/
 if [ -n "$TLS_DIR" ]; then
   install_dir 0750 "$ETC/tls"
   install_file 0644 "$TLS_DIR/ca.crt" "$ETC/tls/ca.crt"
-  install_file 0644 "$TLS_DIR/client.crt" "$ETC/tls/client.crt"
-  install_file 0640 "$TLS_DIR/client.key" "$ETC/tls/client.key"
+  if [ "$TLS_PER_CAMERA" = 0 ]; then
+    install_file 0644 "$TLS_DIR/client.crt" "$ETC/tls/client.crt"
+    install_file 0640 "$TLS_DIR/client.key" "$ETC/tls/client.key"
+  fi
   install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client.json5" \
     "s/BACKEND_HOST/$BACKEND_HOST/g"
 else
@@ -169,7 +184,26 @@ else
   remove_file "$UNIT_DIR/smartedge-edge-agent@.service.d/jetson-gpu.conf"
 fi
 units=()
-for cam in "${CAMERAS[@]}"; do units+=("smartedge-edge-agent@$cam.service"); done
+for cam in "${CAMERAS[@]}"; do
+  # With its own certificate, an agent connects as identity edge-<camera>: its client config
+  # and a drop-in pointing ZENOH_CONFIG at it.
+  identity_dropin="$UNIT_DIR/smartedge-edge-agent@$cam.service.d/zenoh-identity.conf"
+  if [ "$TLS_PER_CAMERA" = 1 ]; then
+    install_file 0644 "$TLS_DIR/edge-$cam.crt" "$ETC/tls/edge-$cam.crt"
+    install_file 0640 "$TLS_DIR/edge-$cam.key" "$ETC/tls/edge-$cam.key"
+    install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client-edge-$cam.json5" \
+      "s/BACKEND_HOST/$BACKEND_HOST/g" "s|/etc/smartedge/tls/client\\.|$ETC/tls/edge-$cam.|g"
+    run install -d -m 0755 "$(staged "$(dirname "$identity_dropin")")"
+    tmp="$(mktemp)"
+    printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-client-edge-%s.json5\n' "$ETC" "$cam" > "$tmp"
+    install_system_file "$tmp" "$identity_dropin"
+    rm -f "$tmp"
+  else
+    remove_file "$identity_dropin"
+    remove_file "$ETC/zenoh-client-edge-$cam.json5"
+  fi
+  units+=("smartedge-edge-agent@$cam.service")
+done
 units_start "${units[@]}"
 
 log "done. Check with:"

@@ -28,6 +28,7 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "mapper": ("backend_service.map_service", "main",
                "run the semantic mapping service (clouds in, one semantic voxel map out)"),
     "router": ("smartedge.router", "main", "run the site's Zenoh router (zenohd optional)"),
+    "certs": ("smartedge.certs", "main", "the site's CA, one certificate per identity, router ACL"),
     "map": ("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
     "robot-bridge": ("smartedge.plugins", "robot_bridge_main", "run the robot bridge"),
     "robot-camera": ("smartedge.robot_camera", "main",

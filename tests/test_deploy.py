@@ -792,6 +792,68 @@ def test_backend_staged_install_router_modes_and_tls(tmp_path: Path) -> None:
     assert json.loads(router.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
 
 
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
+def test_staged_installs_with_smartedge_certs_give_each_service_its_identity(
+    tmp_path: Path,
+) -> None:
+    """``--tls DIR`` made by ``smartedge certs``: the backend host gets router-acl.json5 as its
+    router config, the ``backend`` certificate for its services and one identity per robot
+    bridge (config + drop-in); an edge board one identity per camera."""
+    zenoh = pytest.importorskip("zenoh")
+    from smartedge.certs import main as certs_main
+
+    pki = tmp_path / "pki"
+    assert certs_main(["--site", str(EXAMPLE_SITE), "--out", str(pki), "--router-host",
+                       "backend.lab", "--days", "2"]) == 0  # fmt: skip
+    root = tmp_path / "backend"
+    _fake_venv(root)
+    base = ("--root", str(root), "--skip-pip", "--site", str(EXAMPLE_SITE), "--tls", str(pki))
+    proc = _run_script("install-backend.sh", *base, "hsr")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    etc, units = root / "etc" / "smartedge", root / "etc" / "systemd" / "system"
+    router = zenoh.Config.from_file(str(etc / "zenoh-router.json5"))
+    acl = json.loads(router.get_json("access_control"))
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    assert (etc / "tls" / "client.crt").read_bytes() == (pki / "backend.crt").read_bytes()
+    dropin = units / "smartedge-robot-bridge@hsr.service.d" / "zenoh-identity.conf"
+    assert "Environment=ZENOH_CONFIG=/etc/smartedge/zenoh-client-bridge-hsr.json5" in (
+        dropin.read_text())
+    bridge = zenoh.Config.from_file(str(etc / "zenoh-client-bridge-hsr.json5"))
+    tls = json.loads(bridge.get_json("transport/link/tls"))
+    assert tls["connect_certificate"] == "/etc/smartedge/tls/bridge-hsr.crt"
+    assert tls["connect_private_key"] == "/etc/smartedge/tls/bridge-hsr.key"
+    assert json.loads(bridge.get_json("connect/endpoints")) == ["tls/127.0.0.1:7447"]
+    assert stat.S_IMODE((etc / "tls" / "bridge-hsr.key").stat().st_mode) == 0o640
+
+    # router-acl.json5 without the bridge's certificate: refused before configuring anything
+    partial = tmp_path / "partial"
+    shutil.copytree(pki, partial)
+    (partial / "bridge-hsr.key").unlink()
+    fresh = tmp_path / "fresh"
+    _fake_venv(fresh)
+    proc = _run_script("install-backend.sh", "--root", str(fresh), "--skip-pip", "--site",
+                       str(EXAMPLE_SITE), "--tls", str(partial), "hsr")  # fmt: skip
+    assert proc.returncode != 0 and "bridge-hsr.key" in proc.stderr
+    assert not (fresh / "etc").exists()
+
+    root = tmp_path / "edge"
+    _fake_venv(root)
+    proc = _run_script("install-edge.sh", "--root", str(root), "--skip-pip", "--site",
+                       str(EXAMPLE_SITE), "--backend-host", "backend.lab", "--source", "sim",
+                       "--tls", str(pki), "cam_sw", "cam_se")  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    etc, units = root / "etc" / "smartedge", root / "etc" / "systemd" / "system"
+    for cam in ("cam_sw", "cam_se"):
+        dropin = units / f"smartedge-edge-agent@{cam}.service.d" / "zenoh-identity.conf"
+        assert f"ZENOH_CONFIG=/etc/smartedge/zenoh-client-edge-{cam}.json5" in dropin.read_text()
+        conf = zenoh.Config.from_file(str(etc / f"zenoh-client-edge-{cam}.json5"))
+        tls = json.loads(conf.get_json("transport/link/tls"))
+        assert tls["connect_certificate"] == f"/etc/smartedge/tls/edge-{cam}.crt"
+        assert json.loads(conf.get_json("connect/endpoints")) == ["tls/backend.lab:7447"]
+        assert stat.S_IMODE((etc / "tls" / f"edge-{cam}.key").stat().st_mode) == 0o640
+    assert not (etc / "tls" / "client.key").exists()
+
+
 def test_backend_install_router_is_smartedge_unless_zenohd_is_asked_for(tmp_path: Path) -> None:
     """The default router is ``smartedge router`` (smartedge-router.service), even with a zenohd
     on PATH; zenohd only with --router zenohd or --zenohd PATH. The installer says which router
