@@ -89,13 +89,17 @@ class Thresholds:
     (a camera silent for longer is considered gone), ``max_future_ms`` (the site's clock
     tolerance: stamps further in the future than this are rejected, by the backend's
     synchronizer and fusion and by the robot bridge), ``max_camera_rate_hz`` (a camera sending
-    faster is flagged as a rogue source and its excess frames dropped). Pose: ``min_keypoint_score``, ``min_keypoints`` (per view),
+    faster is flagged as a rogue source and its excess frames dropped). Pose:
+    ``min_keypoint_score``, ``min_keypoints`` (per view),
     ``max_reprojection_rmse_px`` (estimates above are rejected), ``single_camera_max_dtheta_deg``
     and ``single_camera_max_ddepth_m`` (the paper's d_theta and d_depth), ``multi_frame_count``
     (frame-sets averaged while static). Robot bridge: ``static_max_speed_mps``,
     ``static_max_yaw_rate_radps``, ``static_dwell_s``, ``correction_min_offset_m``,
-    ``correction_min_offset_deg``, ``correction_max_jump_m``, ``correction_max_std_m``,
-    ``correction_min_interval_s``.
+    ``correction_min_offset_deg``, ``correction_max_jump_m`` and ``correction_max_jump_deg``
+    (distance and heading limits of one correction, also against the localization without the
+    bridge's corrections of the window), ``correction_max_std_m``, ``correction_min_interval_s``,
+    ``correction_window_s`` with ``correction_window_max_m`` / ``correction_window_max_deg``
+    (total correction allowed per window).
     """
 
     sync_window_ms: float = 20.0
@@ -115,8 +119,12 @@ class Thresholds:
     correction_min_offset_m: float = 0.05
     correction_min_offset_deg: float = 2.0
     correction_max_jump_m: float = 1.0
+    correction_max_jump_deg: float = 30.0
     correction_max_std_m: float = 0.15
     correction_min_interval_s: float = 2.0
+    correction_window_s: float = 60.0
+    correction_window_max_m: float = 1.0
+    correction_window_max_deg: float = 30.0
 
 
 @dataclasses.dataclass(frozen=True)

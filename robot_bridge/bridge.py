@@ -8,11 +8,15 @@ service shell owns the sessions, subscriptions, status publication and livelines
 the core directly.
 
 Local autonomy: nothing here waits for the backend. Odometry is converted and returned at once
-whatever the link state; when no pose or heartbeat arrived for ``backend_timeout_s`` the status
-says ``backend lost`` and the robot keeps navigating on its own localization.
+whatever the link state; when no heartbeat of the backend (its status message or liveliness
+token, :meth:`RobotBridge.on_backend_heartbeat`) arrived for ``backend_timeout_s`` the status
+says ``backend lost`` and the robot keeps navigating on its own localization. Pose estimates are
+not heartbeats: anyone able to put one must not be able to fake the backend's health.
 
-Bad input (wrong types, NaN, stamps in the future or going backwards, other robots' poses) is
-counted in :attr:`RobotBridge.counters` and dropped; no ``on_*`` method raises.
+Bad input (wrong types, NaN, stamps in the future beyond the clock tolerance or going
+backwards, other robots' poses, a ``source`` that does not match the key) is counted in
+:attr:`RobotBridge.counters` and dropped; no ``on_*`` method raises. What the bridge demands of
+an estimate before it moves the robot: :class:`robot_bridge.policy.TrustConfig`.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from collections.abc import Mapping
 from typing import Any, Final
 
 from protocol.errors import ProtocolError
-from protocol.geometry import MotionState, StaticDetector, wrap_angle
+from protocol.geometry import MotionState, StaticDetector, invert_transform, wrap_angle
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.site import Site, Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
@@ -33,6 +37,8 @@ from robot_bridge.policy import (
     SEND,
     CorrectionDecision,
     CorrectionPolicy,
+    TrustConfig,
+    floor_area_around,
     localization_known,
 )
 from robot_bridge.pose_output import PoseOutput, PoseOutputConfig
@@ -42,16 +48,27 @@ log = logging.getLogger(__name__)
 SERVICE_NAME: Final = "robot-bridge"
 #: Source preference when both a fused and a camera-only estimate exist for the current stop.
 SOURCE_PREFERENCE: Final = ("fused", "cameras")
+#: The ``source`` an estimate must carry on each robot topic (``protocol.keys``).
+SOURCE_OF_TOPIC: Final = {"pose": "fused", "camera_pose": "cameras"}
+#: The ``bridge`` section's keys that are :class:`BridgeConfig` fields (the rest: TrustConfig).
+_BRIDGE_KEYS: Final = frozenset({"backend_timeout_s", "robot_timeout_s"})
 
 
 @dataclasses.dataclass(frozen=True)
 class BridgeConfig:
     """Configuration of one bridge (one robot).
 
-    ``backend_timeout_s``: no pose estimate or heartbeat from the backend for this long means
-    the backend (or the link) is lost. ``robot_timeout_s``: the same for robot odometry.
+    ``backend_timeout_s``: no status message or liveliness token of the backend for this long
+    means the backend (or the link) is lost. ``robot_timeout_s``: the same for robot odometry.
     ``world_frame``: the frame estimates must be expressed in (the site's world frame).
     ``pose_output``: the continuous pose output (site file section ``pose_output``).
+    ``trust``: what an estimate must satisfy, :class:`robot_bridge.policy.TrustConfig`, from the
+    ``bridge`` section's other keys (defaults): ``clock_tolerance_ms`` (50),
+    ``position_std_floor_m`` (0.02), ``yaw_std_floor_deg`` (1), ``init_agreement_count`` (3),
+    ``init_agreement_m`` (0.2), ``init_agreement_deg`` (10), ``floor_area`` (``[x_min, y_min,
+    x_max, y_max]``; default: the cameras' positions +- ``floor_margin_m``) and
+    ``floor_margin_m`` (10); docs/robot_bridge.md, "What the bridge trusts". Built in code
+    without a site, no floor area bounds the initialization.
     """
 
     robot_id: str
@@ -60,20 +77,43 @@ class BridgeConfig:
     robot_timeout_s: float = 1.0
     world_frame: str = "map"
     pose_output: PoseOutputConfig = dataclasses.field(default_factory=PoseOutputConfig)
+    trust: TrustConfig = dataclasses.field(default_factory=TrustConfig)
 
     @classmethod
     def from_site(cls, site: Site, robot_id: str) -> BridgeConfig:
         """The bridge of ``robot_id``: the site's thresholds and world frame, its ``bridge``
-        section (``backend_timeout_s``, ``robot_timeout_s``) and its ``pose_output`` section;
-        errors name the file and the key."""
+        section (``backend_timeout_s``, ``robot_timeout_s`` and the :class:`TrustConfig` keys,
+        ``floor_area`` as ``[x_min, y_min, x_max, y_max]``) and its ``pose_output`` section;
+        errors name the file and the key. Without a ``floor_area`` the initialization is bounded
+        by the cameras' positions grown by ``floor_margin_m``."""
         reader = site.section_reader()
         pose_output = reader.section("pose_output", site.section("pose_output"),
                                      PoseOutputConfig)
+        node = dict(reader.mapping("bridge", site.section("bridge")))
+        trust_keys = {f.name for f in dataclasses.fields(TrustConfig)}
+        reader.no_unknown("bridge", node, set(_BRIDGE_KEYS) | trust_keys)
+        floor = node.pop("floor_area", None)
+        trust = reader.section(
+            "bridge", {k: v for k, v in node.items() if k in trust_keys}, TrustConfig, int_lo=1)
+        if floor is not None:
+            area: tuple[float, ...] = tuple(
+                float(v) for v in reader.vector("bridge.floor_area", floor, 4))
+            if not (area[0] < area[2] and area[1] < area[3]):
+                raise reader.fail("bridge.floor_area",
+                                  "expected [x_min, y_min, x_max, y_max] with min < max")
+        else:
+            cameras_xy = [invert_transform(cam.T_cam_world)[:2, 3]
+                          for cam in site.cameras.values()]
+            area = floor_area_around(cameras_xy, trust.floor_margin_m)
+            log.info("bridge.floor_area not set in %s: initial poses bounded to the cameras' "
+                     "positions +- %.1f m: x %.1f..%.1f, y %.1f..%.1f", site.source_path,
+                     trust.floor_margin_m, area[0], area[2], area[1], area[3])
+        trust = dataclasses.replace(trust, floor_area=area)
         return reader.section(
-            "bridge", site.section("bridge"), cls,
-            fields={"backend_timeout_s", "robot_timeout_s"},
+            "bridge", {k: v for k, v in node.items() if k in _BRIDGE_KEYS}, cls,
+            fields=set(_BRIDGE_KEYS),
             base=cls(robot_id, site.thresholds, world_frame=site.world_frame,
-                     pose_output=pose_output))
+                     pose_output=pose_output, trust=trust))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,11 +163,12 @@ class RobotBridge:
     def __init__(self, config: BridgeConfig) -> None:
         self.config = config
         th = config.thresholds
-        self._max_future_ns = round(th.max_future_ms * 1e6)
+        # stamps ahead of the bridge's clock by more than the clock tolerance are refused
+        self._max_future_ns = round(min(th.max_future_ms, config.trust.clock_tolerance_ms) * 1e6)
         self._backend_timeout_ns = round(config.backend_timeout_s * NS_PER_S)
         self._robot_timeout_ns = round(config.robot_timeout_s * NS_PER_S)
         self._static = StaticDetector.from_thresholds(th)
-        self._policy = CorrectionPolicy(th)
+        self._policy = CorrectionPolicy(th, config.trust)
         self._counters: dict[str, int] = {}
         self._now_ns = 0
         self._odom_seq = 0
@@ -141,6 +182,7 @@ class RobotBridge:
         self._last_decision: CorrectionDecision = CorrectionDecision("moving")
         self._last_counted: tuple[Any, str] | None = None
         self._pose_output = PoseOutput(config.pose_output, config.world_frame)
+        self._warned: set[str] = set()
 
     # ---------------------------------------------------------------------------------------
     # inputs
@@ -183,18 +225,24 @@ class RobotBridge:
             self._count("internal_error")
             return Outbox()
 
-    def on_pose_estimate(self, estimate: Any, receive_ns: int | None = None) -> Outbox:
-        """A pose estimate of the backend (``source`` ``fused`` or ``cameras``). Counts as a
-        sign of life of the backend; may produce a correction when the robot is static."""
+    def on_pose_estimate(
+        self, estimate: Any, receive_ns: int | None = None, topic: str | None = None
+    ) -> Outbox:
+        """A pose estimate of the backend (``source`` ``fused`` or ``cameras``); may produce a
+        correction when the robot is static. ``topic``: the robot topic it came on (``pose``
+        or ``camera_pose``): its ``source`` must match (else ``source_key_mismatch``).
+        ``receive_ns``: as for odometry, stamps beyond the clock tolerance after it are
+        refused. Not a sign of life of the backend (:meth:`on_backend_heartbeat` is)."""
         try:
-            return self._on_estimate(estimate, receive_ns)
+            return self._on_estimate(estimate, receive_ns, topic)
         except Exception:
             log.exception("unexpected error on pose estimate")
             self._count("internal_error")
             return Outbox()
 
     def on_backend_heartbeat(self, receive_ns: int | None = None) -> None:
-        """The backend is alive (its status message or liveliness token was seen)."""
+        """The backend is alive: its status message or liveliness token was seen (the only
+        signs of life; estimates are not)."""
         self._advance(receive_ns)
         self._last_backend_ns = self._now_ns
         self._backend_gone = False
@@ -208,6 +256,7 @@ class RobotBridge:
         """What the adapter said when the correction was pushed: counted for the status and
         logged, one line per correction (info when accepted, warning when refused)."""
         self._count("corrections_accepted" if accepted else "corrections_refused")
+        self._policy.on_result(correction.seq, accepted)
         log.log(
             logging.INFO if accepted else logging.WARNING,
             "%s %d %s %s: (%.3f, %.3f, %.1f deg), offset %.3f m / %.1f deg",
@@ -321,7 +370,8 @@ class RobotBridge:
         return self._static.state
 
     def backend_alive(self, now_ns: int | None = None) -> bool:
-        """A pose or heartbeat from the backend arrived within ``backend_timeout_s``."""
+        """A heartbeat of the backend (status or liveliness) arrived within
+        ``backend_timeout_s`` and its liveliness token has not gone since."""
         now = self._now_ns if now_ns is None else max(now_ns, self._now_ns)
         return (
             not self._backend_gone
@@ -352,10 +402,10 @@ class RobotBridge:
                 if self._last_backend_ns is None:
                     problems.append("backend lost: never heard")
                 elif self._backend_gone:
-                    problems.append("backend lost: liveliness gone")
+                    problems.append("backend lost: liveliness token gone or status stopping")
                 else:
                     silent_s = (now - self._last_backend_ns) / 1e9
-                    problems.append(f"backend lost: no pose or heartbeat for {silent_s:.1f} s")
+                    problems.append(f"backend lost: no status or liveliness for {silent_s:.1f} s")
                 problems.append("robot navigates on its own localization")
             state = "degraded" if problems else "ok"
         return BridgeStatus(
@@ -405,19 +455,27 @@ class RobotBridge:
         if _is_int(now_ns) and now_ns > self._now_ns:  # type: ignore[operator]
             self._now_ns = int(now_ns)  # type: ignore[arg-type]
 
-    def _future(self, stamp_ns: int, receive_ns: int | None) -> bool:
+    def _future(self, what: str, stamp_ns: int, receive_ns: int | None) -> bool:
         # Only a receive time can tell: without one, a stamp after a gap in the data would look
         # like the future.
         if not _is_int(receive_ns):
             return False
-        return stamp_ns > receive_ns + self._max_future_ns  # type: ignore[operator]
+        ahead_ns = stamp_ns - receive_ns  # type: ignore[operator]
+        if ahead_ns <= self._max_future_ns:
+            return False
+        if what not in self._warned:  # once: a clock problem repeats on every message
+            self._warned.add(what)
+            log.warning("%s stamped %.0f ms ahead of the bridge's clock (tolerance %.0f ms): "
+                        "refused; check the hosts' clock synchronization or the sender",
+                        what, ahead_ns / 1e6, self._max_future_ns / 1e6)
+        return True
 
     def _on_odometry(self, sample: Any, receive_ns: int | None) -> Outbox:
         if not isinstance(sample, OdometrySample):
             return self._reject("invalid_odometry", f"type {type(sample).__name__}")
         if not _is_int(sample.stamp_ns) or sample.stamp_ns < 0:
             return self._reject("invalid_odometry", "bad stamp")
-        if self._future(sample.stamp_ns, receive_ns):
+        if self._future("odometry", sample.stamp_ns, receive_ns):
             return self._reject("future_stamp_odometry", str(sample.stamp_ns))
         if self._last_odom_stamp_ns is not None and sample.stamp_ns <= self._last_odom_stamp_ns:
             return self._reject("out_of_order_odometry", str(sample.stamp_ns))
@@ -449,22 +507,25 @@ class RobotBridge:
             self._pose_output.on_odometry(msg.stamp_ns, msg.x, msg.y, msg.theta, msg.frame_id)
         return Outbox(odometry=(msg,)) + self._evaluate()
 
-    def _on_estimate(self, estimate: Any, receive_ns: int | None) -> Outbox:
+    def _on_estimate(self, estimate: Any, receive_ns: int | None, topic: str | None) -> Outbox:
         if not isinstance(estimate, PoseEstimate):
             return self._reject("invalid_estimate", f"type {type(estimate).__name__}")
         if estimate.robot_id != self.config.robot_id:
             return self._reject("other_robot_estimate", estimate.robot_id)
         if estimate.frame_id != self.config.world_frame:
             return self._reject("wrong_frame_estimate", estimate.frame_id)
-        if self._future(estimate.stamp_ns, receive_ns):
+        if topic is not None and SOURCE_OF_TOPIC.get(topic) != estimate.source:
+            return self._reject("source_key_mismatch", f"{estimate.source} on {topic}")
+        # refused before it can touch the newest-stamp state: a stamp from the future must not
+        # make the genuine estimates after it look late
+        if self._future("estimate", estimate.stamp_ns, receive_ns):
             return self._reject("future_stamp_estimate", str(estimate.stamp_ns))
         self._advance(receive_ns)
         self._count(f"received_estimate_{estimate.source}")
-        self._last_backend_ns = self._now_ns
-        self._backend_gone = False
         prev = self._estimates.get(estimate.source)
         if prev is None or estimate.stamp_ns >= prev.stamp_ns:
             self._estimates[estimate.source] = estimate
+            self._policy.observe(estimate)
             self._pose_output.on_estimate(estimate)
         else:
             self._count("late_estimate")
@@ -507,7 +568,7 @@ class RobotBridge:
                 x=est.x,
                 y=est.y,
                 theta=wrap_angle(est.theta),
-                covariance=est.covariance,
+                covariance=self._policy.floored(est.covariance),
                 kind=decision.kind,
                 offset_m=decision.offset_m,
                 offset_rad=decision.offset_rad,
@@ -516,7 +577,8 @@ class RobotBridge:
         except ProtocolError as exc:
             return self._reject("invalid_correction", str(exc))
         self._correction_seq += 1
-        self._policy.mark_sent(motion, self._now_ns)
+        self._policy.mark_sent(motion, self._now_ns, decision, self._localization,
+                               correction.seq)
         self._count("initializations_sent" if decision.kind == "initialization" else
                     "corrections_sent")
         # logged once, when the robot answers (on_correction_result)

@@ -3,8 +3,11 @@
 Robot side (an adapter): odometry and the robot's own localization in, pose corrections out.
 Network side: publishes :class:`protocol.Odometry` on ``.../robot/<id>/odom``, the robot's own
 localization as a ``PoseEstimate`` (source ``robot``) on ``.../localization``, every correction
-pushed on ``.../correction``; listens to the backend's fused (``.../pose``) and camera-only
-(``.../camera_pose``) estimates and to the backend's liveliness.
+pushed on ``.../correction``; listens to the backend's fused (``.../pose``) or camera-only
+(``.../camera_pose``) estimates, and to the backend's status messages and liveliness token (its
+only signs of life: estimates are not heartbeats). Who may put on those keys is the router's
+access control (docs/robot_bridge.md, "What the bridge trusts"); the bridge checks what it can
+locally (source vs key, clock tolerance, covariance floor, jump, window and floor-area limits).
 
 The robot never waits on the bridge: the worker loop reads the adapter and returns; when the
 backend or the link is gone the status says so and nothing else changes for the robot.
@@ -27,7 +30,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.errors import UsageError
-from protocol.messages import Message, PoseEstimate
+from protocol.messages import Message, PoseEstimate, ServiceStatus
 from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
@@ -84,14 +87,23 @@ class RobotBridgeNode(ServiceNode):
             Subscription(
                 keys.robot_key(self.site, self.robot_id, topic), PoseEstimate, capacity=64
             ),
+            # the backend's heartbeat: its status (every second) and its liveliness token
+            Subscription(keys.status_key(self.site, "backend", "*"), ServiceStatus, capacity=64),
             Subscription(keys.alive_key(self.site, "backend", "*"), liveliness=True),
         ]
 
     def handle(self, key: str, message: Message, recv_ns: int) -> Iterable[Outgoing]:
+        if isinstance(message, ServiceStatus):
+            self.stats.event("backend_status")
+            if message.state == "stopping":  # its last words: gone now, not in 3 s
+                self.bridge.on_backend_gone(recv_ns)
+            else:
+                self.bridge.on_backend_heartbeat(recv_ns)
+            return []
         assert isinstance(message, PoseEstimate)
         self.stats.event("estimates")
-        self.bridge.on_backend_heartbeat(recv_ns)
-        box = self.bridge.on_pose_estimate(message, recv_ns)
+        # the key's last chunk: the source must match it (pose -> fused, camera_pose -> cameras)
+        box = self.bridge.on_pose_estimate(message, recv_ns, topic=key.rsplit("/", 1)[-1])
         if self.adapter is not None:
             # a correction decided on an incoming estimate goes to the robot now
             box = self.bridge.apply(self.adapter, box)

@@ -99,7 +99,8 @@ def camera_estimate(robot: DriftingRobot, rng, sigma_m=0.01, sigma_deg=0.5, sour
 
 
 class Harness:
-    """Runs robot + bridge + (optional) backend estimates at 50 Hz odometry, 10 Hz estimates."""
+    """Runs robot + bridge + (optional) backend estimates at 50 Hz odometry, 10 Hz estimates,
+    and the backend's heartbeat (its status message) at 1 Hz."""
 
     def __init__(self, robot: DriftingRobot, *, seed=0, backend=True, localized=True) -> None:
         self.robot = robot
@@ -118,6 +119,8 @@ class Harness:
         for _ in range(round(seconds * 50)):
             self.robot.step(vx, wz)
             self._n += 1
+            if self.backend and self._n % 50 == 1:
+                self.bridge.on_backend_heartbeat(self.robot.t_ns)
             if self.backend and self._n % 5 == 0:
                 out = self.bridge.on_pose_estimate(
                     camera_estimate(self.robot, self.rng, seq=self._seq), self.robot.t_ns)
@@ -491,3 +494,40 @@ def test_simulated_kidnapped_robot_is_initialized_at_the_first_stop() -> None:
     assert errors[0] < 0.05  # first localized step: the initial pose from the cameras
     assert corrections[0].stamp_ns < robot.stamp_ns(run.stops[0].t1_s)
     assert all(c.kind == "correction" for c in corrections[1:])
+
+
+def test_bridge_section_holds_what_the_bridge_trusts(example_site_path) -> None:
+    """The trust keys of the site file's ``bridge`` section; ``floor_area`` explicit or the
+    cameras' positions +- ``floor_margin_m``; bad values name the file and the key."""
+    import yaml
+
+    from protocol.errors import SiteConfigError
+    from protocol.site import parse_site
+
+    doc = yaml.safe_load(example_site_path.read_text())
+
+    def config(**bridge):
+        site = parse_site({**doc, "bridge": bridge}, "site.yaml", example_site_path.parent)
+        return BridgeConfig.from_site(site, "hsr")
+
+    default = config()
+    # the example's cameras stand at x 7..13, y 3..9
+    assert default.trust.floor_area == pytest.approx((-3.0, -7.0, 23.0, 19.0))
+    c = config(clock_tolerance_ms=20.0, init_agreement_count=5, floor_area=[-1, -2.5, 20, 12],
+               backend_timeout_s=4.0)
+    assert c.trust.clock_tolerance_ms == 20.0 and c.trust.init_agreement_count == 5
+    assert c.trust.floor_area == (-1.0, -2.5, 20.0, 12.0) and c.backend_timeout_s == 4.0
+    assert config(floor_margin_m=1.0).trust.floor_area == pytest.approx((6.0, 2.0, 14.0, 10.0))
+    for bridge, key in (({"floor_area": [0, 0, 1]}, "bridge.floor_area"),
+                        ({"floor_area": [5, 0, 1, 1]}, "bridge.floor_area"),
+                        ({"init_agreement_count": 0}, "bridge.init_agreement_count"),
+                        ({"clock_tolerance_ms": -1}, "bridge.clock_tolerance_ms"),
+                        ({"clock_tolerance": 1}, "bridge.clock_tolerance")):
+        with pytest.raises(SiteConfigError, match=key.replace(".", r"\.")) as err:
+            config(**bridge)
+        assert "site.yaml" in str(err.value)
+    # the bridge uses the tighter of its clock tolerance and thresholds.max_future_ms
+    bridge = RobotBridge(c)
+    assert not bridge.on_robot_odometry(OdometrySample(T0 + 21_000_000, 0.0, 0.0, 0.0), T0)
+    assert bridge.on_robot_odometry(OdometrySample(T0 + 19_000_000, 0.0, 0.0, 0.0), T0)
+    assert bridge.counters["future_stamp_odometry"] == 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,15 +16,24 @@ from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose
 from robot_bridge.policy import (
     ALREADY_SENT,
+    AWAITING_AGREEMENT,
+    HEADING_JUMP_TOO_LARGE,
     JUMP_TOO_LARGE,
     MOVING,
     NO_ESTIMATE,
+    OUTSIDE_FLOOR,
     RATE_LIMITED,
     SETTLING,
     SMALL_OFFSET,
     UNCERTAIN,
     UNFIT_FOR_INIT,
+    WINDOW_EXCEEDED,
+    CorrectionDecision,
     CorrectionPolicy,
+    TrustConfig,
+    floor_area_around,
+    floor_covariance,
+    inside_floor_area,
     pose_offset,
     position_std_m,
 )
@@ -116,12 +126,19 @@ def test_rule_gates_on_covariance() -> None:
 
 
 def test_kidnapped_robot_gets_an_initialization_whatever_the_distance() -> None:
+    """Far from anything is fine (no floor area configured) once three consecutive estimates
+    agree (the default ``init_agreement_count``)."""
     pol = CorrectionPolicy(TH)
-    far = estimate(x=8.0, y=-3.0, theta=-2.0)
+    far = [estimate(x=8.0 + 0.01 * i, y=-3.0, theta=-2.0, stamp_ns=T0 - S + i) for i in range(3)]
+    for i, est in enumerate(far):
+        pol.observe(est)
+        if i < 2:
+            assert pol.decide(est, None, static_motion(), T0).reason == AWAITING_AGREEMENT
     for localization in (None, loc(lost=True), loc(x=math.nan)):
-        d = pol.decide(far, localization, static_motion(), T0)
+        d = pol.decide(far[-1], localization, static_motion(), T0)
         assert d.send and d.kind == "initialization"
     lateral = estimate(flags=("single_camera", "lateral_only"))
+    pol.observe(lateral)
     assert pol.decide(lateral, None, static_motion(), T0).reason == UNFIT_FOR_INIT
 
 
@@ -160,3 +177,114 @@ def test_property_no_pose_is_ever_decided_while_moving(steps) -> None:
             assert m.is_static and speed <= TH.static_max_speed_mps
             assert abs(yaw_rate) <= TH.static_max_yaw_rate_radps
             pol.mark_sent(m, t)
+
+
+# --------------------------------------------------------------------------------------------
+# what the bridge trusts (issue 17): covariance floor, heading and accumulated jumps, the
+# correction window, the initialization's floor area and agreement
+# --------------------------------------------------------------------------------------------
+
+
+def test_covariance_floor() -> None:
+    floor_m, floor_rad = 0.02, math.radians(1.0)
+    zero = floor_covariance(np.zeros((3, 3)), floor_m, floor_rad)
+    assert np.allclose(zero, np.diag([floor_m**2, floor_m**2, floor_rad**2]))
+    # a thin ellipse is widened only across, keeping its orientation
+    R = np.array([[math.cos(0.7), -math.sin(0.7)], [math.sin(0.7), math.cos(0.7)]])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = R @ np.diag([0.1**2, 1e-8]) @ R.T
+    cov[2, 2] = 0.1
+    out = floor_covariance(cov, floor_m, floor_rad)
+    assert np.allclose(np.linalg.eigvalsh(out[:2, :2]), [floor_m**2, 0.1**2])
+    assert out[2, 2] == 0.1
+    wide = np.diag([0.04, 0.09, 0.2])
+    assert np.array_equal(floor_covariance(wide, floor_m, floor_rad), wide)
+    # the gate sees the floor: with a floor above the gate nothing passes
+    strict = CorrectionPolicy(TH, TrustConfig(position_std_floor_m=TH.correction_max_std_m * 2))
+    assert strict.decide(estimate(x=1.2, std_m=0.0), loc(), static_motion(), T0).reason == UNCERTAIN
+
+
+def test_heading_jump_is_limited() -> None:
+    pol = CorrectionPolicy(TH)
+    turned = estimate(theta=0.3 + math.radians(TH.correction_max_jump_deg + 5))
+    assert pol.decide(turned, loc(), static_motion(), T0).reason == HEADING_JUMP_TOO_LARGE
+    assert pol.decide(estimate(theta=0.3 + math.radians(20)), loc(), static_motion(), T0).send
+
+
+def _send(pol: CorrectionPolicy, est: PoseEstimate, localization: LocalizationPose, stop_id: int,
+          now_ns: int, seq: int) -> CorrectionDecision:
+    m = MotionState(now_ns, now_ns - 2 * S, True, stop_id)
+    est = dataclasses.replace(est, stamp_ns=now_ns - S)  # observed during this stop
+    d = pol.decide(est, localization, m, now_ns)
+    if d.send:
+        pol.mark_sent(m, now_ns, d, localization, seq)
+    return d
+
+
+def test_repeated_sub_limit_jumps_do_not_accumulate() -> None:
+    """0.6 m each time, relative to where the robot now believes it is: the second would put
+    the robot 1.2 m from its own (uncorrected) localization, beyond one jump; so would a second
+    20 deg turn. After the window, a new jump is allowed."""
+    pol = CorrectionPolicy(TH)
+    t = T0
+    assert _send(pol, estimate(x=1.6), loc(), 1, t, 0).send
+    t += 10 * S
+    d = _send(pol, estimate(x=2.2), loc(x=1.6), 2, t, 1)
+    assert d.reason == JUMP_TOO_LARGE and d.offset_m == pytest.approx(0.6)
+    pol2 = CorrectionPolicy(TH)
+    assert _send(pol2, estimate(theta=0.3 + math.radians(20)), loc(), 1, T0, 0).send
+    d = _send(pol2, estimate(theta=0.3 + math.radians(40)), loc(theta=0.3 + math.radians(20)), 2,
+              T0 + 10 * S, 1)
+    assert d.reason == HEADING_JUMP_TOO_LARGE
+    # the window passed: the correction is no longer in the reference
+    later = T0 + round((TH.correction_window_s + 1) * S)
+    assert _send(pol, estimate(x=2.2), loc(x=1.6), 3, later, 2).send
+
+
+def test_correction_window_bounds_the_total() -> None:
+    """Back and forth by 0.6 m: no net drift, but 1.2 m of correction within the window is
+    over the rate limit; a refused correction does not count."""
+    pol = CorrectionPolicy(TH)
+    assert _send(pol, estimate(x=1.6), loc(), 1, T0, 0).send
+    d = _send(pol, estimate(x=1.0), loc(x=1.6), 2, T0 + 10 * S, 1)
+    assert d.reason == WINDOW_EXCEEDED
+    assert [a.seq for a in pol.window(T0 + 10 * S)] == [0]
+    pol.on_result(0, accepted=False)  # the robot refused it: nothing to count
+    assert pol.window(T0 + 10 * S) == []
+    assert _send(pol, estimate(x=1.6), loc(), 2, T0 + 10 * S, 1).send
+
+
+def test_initialization_needs_the_floor_area_and_agreement() -> None:
+    pol = CorrectionPolicy(TH, TrustConfig(floor_area=(0.0, 0.0, 20.0, 12.0)))
+    m = static_motion()
+    outside = [estimate(x=40.0, y=6.0, stamp_ns=T0 - S + i) for i in range(5)]
+    for est in outside:
+        pol.observe(est)
+    assert pol.decide(outside[-1], None, m, T0).reason == OUTSIDE_FLOOR
+    # two places 0.5 m apart, alternating: never three in a row that agree
+    for i in range(6):
+        est = estimate(x=5.0 + 0.5 * (i % 2), y=6.0, stamp_ns=T0 - S + 10 + i)
+        pol.observe(est)
+        assert pol.decide(est, None, m, T0).reason == AWAITING_AGREEMENT
+    for i in range(3):
+        est = estimate(x=5.0 + 0.01 * i, y=6.0, stamp_ns=T0 - S + 20 + i)
+        pol.observe(est)
+    assert pol.agreement(est, m.still_since_ns) == 3
+    assert pol.decide(est, None, m, T0).kind == "initialization"
+    # estimates from before the stop do not count towards the agreement
+    assert pol.agreement(est, est.stamp_ns) == 1
+    # nor does one that is not the newest of its source
+    assert pol.agreement(outside[0], 0) == 0
+
+
+def test_floor_area_helpers_and_config_checks() -> None:
+    assert floor_area_around([(7.0, 3.0), (13.0, 9.0)], 2.0) == (5.0, 1.0, 15.0, 11.0)
+    assert inside_floor_area(5.0, 11.0, (5.0, 1.0, 15.0, 11.0))
+    assert not inside_floor_area(4.9, 5.0, (5.0, 1.0, 15.0, 11.0))
+    assert inside_floor_area(1e6, -1e6, ())
+    with pytest.raises(ValueError, match="floor_area"):
+        TrustConfig(floor_area=(1.0, 0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="floor_area"):
+        TrustConfig(floor_area=(0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="init_agreement_count"):
+        TrustConfig(init_agreement_count=0)
