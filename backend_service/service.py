@@ -12,9 +12,11 @@ Zenoh (:func:`main`). Watching it is the viewer's job (``smartedge viewer``), no
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import logging
 from collections.abc import Iterable, Sequence
+from typing import Final
 
 from backend_service.fusion import FusionConfig, fusion_config_from_site
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
@@ -26,10 +28,22 @@ from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 
+#: how many recent inputs the stamp-to-arrival delay floor of the freshness check looks at
+INPUT_DELAY_WINDOW: Final = 256
 
 
 class BackendNode(ServiceNode):
-    """The backend as a transport-free node: a :class:`BackendPipeline` on message keys."""
+    """The backend as a transport-free node: a :class:`BackendPipeline` on message keys.
+
+    Freshness: a pose is published only while its age is at most ``publish_max_age_s``
+    (:class:`PipelineConfig`); an older one (the worker was stalled, or its inputs queued) is
+    dropped and counted (``stale_dropped``, ``stale_dropped.pose``,
+    ``stale_dropped.camera_pose``). Its age is the runner's clock (:attr:`clock`, the wall clock
+    under Zenoh) minus its stamp, less the smallest stamp-to-arrival delay of the recent inputs
+    (never below 0): on a live site, where sensors share the backend's time base, that floor is
+    the transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is
+    the replay's offset, so replayed poses are not all stale.
+    """
 
     service = "backend"
 
@@ -48,6 +62,10 @@ class BackendNode(ServiceNode):
         self.tick_period_s = tick_period_s
         self._peers: dict[str, bool] = {}
         self._last_now_ns = 0
+        self._max_age_ns = round(self.pipeline.config.publish_max_age_s * 1e9)
+        self._input_delays: collections.deque[int] = collections.deque(maxlen=INPUT_DELAY_WINDOW)
+        self._delay_floor_ns = 0
+        self._stale_run = 0
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
@@ -78,6 +96,10 @@ class BackendNode(ServiceNode):
             # only the robot's own localization belongs on .../localization
             self.stats.count("localization_wrong_source")
             return []
+        stamp_ns = getattr(message, "stamp_ns", None)
+        if isinstance(stamp_ns, int):
+            self._input_delays.append(recv_ns - stamp_ns)
+            self._delay_floor_ns = max(0, min(self._input_delays))
         return self._publish(self.pipeline.feed(message, recv_ns), recv_ns)
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
@@ -88,14 +110,36 @@ class BackendNode(ServiceNode):
         for solve in out.solves:
             self.stats.latency("solve", solve.solve_s)
         msgs: list[Outgoing] = []
+        if not (out.camera or out.fused):
+            return msgs
+        publish_ns = self.clock()
         for est in out.camera:
             self.stats.event("camera_estimates")
             self.stats.latency("stamp_to_pose", max(0, now_ns - est.stamp_ns) * 1e-9)
-            msgs.append(Outgoing(keys.camera_pose_key(self.site, est.robot_id), est))
+            if self._fresh(est, publish_ns, "camera_pose"):
+                msgs.append(Outgoing(keys.camera_pose_key(self.site, est.robot_id), est))
         for fused in out.fused:
             self.stats.event("fused")
-            msgs.append(Outgoing(keys.pose_key(self.site, fused.robot_id), fused))
+            if self._fresh(fused, publish_ns, "pose"):
+                msgs.append(Outgoing(keys.pose_key(self.site, fused.robot_id), fused))
         return msgs
+
+    def _fresh(self, est: PoseEstimate, publish_ns: int, topic: str) -> bool:
+        """Whether ``est`` is young enough to publish at ``publish_ns``; counts and logs the
+        stale ones (one warning per run of stale poses)."""
+        age_ns = publish_ns - est.stamp_ns - self._delay_floor_ns
+        if age_ns <= self._max_age_ns:
+            if self._stale_run:
+                log.info("publishing poses again after dropping %d stale ones", self._stale_run)
+                self._stale_run = 0
+            return True
+        self.stats.count("stale_dropped")
+        self.stats.count(f"stale_dropped.{topic}")
+        if not self._stale_run:
+            log.warning("dropping stale poses: %s of %s is %.2f s old (limit %.2f s)", topic,
+                        est.robot_id, age_ns * 1e-9, self._max_age_ns * 1e-9)
+        self._stale_run += 1
+        return False
 
     def state(self) -> tuple[str, str]:
         tracks = self.pipeline.tracks

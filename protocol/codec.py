@@ -9,9 +9,14 @@ Scalars travel as msgpack scalars, lists as arrays, nested records and string-ke
 holding the raw little-endian bytes in C order.
 
 :func:`decode` never raises anything but :class:`~protocol.errors.DecodeError`, whatever the
-bytes: it caps the payload size, the msgpack container sizes and the nesting, whitelists array
-dtypes, checks shapes against byte counts before touching the data, and finally runs the message's
-own validation.
+bytes, and enforces every limit before it builds what the limit bounds (:mod:`protocol.limits`):
+the payload cap (of the expected type before parsing, of the announced type right after reading
+the envelope), the structure (each key and value of the top-level map is located by skipping
+through the raw msgpack, never built), the unknown-key rule (checked on those raw spans), the
+entry counts of lists and maps (read from their headers, so 10 000 nested detections cost nothing
+before the 64-entry limit refuses them), the msgpack string, array and map sizes and the nesting;
+then it whitelists array dtypes, checks shapes against byte counts before touching the data, and
+finally runs the message's own validation.
 """
 
 from __future__ import annotations
@@ -26,12 +31,19 @@ import msgpack
 import numpy as np
 
 from protocol.errors import DecodeError, ValidationError
-from protocol.messages import MESSAGE_TYPES, Detection, Message
+from protocol.limits import (
+    MAX_ARRAY_ENTRIES,
+    MAX_MAP_ENTRIES,
+    MAX_PAYLOAD_BYTES,
+    MAX_STR_BYTES,
+    MAX_UNKNOWN_KEYS,
+    MAX_UNKNOWN_VALUE_BYTES,
+    LimitError,
+    check_payload_size,
+)
+from protocol.messages import MAX_ENTRIES, MESSAGE_TYPES, Detection, Message
 
-MAX_PAYLOAD_BYTES: Final = 64 * 1024 * 1024
 MAX_ARRAY_NDIM: Final = 4
-_MAX_CONTAINER_LEN: Final = 100_000
-_MAX_MAP_LEN: Final = 4_096
 _ALLOWED_DTYPES: Final = frozenset(
     {"<f4", "<f8", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "|b1"}
 )
@@ -182,7 +194,9 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
     """Parse and validate a payload; raise :class:`DecodeError` (only) when it is not valid.
 
     ``expected``: if given, the message must be of this type (e.g. a subscriber on a detections
-    key accepts only :class:`~protocol.messages.RobotDetections`).
+    key accepts only :class:`~protocol.messages.RobotDetections`), and its payload cap
+    (:data:`protocol.limits.PAYLOAD_CAPS`) is checked before anything is parsed. A payload over
+    a limit raises :class:`~protocol.limits.LimitError`, a :class:`DecodeError` naming the limit.
     """
     try:
         return _decode(payload, expected)
@@ -195,33 +209,33 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
 def _decode(payload: Any, expected: type[M] | None) -> M:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise DecodeError(f"payload must be bytes, got {type(payload).__name__}")
-    if len(payload) > MAX_PAYLOAD_BYTES:
-        raise DecodeError(f"payload of {len(payload)} bytes exceeds the {MAX_PAYLOAD_BYTES} limit")
-    if len(payload) == 0:
+    size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
+    check_payload_size(size, None if expected is None else expected.SCHEMA)
+    buf = payload if isinstance(payload, bytes) else bytes(payload)
+    if len(buf) == 0:
         raise DecodeError("empty payload")
+    data = memoryview(buf)
+    kind, _ = _container_header(data, 0)
+    if kind != "map":
+        raise DecodeError(f"top level must be a map, got {_wire_type(buf[0])}")
     try:
-        obj = msgpack.unpackb(
-            bytes(payload),
-            raw=False,
-            use_list=True,
-            strict_map_key=True,
-            max_str_len=MAX_PAYLOAD_BYTES,
-            max_bin_len=MAX_PAYLOAD_BYTES,
-            max_array_len=_MAX_CONTAINER_LEN,
-            max_map_len=_MAX_MAP_LEN,
-            max_ext_len=0,
-        )
+        unpacker = _unpacker(data)
+        spans = _scan_map(unpacker, data, 0, "")
+        trailing = len(buf) - unpacker.tell()
+    except DecodeError:
+        raise
     except Exception as exc:
         raise DecodeError(f"not a msgpack document: {type(exc).__name__}: {exc}"[:300]) from None
-    if not isinstance(obj, dict):
-        raise DecodeError(f"top level must be a map, got {type(obj).__name__}")
-    schema = obj.get("schema")
+    del unpacker  # its copy of the payload
+    if trailing:
+        raise DecodeError(f"{trailing} trailing bytes after the message")
+    schema = _scalar_at(data, spans.get("schema"))
     if not isinstance(schema, str):
         raise DecodeError("missing or non-string 'schema'")
     cls = _REGISTRY.get(schema)
     if cls is None:
         raise DecodeError(f"unknown schema {schema[:64]!r}; known: {sorted(_REGISTRY)}")
-    version = obj.get("schema_version")
+    version = _scalar_at(data, spans.get("schema_version"))
     if not isinstance(version, int) or isinstance(version, bool):
         raise DecodeError(f"{schema}: missing or non-integer 'schema_version'")
     if version != cls.VERSION:
@@ -230,4 +244,168 @@ def _decode(payload: Any, expected: type[M] | None) -> M:
         )
     if expected is not None and cls is not expected:
         raise DecodeError(f"expected {expected.SCHEMA}, got {schema}")
-    return _record_from_wire("", cls, obj, schema)
+    check_payload_size(len(buf), schema)
+    _check_unknown_keys(spans, _known_keys(cls) | _ENVELOPE, "")
+    return _record_from_wire("", cls, _build_known(data, spans, cls, schema, ""), schema)
+
+
+# --------------------------------------------------------------------------------------------
+# the raw msgpack structure, read before anything large is built
+# --------------------------------------------------------------------------------------------
+
+_ENVELOPE: Final = frozenset({"schema", "schema_version"})
+#: longest packed key of a record (a str8 of 253 bytes): field names are short identifiers
+_MAX_KEY_BYTES: Final = 255
+_UNPACK_LIMITS: Final[dict[str, int]] = {
+    "max_str_len": MAX_STR_BYTES,
+    "max_bin_len": MAX_PAYLOAD_BYTES,
+    "max_array_len": MAX_ARRAY_ENTRIES,
+    "max_map_len": MAX_MAP_ENTRIES,
+    "max_ext_len": 0,
+}
+Span = tuple[int, int]
+
+
+def _unpacker(data: memoryview) -> msgpack.Unpacker:
+    unpacker = msgpack.Unpacker(
+        raw=False, use_list=True, strict_map_key=True, max_buffer_size=max(1, len(data)),
+        **_UNPACK_LIMITS,
+    )
+    unpacker.feed(data)
+    return unpacker
+
+
+def _unpack(data: memoryview) -> Any:
+    """One complete msgpack object (the slice of a value), under the receiver's limits."""
+    return msgpack.unpackb(data, raw=False, use_list=True, strict_map_key=True, **_UNPACK_LIMITS)
+
+
+def _wire_type(first: int) -> str:
+    if first <= 0x7F or first >= 0xE0 or 0xCC <= first <= 0xD3:
+        return "int"
+    if 0x90 <= first <= 0x9F or first in (0xDC, 0xDD):
+        return "list"
+    if 0xA0 <= first <= 0xBF or 0xD9 <= first <= 0xDB:
+        return "str"
+    if 0xC4 <= first <= 0xC6:
+        return "bytes"
+    if first in (0xCA, 0xCB):
+        return "float"
+    if first in (0xC2, 0xC3):
+        return "bool"
+    if first == 0xC0:
+        return "NoneType"
+    return f"msgpack type 0x{first:02x}"
+
+
+def _container_header(data: memoryview, pos: int) -> tuple[str, int]:
+    """(``"map"``/``"list"``/``""``, number of entries) of the msgpack object at ``pos``, read
+    from its header alone."""
+    if pos >= len(data):
+        return "", 0
+    first = data[pos]
+    if 0x80 <= first <= 0x8F:
+        return "map", first & 0x0F
+    if 0x90 <= first <= 0x9F:
+        return "list", first & 0x0F
+    width = {0xDC: 2, 0xDD: 4, 0xDE: 2, 0xDF: 4}.get(first)
+    if width is None or pos + 1 + width > len(data):
+        return "", 0
+    count = int.from_bytes(data[pos + 1 : pos + 1 + width], "big")
+    return ("list" if first in (0xDC, 0xDD) else "map"), count
+
+
+def _scan_map(
+    unpacker: msgpack.Unpacker, data: memoryview, base: int, path: str
+) -> dict[str, Span]:
+    """The spans (offsets in ``data``) of the values of the map at the unpacker's position, by
+    key; values are skipped, not built. ``base``: offset in ``data`` of the unpacker's input."""
+    count = unpacker.read_map_header()
+    if count > MAX_MAP_ENTRIES:
+        raise LimitError("too_many_entries",
+                         f"{path or 'message'}: map of {count} entries (limit {MAX_MAP_ENTRIES})")
+    spans: dict[str, Span] = {}
+    for _ in range(count):
+        k0 = unpacker.tell()
+        unpacker.skip()
+        k1 = unpacker.tell()
+        if k1 - k0 > _MAX_KEY_BYTES:
+            raise LimitError("unknown_key_too_large",
+                             f"{path or 'message'}: a key of {k1 - k0} bytes "
+                             f"(limit {_MAX_KEY_BYTES})")
+        key = _unpack(data[base + k0 : base + k1])
+        if not isinstance(key, str):
+            raise DecodeError(f"{path or 'message'}: map keys must be strings, "
+                              f"got {type(key).__name__}")
+        v0 = unpacker.tell()
+        unpacker.skip()
+        spans[key] = (base + v0, base + unpacker.tell())
+    return spans
+
+
+def _check_unknown_keys(spans: Mapping[str, Span], known: frozenset[str], path: str) -> None:
+    """The unknown-key rule: at most :data:`MAX_UNKNOWN_KEYS` unknown keys per record, each
+    value at most :data:`MAX_UNKNOWN_VALUE_BYTES` packed."""
+    unknown = [(k, end - start) for k, (start, end) in spans.items() if k not in known]
+    where = path or "message"
+    if len(unknown) > MAX_UNKNOWN_KEYS:
+        raise LimitError("too_many_unknown_keys",
+                         f"{where}: {len(unknown)} unknown keys (limit {MAX_UNKNOWN_KEYS})")
+    for key, size in unknown:
+        if size > MAX_UNKNOWN_VALUE_BYTES:
+            raise LimitError("unknown_key_too_large",
+                             f"{where}: unknown key {key[:64]!r} holds {size} bytes "
+                             f"(limit {MAX_UNKNOWN_VALUE_BYTES})")
+
+
+def _scalar_at(data: memoryview, span: Span | None) -> Any:
+    """The value at ``span`` if it is a scalar (never builds a container), else ``None``."""
+    if span is None or _container_header(data, span[0])[0]:
+        return None
+    return _unpack(data[span[0] : span[1]])
+
+
+@functools.cache
+def _known_keys(cls: type) -> frozenset[str]:
+    return frozenset(_field_names(cls))
+
+
+def _build_known(
+    data: memoryview, spans: Mapping[str, Span], cls: type, schema: str, path: str
+) -> dict[str, Any]:
+    """The known fields of a record as plain msgpack values; containers have their entry counts
+    checked from their headers first, nested records are scanned the same way."""
+    obj: dict[str, Any] = {}
+    for name, _kind, _required, nested in _field_specs(cls, schema):
+        span = spans.get(name)
+        if span is None:
+            continue
+        where = f"{path}.{name}" if path else name
+        kind, count = _container_header(data, span[0])
+        limit = MAX_ENTRIES.get((schema, name))
+        if limit is not None and kind and count > limit:
+            raise LimitError("too_many_entries",
+                             f"{where}: {count} entries (limit {limit})")
+        if nested is not None and kind == "list":
+            obj[name] = _build_nested(data, span, nested, where)
+        else:
+            obj[name] = _unpack(data[span[0] : span[1]])
+    return obj
+
+
+def _build_nested(data: memoryview, span: Span, cls: type, path: str) -> list[Any]:
+    """A list of nested records (its length already checked): each record's known fields, its
+    unknown keys size-checked and never built."""
+    unpacker = _unpacker(data[span[0] : span[1]])
+    items: list[Any] = []
+    for i in range(unpacker.read_array_header()):
+        where = f"{path}[{i}]"
+        start = span[0] + unpacker.tell()
+        if _container_header(data, start)[0] != "map":
+            unpacker.skip()
+            items.append(_unpack(data[start : span[0] + unpacker.tell()]))
+            continue
+        spans = _scan_map(unpacker, data, span[0], where)
+        _check_unknown_keys(spans, _known_keys(cls), where)
+        items.append(_build_known(data, spans, cls, cls.__name__, where))
+    return items

@@ -41,6 +41,10 @@ MAX_IMAGE_SIDE_PX: Final = 65_535
 MAX_KEYPOINT_SIGMA_PX: Final = 1.0e4
 MAX_IMAGE_BYTES: Final = 8 * 1024 * 1024
 IMAGE_ENCODINGS: Final = ("jpeg",)
+MAX_CAMERA_IDS: Final = 256
+MAX_FLAGS: Final = 32
+MAX_PEERS: Final = 4096
+MAX_NUMBER_MAP_ENTRIES: Final = 256
 
 POSE_SOURCES: Final = ("cameras", "fused", "robot", "ground_truth")
 CORRECTION_KINDS: Final = ("initialization", "correction")
@@ -335,13 +339,14 @@ class PoseEstimate(Message):
     def __post_init__(self) -> None:
         _check_planar_pose(self)
         _freeze(self, "source", check_choice("source", self.source, POSE_SOURCES))
-        _freeze(self, "camera_ids", check_str_tuple("camera_ids", self.camera_ids))
+        _freeze(self, "camera_ids",
+                check_str_tuple("camera_ids", self.camera_ids, max_items=MAX_CAMERA_IDS))
         _freeze(
             self,
             "reprojection_rmse_px",
             check_float("reprojection_rmse_px", self.reprojection_rmse_px, lo=0.0, finite=False),
         )
-        _freeze(self, "flags", check_str_tuple("flags", self.flags, max_items=32))
+        _freeze(self, "flags", check_str_tuple("flags", self.flags, max_items=MAX_FLAGS))
         _freeze(self, "frame_id", check_id("frame_id", self.frame_id))
 
 
@@ -418,15 +423,16 @@ class ServiceStatus(Message):
         _freeze(self, "state", check_choice("state", self.state, SERVICE_STATES))
         _freeze(self, "uptime_s", check_float("uptime_s", self.uptime_s, lo=0.0))
         for name in ("rates_hz", "latency_p50_ms", "latency_p99_ms"):
-            _freeze(self, name, MappingProxyType(dict(check_number_map(name, getattr(self, name)))))
+            _freeze(self, name, MappingProxyType(dict(check_number_map(
+                name, getattr(self, name), max_items=MAX_NUMBER_MAP_ENTRIES))))
         _freeze(
             self,
             "counters",
-            MappingProxyType(dict(check_number_map("counters", self.counters, integer=True))),
+            MappingProxyType(dict(check_number_map("counters", self.counters, integer=True,
+                                                   max_items=MAX_NUMBER_MAP_ENTRIES))),
         )
-        _freeze(
-            self, "peers_alive", check_str_tuple("peers_alive", self.peers_alive, max_items=4096)
-        )
+        _freeze(self, "peers_alive",
+                check_str_tuple("peers_alive", self.peers_alive, max_items=MAX_PEERS))
         _freeze(self, "detail", check_text("detail", self.detail))
 
 
@@ -460,6 +466,19 @@ class CameraImage(Message):
             raise_field("data", "empty image")
         _freeze(self, "data", data)
 
+
+#: most entries of each list or map field, by (schema or nested record name, field): the codec
+#: reads them from the msgpack headers and refuses a payload before building its entries
+MAX_ENTRIES: Final[Mapping[tuple[str, str], int]] = MappingProxyType({
+    ("RobotDetections", "detections"): MAX_DETECTIONS,
+    ("PoseEstimate", "camera_ids"): MAX_CAMERA_IDS,
+    ("PoseEstimate", "flags"): MAX_FLAGS,
+    ("ServiceStatus", "rates_hz"): MAX_NUMBER_MAP_ENTRIES,
+    ("ServiceStatus", "latency_p50_ms"): MAX_NUMBER_MAP_ENTRIES,
+    ("ServiceStatus", "latency_p99_ms"): MAX_NUMBER_MAP_ENTRIES,
+    ("ServiceStatus", "counters"): MAX_NUMBER_MAP_ENTRIES,
+    ("ServiceStatus", "peers_alive"): MAX_PEERS,
+})
 
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     RobotDetections,
