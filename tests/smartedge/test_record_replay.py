@@ -64,7 +64,8 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
         recorder = _spawn(["record", str(tmp / "live.mcap"), *zargs], tmp / "record.log")
         time.sleep(3.0)  # sessions open, subscriptions declared
         sc = load_scenario()
-        sc = sc.with_overrides(start_stamp_ns=time.time_ns() + 500_000_000)
+        # stamps on the wall clock: publish_run paces arrivals from start_stamp_ns at speed 1
+        sc = sc.with_overrides(start_stamp_ns=time.time_ns())
         run = SimulationRun(sc, "traj3", seed=3)
         publish_run(hub, run, speed=1.0, accept_corrections=False, until_s=SIM_S)
         time.sleep(1.5)  # the last frame-sets and estimates
