@@ -22,9 +22,10 @@ an estimate before it moves the robot: :class:`robot_bridge.policy.TrustConfig`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, Final
 
 from protocol.errors import ProtocolError
@@ -327,7 +328,7 @@ class RobotBridge:
         """Hand the pose output due at ``now_ns`` (:class:`PoseOutput`) to the adapter: the
         newest accepted estimates (``publish_pose``) and the map -> odom transform
         (``publish_transform``). Counts ``pose_output_<stream>`` / ``pose_output_tf`` when
-        the adapter sent them, ``pose_output_unsupported`` / ``..._failed`` when it did not,
+        the adapter sent them, ``..._failed`` when it did not (or cannot),
         ``pose_output_stale_<stream>`` and ``pose_output_map_to_odom_no_odometry`` for what
         was due but not sendable. Returns the number of messages sent; never raises."""
         try:
@@ -339,13 +340,15 @@ class RobotBridge:
         for why in batch.skipped:
             self._count(f"pose_output_{why}")
         sent = 0
-        calls = [(f"pose_output_{stream}", adapter.publish_pose, (est, stream))
-                 for stream, est in batch.poses]
+        calls: list[tuple[str, Callable[[], bool]]] = [
+            (f"pose_output_{stream}", functools.partial(adapter.publish_pose, est, stream))
+            for stream, est in batch.poses]
         if batch.transform is not None:
-            calls.append(("pose_output_tf", adapter.publish_transform, (batch.transform,)))
-        for counter, call, call_args in calls:
+            calls.append(("pose_output_tf",
+                          functools.partial(adapter.publish_transform, batch.transform)))
+        for counter, call in calls:
             try:
-                ok = bool(call(*call_args))
+                ok = bool(call())
             except Exception:
                 log.exception("adapter %s: pose output failed", adapter.name)
                 self._count("adapter_error")

@@ -64,6 +64,7 @@ def sections() -> list[Section]:
     from protocol.site import Thresholds
     from robot_bridge.adapters.ros2 import RosConfig
     from robot_bridge.bridge import BridgeConfig
+    from robot_bridge.policy import TrustConfig
     from robot_bridge.pose_output import PoseOutputConfig
 
     return [
@@ -85,7 +86,10 @@ def sections() -> list[Section]:
                 "per-level tuples (voxel_sizes_m, max_correspondence_m, max_iterations) keep "
                 "their defaults. Paths are relative to the site file."),
         Section("bridge", "robot_bridge",
-                ((BridgeConfig, frozenset({"backend_timeout_s", "robot_timeout_s"})),)),
+                ((BridgeConfig, frozenset({"backend_timeout_s", "robot_timeout_s"})),
+                 (TrustConfig, None)),
+                "`floor_area` is a list `[x_min, y_min, x_max, y_max]` (m, world frame; "
+                "default: the cameras' positions grown by `floor_margin_m`)."),
         Section("pose_output", "robot_bridge (continuous pose topic, map -> odom)",
                 ((PoseOutputConfig, None),),
                 "Published through the robot adapter (docs/robot_bridge.md, with a "
