@@ -146,10 +146,16 @@ class BackendNode(ServiceNode):
         anchored = [rid for rid, t in tracks.items() if t.anchored]
         now = self._last_now_ns
         live = sorted(self.pipeline.sync.live_cameras(now)) if now else []
-        return (
-            "ok",
-            f"cameras live: {','.join(live) or '-'}; robots localized: {','.join(anchored) or '-'}",
-        )
+        detail = (f"cameras live: {','.join(live) or '-'}; "
+                  f"robots localized: {','.join(anchored) or '-'}")
+        problems = self.pipeline.problems(now) if now else []
+        if self._stale_run:
+            problems.append(f"{self._stale_run} stale poses dropped (the worker stalled?)")
+        if problems:
+            shown = "; ".join(problems[:6]) + (f"; +{len(problems) - 6} more"
+                                               if len(problems) > 6 else "")
+            return "degraded", f"{shown} | {detail}"
+        return "ok", detail
 
     def counters(self) -> dict[str, int]:
         out = self.stats.snapshot_counters()

@@ -21,6 +21,7 @@ an estimate before it moves the robot: :class:`robot_bridge.policy.TrustConfig`.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import logging
@@ -52,7 +53,10 @@ SOURCE_PREFERENCE: Final = ("fused", "cameras")
 #: The ``source`` an estimate must carry on each robot topic (``protocol.keys``).
 SOURCE_OF_TOPIC: Final = {"pose": "fused", "camera_pose": "cameras"}
 #: The ``bridge`` section's keys that are :class:`BridgeConfig` fields (the rest: TrustConfig).
-_BRIDGE_KEYS: Final = frozenset({"backend_timeout_s", "robot_timeout_s"})
+_BRIDGE_KEYS: Final = frozenset({"backend_timeout_s", "robot_timeout_s", "odometry_replay_s",
+                                 "correction_confirm_s"})
+#: at most this many odometry messages are kept for a replay to a returning backend
+ODOMETRY_REPLAY_MAX: Final = 8192
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +67,12 @@ class BridgeConfig:
     means the backend (or the link) is lost. ``robot_timeout_s``: the same for robot odometry.
     ``world_frame``: the frame estimates must be expressed in (the site's world frame).
     ``pose_output``: the continuous pose output (site file section ``pose_output``).
+    ``odometry_replay_s``: odometry published while the backend was away (a restart, a link
+    loss) is published again when it returns, up to this much of it (older is counted
+    ``odometry_lost``). ``correction_confirm_s``: after a correction, the robot's own
+    localization must move to it within this long (``corrections_confirmed``, else
+    ``corrections_unconfirmed``); robots that report no localization are counted
+    ``corrections_unverifiable``.
     ``trust``: what an estimate must satisfy, :class:`robot_bridge.policy.TrustConfig`, from the
     ``bridge`` section's other keys (defaults): ``clock_tolerance_ms`` (50),
     ``position_std_floor_m`` (0.02), ``yaw_std_floor_deg`` (1), ``init_agreement_count`` (3),
@@ -76,6 +86,8 @@ class BridgeConfig:
     thresholds: Thresholds = dataclasses.field(default_factory=Thresholds)
     backend_timeout_s: float = 3.0
     robot_timeout_s: float = 1.0
+    odometry_replay_s: float = 30.0
+    correction_confirm_s: float = 3.0
     world_frame: str = "map"
     pose_output: PoseOutputConfig = dataclasses.field(default_factory=PoseOutputConfig)
     trust: TrustConfig = dataclasses.field(default_factory=TrustConfig)
@@ -184,6 +196,14 @@ class RobotBridge:
         self._last_counted: tuple[Any, str] | None = None
         self._pose_output = PoseOutput(config.pose_output, config.world_frame)
         self._warned: set[str] = set()
+        # odometry published recently, for a backend that comes back (see odometry_replay_s)
+        self._sent_odometry: collections.deque[Odometry] = collections.deque()
+        self._replay_window_ns = round(config.odometry_replay_s * NS_PER_S)
+        self._pending_replay: list[Odometry] = []
+        # the correction whose effect on the robot's localization is being checked, and when
+        # it was applied (bridge clock)
+        self._confirming: tuple[PoseCorrection, int] | None = None
+        self._confirm_ns = round(config.correction_confirm_s * NS_PER_S)
 
     # ---------------------------------------------------------------------------------------
     # inputs
@@ -220,6 +240,7 @@ class RobotBridge:
             self._advance(receive_ns)
             self._count("received_localization")
             self._localization = pose
+            self._check_confirmation()
             return self._evaluate()
         except Exception:
             log.exception("unexpected error on robot localization")
@@ -243,10 +264,19 @@ class RobotBridge:
 
     def on_backend_heartbeat(self, receive_ns: int | None = None) -> None:
         """The backend is alive: its status message or liveliness token was seen (the only
-        signs of life; estimates are not)."""
+        signs of life; estimates are not). A backend that returns after being lost (a restart,
+        a link loss) gets the odometry published since it was last seen again, oldest first,
+        with the next :meth:`pump` / :meth:`tick` (``odometry_replayed``)."""
         self._advance(receive_ns)
+        was_alive = self.backend_alive()
+        since = self._last_backend_ns
         self._last_backend_ns = self._now_ns
         self._backend_gone = False
+        if not was_alive and since is not None and self._sent_odometry:
+            self._pending_replay = [m for m in self._sent_odometry if m.stamp_ns >= since]
+            if self._pending_replay:
+                log.info("backend back after %.1f s: replaying %d odometry messages",
+                         (self._now_ns - since) * 1e-9, len(self._pending_replay))
 
     def on_backend_gone(self, receive_ns: int | None = None) -> None:
         """The backend's liveliness token disappeared: lost now, without waiting the timeout."""
@@ -258,6 +288,10 @@ class RobotBridge:
         logged, one line per correction (info when accepted, warning when refused)."""
         self._count("corrections_accepted" if accepted else "corrections_refused")
         self._policy.on_result(correction.seq, accepted)
+        if accepted:
+            if self._confirming is not None:  # superseded before it could be confirmed
+                self._count("corrections_unconfirmed")
+            self._confirming = (correction, self._now_ns)
         log.log(
             logging.INFO if accepted else logging.WARNING,
             "%s %d %s %s: (%.3f, %.3f, %.1f deg), offset %.3f m / %.1f deg",
@@ -274,7 +308,11 @@ class RobotBridge:
             if not _is_int(now_ns) or now_ns < 0:
                 return self._reject("invalid_tick", repr(now_ns)[:40])
             self._advance(now_ns)
-            return self._evaluate()
+            self._check_confirmation()
+            replay, self._pending_replay = self._pending_replay, []
+            if replay:
+                self._count("odometry_replayed", len(replay))
+            return Outbox(odometry=tuple(replay)) + self._evaluate()
         except Exception:
             log.exception("unexpected error on tick")
             self._count("internal_error")
@@ -446,6 +484,48 @@ class RobotBridge:
     # internals
     # ---------------------------------------------------------------------------------------
 
+    def _remember_odometry(self, msg: Odometry) -> None:
+        """Keep ``msg`` for a replay; what falls out of the window unheard by any backend is
+        counted ``odometry_lost``."""
+        self._sent_odometry.append(msg)
+        buf = self._sent_odometry
+        while buf and (len(buf) > ODOMETRY_REPLAY_MAX
+                       or msg.stamp_ns - buf[0].stamp_ns > self._replay_window_ns):
+            old = buf.popleft()
+            if not self.backend_alive() and (
+                    self._last_backend_ns is not None and old.stamp_ns >= self._last_backend_ns):
+                self._count("odometry_lost")
+
+    def _check_confirmation(self) -> None:
+        """Whether the robot's localization moved to the correction being checked: within
+        half the correction's offset (at least 2 cm / 1 deg) of it, reported after it was
+        applied. Decided once per correction."""
+        if self._confirming is None:
+            return
+        correction, applied_ns = self._confirming
+        loc = self._localization
+        if loc is not None and not loc.lost and loc.stamp_ns >= correction.stamp_ns:
+            tol_m = max(0.02, 0.5 * correction.offset_m)
+            tol_rad = max(math.radians(1.0), 0.5 * correction.offset_rad)
+            d_m = math.hypot(loc.x - correction.x, loc.y - correction.y)
+            d_rad = abs(wrap_angle(loc.theta - correction.theta))
+            if d_m <= tol_m and d_rad <= tol_rad:
+                self._count("corrections_confirmed")
+                self._confirming = None
+                return
+        if self._now_ns - applied_ns > self._confirm_ns:
+            self._confirming = None
+            if self._localization is None:
+                self._count("corrections_unverifiable")
+                return
+            self._count("corrections_unconfirmed")
+            log.warning(
+                "%s %d for %s: the robot's localization did not move to it within %.1f s "
+                "(it says (%.3f, %.3f, %.1f deg))", correction.kind, correction.seq,
+                self.config.robot_id, self._confirm_ns * 1e-9, loc.x if loc else float("nan"),
+                loc.y if loc else float("nan"),
+                math.degrees(loc.theta) if loc else float("nan"))
+
     def _count(self, what: str, n: int = 1) -> None:
         self._counters[what] = self._counters.get(what, 0) + n
 
@@ -506,6 +586,7 @@ class RobotBridge:
         self._last_odom_rx_ns = self._now_ns
         self._count("received_odometry")
         self._static.update(msg.stamp_ns, msg.vx, msg.vy, msg.wz)
+        self._remember_odometry(msg)
         if math.isfinite(msg.theta):
             self._pose_output.on_odometry(msg.stamp_ns, msg.x, msg.y, msg.theta, msg.frame_id)
         return Outbox(odometry=(msg,)) + self._evaluate()

@@ -179,6 +179,10 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
             0.2,
         )
         assert killed_ns < restarted_ns
+        # the odometry of the outage went to the restarted backend again, none lost
+        bridge_counters = monitor.seen.status["robot-bridge/hsr"].counters
+        assert bridge_counters.get("bridge.odometry_replayed", 0) > 0, bridge_counters
+        assert bridge_counters.get("bridge.odometry_lost", 0) == 0, bridge_counters
     finally:
         for p in procs.values():
             if p.poll() is None:
