@@ -75,7 +75,9 @@ class FusionConfig:
     Poisoned stamps: odometry is accepted in stamp order, so one message stamped far in the
     future (the service drops those against its clock, but a replay has none) would make every
     later message "out of order". After ``out_of_order_reset_count`` consecutive rejected
-    messages that are themselves in order, the newest accepted stamp is taken as the bad one:
+    messages that are themselves in order and more than ``out_of_order_reset_gap_s`` older than
+    the newest accepted stamp (so a replay of odometry the fusion already has, e.g. by a robot
+    bridge after a link loss, never counts), the newest accepted stamp is taken as the bad one:
     the graph restarts from the new stream as after an odometry jump (``odometry_stamp_reset``).
 
     Window: keyframes older than ``window_s`` before the latest one, or beyond
@@ -112,6 +114,7 @@ class FusionConfig:
     max_future_s: float = 1.0
     max_pending: int = 16
     out_of_order_reset_count: int = 25
+    out_of_order_reset_gap_s: float = 5.0
     extra_iterations: int = 1
     relinearize_threshold: float = 0.01
 
@@ -344,7 +347,7 @@ class PoseGraphFusion:
         if self._odom_stamps:
             last_stamp = self._odom_stamps[-1]
             if stamp <= last_stamp:
-                if not self._out_of_order_run(stamp):
+                if not self._out_of_order_run(stamp, last_stamp):
                     return self._reject("odometry_out_of_order")
                 self.counters["odometry_stamp_reset"] += 1
                 logger.warning(
@@ -439,10 +442,14 @@ class PoseGraphFusion:
     # input checks
     # ----------------------------------------------------------------------------------------
 
-    def _out_of_order_run(self, stamp: int) -> bool:
+    def _out_of_order_run(self, stamp: int, last_stamp: int) -> bool:
         """Count one more out-of-order odometry message; ``True`` once a run of
-        ``out_of_order_reset_count`` of them, in order among themselves, says the newest
-        accepted stamp is the one that is wrong."""
+        ``out_of_order_reset_count`` of them, in order among themselves and all more than
+        ``out_of_order_reset_gap_s`` older than ``last_stamp``, says the newest accepted stamp
+        is the one that is wrong."""
+        if last_stamp - stamp <= self.config.out_of_order_reset_gap_s * _NS_PER_S:
+            self._ooo_run = 0  # close to what the fusion has: a duplicate or a replay
+            return False
         if self._ooo_run and stamp <= self._ooo_last_stamp:
             self._ooo_run = 0  # not a consistent stream: plain duplicates or a replay
         self._ooo_run += 1

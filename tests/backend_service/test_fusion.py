@@ -338,9 +338,12 @@ def test_a_poisoned_stamp_is_recovered_from():
     # driven while the messages were refused is lost until the next camera estimate)
     assert out[-1].x == pytest.approx(3.0 + 0.5 * (59 - 24) * 0.033, abs=0.01)
     assert out[-1].stamp_ns < 2**62
-    # duplicates and replays (not in order among themselves) never trigger a reset
+    # duplicates (not in order among themselves) and a replay of the last second (a bridge
+    # after a link loss: in order, but close to the newest stamp) never trigger a reset
     fusion2 = PoseGraphFusion(ROBOT, FusionConfig(out_of_order_reset_count=5))
     _straight_line(fusion2, 1.0, speed_m_s=0.0)
     for _ in range(20):
         fusion2.add_odometry(_odom(T0 + 500 * MS, 0.0))
+    _straight_line(fusion2, 1.0, speed_m_s=0.0, start_ns=T0 + 10 * MS)
+    assert fusion2.counters["odometry_out_of_order"] == 20 + 30
     assert fusion2.counters["odometry_stamp_reset"] == 0
