@@ -114,6 +114,8 @@ class FrameSetSynchronizer:
         self._latency: dict[str, collections.deque[int]] = {}  # camera -> arrival - stamp
         self._last_problem_ns: dict[tuple[str, str], int] = {}  # (camera, counter) -> now_ns
         self._ever_seen: set[str] = set()
+        self._last_rx_ns: dict[str, int] = {}  # camera -> arrival of its last frame, any
+        self._future_ms: dict[str, float] = {}  # camera -> how far ahead its last refused was
         # camera -> arrival times of its recent frames / of those that came late
         self._recent_rx: dict[str, collections.deque[int]] = {}
         self._recent_late: dict[str, collections.deque[int]] = {}
@@ -152,8 +154,10 @@ class FrameSetSynchronizer:
         stamp = int(msg.stamp_ns) + int(cam.clock_offset_ns)
         latency = self._latency.setdefault(msg.camera_id, collections.deque(maxlen=CLOCK_SAMPLES))
         latency.append(now_ns - stamp)
+        self._last_rx_ns[msg.camera_id] = now_ns
         if stamp - now_ns > self.max_future_ns:
             self._count(msg.camera_id, "future", now_ns)
+            self._future_ms[msg.camera_id] = (stamp - now_ns) * 1e-6
             return self.poll(now_ns)
         recent = self._last_stamp.setdefault(msg.camera_id, collections.deque(maxlen=16))
         if stamp in recent:
@@ -211,8 +215,10 @@ class FrameSetSynchronizer:
         late, or over the rate limit within the last few seconds, one whose clock differs from
         the others' by more than the sync window."""
         out = []
+        # lost: nothing at all arrives (a camera whose frames arrive but are refused is named
+        # for why they are refused instead)
         silent = sorted(c for c in self._ever_seen
-                        if now_ns - self._last_seen_ns.get(c, now_ns) > self.camera_timeout_ns)
+                        if now_ns - self._last_rx_ns.get(c, now_ns) > self.camera_timeout_ns)
         for cam in silent:
             out.append(f"camera {cam} lost")
         clocks = self.camera_clocks()
@@ -221,7 +227,7 @@ class FrameSetSynchronizer:
             if now_ns - at > PROBLEM_HOLD_NS or cam in silent:
                 continue
             if counter == "future":
-                ahead = -clocks.get(cam, 0.0)
+                ahead = self._future_ms.get(cam, float("nan"))
                 out.append(f"camera {cam} stamps {ahead:.0f} ms ahead of the clock (dropped)")
             elif counter == "rate_limited":
                 out.append(f"camera {cam} above {self.max_rate_hz:g} Hz (rogue source?)")
