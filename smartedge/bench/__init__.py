@@ -24,6 +24,8 @@ BENCHES: Final[dict[str, tuple[str, str, str]]] = {
     "map": ("smartedge.bench.map", "main", "semantic map fusion (M points/s) and ICP latency"),
     "bridge": ("smartedge.bench.bridge", "main",
                "robot bridge ROS output: encoding per flavour, loopback latency"),
+    "reliability": ("smartedge.reliability", "main",
+                    "hostile and faulty input against the running services (issue 17 probes)"),
 }
 
 

@@ -21,19 +21,17 @@ import math
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import msgpack
 import numpy as np
 import pytest
 
 from protocol import decode, encode, keys
-from protocol.limits import PAYLOAD_CAPS
-from protocol.messages import PoseEstimate, RobotDetections, ServiceStatus
+from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
+from smartedge.reliability import RssSampler, hostile_payloads, rss_mib
 from tests.conftest import REPO_ROOT, free_tcp_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
@@ -41,61 +39,10 @@ pytest.importorskip("gtsam")
 
 pytestmark = pytest.mark.slow
 
-MiB = 1024 * 1024
 #: how far above its baseline the backend's resident memory may stay after the bursts
 RSS_TOLERANCE_MIB = 100
 #: the status is published every second; a gap this long means the worker was pinned
 MAX_STATUS_GAP_S = 3.0
-
-
-def rss_mib(pid: int) -> float:
-    """Resident set size of process ``pid`` in MiB (Linux ``/proc``)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no VmRSS for process {pid}")
-
-
-class RssSampler:
-    """Samples a process's RSS every 50 ms in a thread; ``peak_mib`` is the largest seen."""
-
-    def __init__(self, pid: int) -> None:
-        self.pid = pid
-        self.peak_mib = 0.0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.05):
-            try:
-                self.peak_mib = max(self.peak_mib, rss_mib(self.pid))
-            except (OSError, RuntimeError):
-                return
-
-    def __enter__(self) -> RssSampler:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self._stop.set()
-        self._thread.join(2)
-
-
-def hostile_payloads(real: RobotDetections) -> dict[str, list[bytes]]:
-    """The three probes' payloads, built from one genuine detections message."""
-    wire = msgpack.unpackb(encode(real), raw=False)
-    one = wire["detections"][:1]
-    nested = {**wire, "detections": one * 1}
-    per_detection = len(msgpack.packb(one[0]))
-    nested["detections"] = one * math.ceil(1_500_000 / per_detection)
-    counted = {**wire, "detections": one * int(0.9 * PAYLOAD_CAPS["RobotDetections"]
-                                                 / per_detection)}
-    padded = {**wire, "padding": b"\0" * (50_000_000 - len(encode(real)))}
-    out = {"nested": [msgpack.packb(nested)] * 100, "counted": [msgpack.packb(counted)] * 100,
-           "padded": [msgpack.packb(padded)] * 20}
-    assert len(out["nested"][0]) >= 1_500_000 and len(out["padded"][0]) >= 50_000_000
-    assert len(out["counted"][0]) <= PAYLOAD_CAPS["RobotDetections"]
-    return out
 
 
 def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
