@@ -35,8 +35,14 @@ from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceSta
 from protocol.site import Site, Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 from robot_bridge.policy import (
+    HEADING_JUMP_TOO_LARGE,
+    JUMP_TOO_LARGE,
     NS_PER_S,
+    OUTSIDE_FLOOR,
     SEND,
+    UNCERTAIN,
+    UNFIT_FOR_INIT,
+    WINDOW_EXCEEDED,
     CorrectionDecision,
     CorrectionPolicy,
     TrustConfig,
@@ -55,6 +61,13 @@ SOURCE_OF_TOPIC: Final = {"pose": "fused", "camera_pose": "cameras"}
 #: The ``bridge`` section's keys that are :class:`BridgeConfig` fields (the rest: TrustConfig).
 _BRIDGE_KEYS: Final = frozenset({"backend_timeout_s", "robot_timeout_s", "odometry_replay_s",
                                  "correction_confirm_s"})
+#: refusals of the newest estimate after which the bridge tries the other recent estimates of
+#: the stop: a stream of implausible estimates that always holds the newest stamp (a peer
+#: posing as the backend without the router's access control) must not starve the genuine ones
+FALLBACK_REASONS: Final = frozenset({JUMP_TOO_LARGE, HEADING_JUMP_TOO_LARGE, WINDOW_EXCEEDED,
+                                     OUTSIDE_FLOOR, UNCERTAIN, UNFIT_FOR_INIT})
+#: recent estimates kept per source for that fallback
+RECENT_ESTIMATES: Final = 64
 #: at most this many odometry messages are kept for a replay to a returning backend
 ODOMETRY_REPLAY_MAX: Final = 8192
 
@@ -192,8 +205,10 @@ class RobotBridge:
         self._backend_gone = False
         self._localization: LocalizationPose | None = None
         self._estimates: dict[str, PoseEstimate] = {}
+        # every accepted estimate of the last moments per source, newest stamp or not
+        self._recent: dict[str, collections.deque[PoseEstimate]] = {}
         self._last_decision: CorrectionDecision = CorrectionDecision("moving")
-        self._last_counted: tuple[Any, str] | None = None
+        self._counted: collections.deque[tuple[Any, str]] = collections.deque(maxlen=8)
         self._pose_output = PoseOutput(config.pose_output, config.world_frame)
         self._warned: set[str] = set()
         # odometry published recently, for a backend that comes back (see odometry_replay_s)
@@ -606,6 +621,8 @@ class RobotBridge:
             return self._reject("future_stamp_estimate", str(estimate.stamp_ns))
         self._advance(receive_ns)
         self._count(f"received_estimate_{estimate.source}")
+        self._recent.setdefault(estimate.source, collections.deque(maxlen=RECENT_ESTIMATES)
+                                ).append(estimate)
         prev = self._estimates.get(estimate.source)
         if prev is None or estimate.stamp_ns >= prev.stamp_ns:
             self._estimates[estimate.source] = estimate
@@ -614,6 +631,13 @@ class RobotBridge:
         else:
             self._count("late_estimate")
         return self._evaluate()
+
+    def _count_once(self, estimate: PoseEstimate, reason: str) -> None:
+        """Count ``skip_<reason>`` once per (estimate, reason), not once per tick."""
+        key = ((estimate.source, estimate.seq, estimate.stamp_ns), reason)
+        if key not in self._counted:
+            self._counted.append(key)
+            self._count(f"skip_{reason}")
 
     def _best_estimate(self, motion: MotionState) -> PoseEstimate | None:
         """The preferred estimate observed during the current stop (fused over camera-only)."""
@@ -625,21 +649,35 @@ class RobotBridge:
                 return est
         return None
 
+    def _fallback(self, motion: MotionState, refused: PoseEstimate) -> CorrectionDecision | None:
+        """A sendable decision on another recent estimate of this stop (newest first, fused
+        before camera-only) when the newest one was refused by a plausibility gate, or
+        ``None``."""
+        assert motion.still_since_ns is not None
+        for source in SOURCE_PREFERENCE:
+            candidates = sorted(self._recent.get(source, ()), key=lambda e: -e.stamp_ns)
+            for est in candidates:
+                if est is refused or est.stamp_ns < motion.still_since_ns:
+                    continue
+                alt = self._policy.decide(est, self._localization, motion, self._now_ns)
+                if alt.send:
+                    return alt
+        return None
+
     def _evaluate(self) -> Outbox:
         motion = self._static.state
         estimate = self._best_estimate(motion)
         decision = self._policy.decide(estimate, self._localization, motion, self._now_ns)
+        if (not decision.send and decision.reason in FALLBACK_REASONS
+                and estimate is not None):
+            self._count_once(estimate, decision.reason)
+            alt = self._fallback(motion, estimate)
+            if alt is not None:
+                self._count("fallback_estimate")
+                decision = alt
         self._last_decision = decision
-        if decision.estimate is not None:
-            # count each (estimate, reason) once, not once per tick
-            key = (
-                (decision.estimate.source, decision.estimate.seq, decision.estimate.stamp_ns),
-                decision.reason,
-            )
-            if key != self._last_counted:
-                self._last_counted = key
-                if not decision.send:
-                    self._count(f"skip_{decision.reason}")
+        if decision.estimate is not None and not decision.send:
+            self._count_once(decision.estimate, decision.reason)
         if not decision.send:
             return Outbox()
         est = decision.estimate

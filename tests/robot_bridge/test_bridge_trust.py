@@ -348,3 +348,25 @@ def test_refusals_appear_in_the_status_message(rig) -> None:
     status = r.node.bridge.service_status(r.robot.t_ns, seq=0)
     assert status.counters["future_stamp_estimate"] == 1
     assert status.counters["source_key_mismatch"] == 1
+
+
+def test_fakes_holding_the_newest_stamp_do_not_block_genuine_corrections(rig) -> None:
+    """Probe (a2) of docs/reliability.md: a peer posts a fused pose 1.5 m off, stamped *now*
+    (inside the clock tolerance), at 50 Hz, so it always holds the newest stamp and the genuine
+    estimates arrive 'late'. The fakes are refused as a jump too large; the bridge then falls
+    back to the genuine estimates of the stop, and the robot is corrected at every stop."""
+    r = rig(DriftingRobot(scale=1.04, yaw_bias_rad_per_m=0.01))
+    genuine = 0
+    for _stop in range(3):
+        for k in range(500):  # 4 s driving, 6 s stopped
+            loc = r.localization()
+            r.put(r.pose_key, r.estimate(loc[0] + 1.5, loc[1], loc[2], std_m=0.001))
+            if k % 5 == 0:
+                r.put(r.pose_key, r.genuine(genuine))
+                genuine += 1
+            r.step(vx=0.5 if k < 200 else 0.0)
+        assert r.error_m() < 0.05, r.counters
+    c = r.counters
+    assert c["bridge.late_estimate"] > 0 and c["bridge.skip_jump_too_large"] >= 3
+    assert c["bridge.fallback_estimate"] == 3 == c["bridge.corrections_accepted"]
+    assert all(abs(x.offset_m) < 0.3 for x in r.corrections)
