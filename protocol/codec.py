@@ -298,6 +298,10 @@ def _wire_type(first: int) -> str:
     return f"msgpack type 0x{first:02x}"
 
 
+#: byte width of the entry count after a list16/list32/map16/map32 header byte
+_HEADER_WIDTH: Final = {0xDC: 2, 0xDD: 4, 0xDE: 2, 0xDF: 4}
+
+
 def _container_header(data: memoryview, pos: int) -> tuple[str, int]:
     """(``"map"``/``"list"``/``""``, number of entries) of the msgpack object at ``pos``, read
     from its header alone."""
@@ -308,7 +312,7 @@ def _container_header(data: memoryview, pos: int) -> tuple[str, int]:
         return "map", first & 0x0F
     if 0x90 <= first <= 0x9F:
         return "list", first & 0x0F
-    width = {0xDC: 2, 0xDD: 4, 0xDE: 2, 0xDF: 4}.get(first)
+    width = _HEADER_WIDTH.get(first)
     if width is None or pos + 1 + width > len(data):
         return "", 0
     count = int.from_bytes(data[pos + 1 : pos + 1 + width], "big")
@@ -333,7 +337,11 @@ def _scan_map(
             raise LimitError("unknown_key_too_large",
                              f"{path or 'message'}: a key of {k1 - k0} bytes "
                              f"(limit {_MAX_KEY_BYTES})")
-        key = _unpack(data[base + k0 : base + k1])
+        first = data[base + k0]
+        if 0xA0 <= first <= 0xBF:  # a fixstr, as every field name is: no unpacker needed
+            key: Any = bytes(data[base + k0 + 1 : base + k1]).decode("utf-8")
+        else:
+            key = _unpack(data[base + k0 : base + k1])
         if not isinstance(key, str):
             raise DecodeError(f"{path or 'message'}: map keys must be strings, "
                               f"got {type(key).__name__}")
