@@ -176,6 +176,9 @@ def main(argv: Sequence[str]) -> int:
     except SmartedgeError as exc:
         print(f"smartedge router: {exc}", file=sys.stderr)
         return EXIT_CONFIG
+    # zenoh's own log (stderr, so journald): RUST_LOG selects it; the access control logs each
+    # message it denies at trace level (RUST_LOG=trace, verbose); without RUST_LOG, errors only
+    zenoh.init_log_from_env_or("error")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
