@@ -100,7 +100,6 @@ from robot_bridge.adapters.base import (
     POSE_STREAMS,
     LocalizationPose,
     MapToOdom,
-    OdometrySample,
     RobotAdapter,
 )
 from robot_bridge.adapters.ros2 import (
@@ -109,9 +108,8 @@ from robot_bridge.adapters.ros2 import (
     POSE_WITH_COVARIANCE_STAMPED_TYPE,
     TF_MESSAGE_TYPE,
     RosConversionError,
+    RosReadingAdapter,
     RosTopics,
-    deserialize_localization,
-    deserialize_odometry,
     serialize_correction,
     serialize_map_to_odom,
     serialize_pose_estimate,
@@ -654,7 +652,7 @@ class _Publisher:
         return seq
 
 
-class RmwZenohAdapter(RobotAdapter):
+class RmwZenohAdapter(RosReadingAdapter):
     """A ROS 2 robot (Jazzy or newer) on rmw_zenoh, reached directly over Zenoh.
 
     ``session``: an open ``zenoh.Session`` (not owned: the caller closes it) that reaches the
@@ -821,31 +819,6 @@ class RmwZenohAdapter(RobotAdapter):
                 return out
             self._check_attachment(sample.attachment)
             out.append(sample.payload.to_bytes())
-
-    def read_odometry(self) -> list[OdometrySample]:
-        if self._closed:
-            return []
-        samples = []
-        for payload in self._drain(self._odom_sub):
-            try:
-                samples.append(deserialize_odometry(payload))
-            except RosConversionError as exc:
-                self._count("invalid_odometry")
-                log.debug("dropped odometry: %s", exc)
-        self._count("odometry", len(samples))
-        return samples
-
-    def read_localization(self) -> LocalizationPose | None:
-        if self._loc_sub is not None and not self._closed:
-            for payload in self._drain(self._loc_sub):
-                try:
-                    self._latest_localization = deserialize_localization(
-                        payload, self.topics.localization_type)
-                    self._count("localization")
-                except RosConversionError as exc:
-                    self._count("invalid_localization")
-                    log.debug("dropped localization: %s", exc)
-        return self._latest_localization
 
     # -- bridge -> robot ---------------------------------------------------------------------
 

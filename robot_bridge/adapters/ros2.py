@@ -512,7 +512,56 @@ class RosConfig:
         return dataclasses.replace(topics, **changes)
 
 
-class RosZenohAdapter(RobotAdapter):
+class RosReadingAdapter(RobotAdapter):
+    """What the ROS adapters share: reading odometry and the robot's localization from their
+    subscriptions' ring channels. A subclass sets ``topics``, ``_odom_sub``, ``_loc_sub`` (or
+    ``None``), ``_closed`` and ``_latest_localization``, and may override :meth:`_drain` (the
+    rmw_zenoh adapter checks each sample's attachment there). Undecodable payloads are counted
+    (``invalid_odometry``, ``invalid_localization``) and dropped."""
+
+    topics: RosTopics
+    _odom_sub: Any
+    _loc_sub: Any
+    _closed: bool
+    _latest_localization: LocalizationPose | None
+
+    def _drain(self, subscriber: Any) -> list[bytes]:
+        """The payloads received on ``subscriber`` since the last call."""
+        out: list[bytes] = []
+        while True:
+            sample = subscriber.try_recv()
+            if sample is None:
+                return out
+            out.append(sample.payload.to_bytes())
+
+    def read_odometry(self) -> list[OdometrySample]:
+        if self._closed:
+            return []
+        samples = []
+        for payload in self._drain(self._odom_sub):
+            try:
+                samples.append(deserialize_odometry(payload, ros1=self.topics.ros1))
+            except RosConversionError as exc:
+                self._count("invalid_odometry")
+                log.debug("dropped odometry: %s", exc)
+        self._count("odometry", len(samples))
+        return samples
+
+    def read_localization(self) -> LocalizationPose | None:
+        if self._loc_sub is not None and not self._closed:
+            for payload in self._drain(self._loc_sub):
+                try:
+                    self._latest_localization = deserialize_localization(
+                        payload, self.topics.localization_type, ros1=self.topics.ros1
+                    )
+                    self._count("localization")
+                except RosConversionError as exc:
+                    self._count("invalid_localization")
+                    log.debug("dropped localization: %s", exc)
+        return self._latest_localization
+
+
+class RosZenohAdapter(RosReadingAdapter):
     """A ROS robot reached over Zenoh through zenoh-bridge-ros2dds (or zenoh-plugin-ros1).
 
     Uses an open ``zenoh.Session`` (not owned: the caller closes it). Subscriptions hand
@@ -602,41 +651,6 @@ class RosZenohAdapter(RobotAdapter):
             log.warning("map -> odom: %s", exc)
             return False
         return self._publish(self.topics.tf_topic, TF_MESSAGE_TYPE, payload, "tf")
-
-    @staticmethod
-    def _drain(subscriber: Any) -> list[bytes]:
-        out = []
-        while True:
-            sample = subscriber.try_recv()
-            if sample is None:
-                return out
-            out.append(sample.payload.to_bytes())
-
-    def read_odometry(self) -> list[OdometrySample]:
-        if self._closed:
-            return []
-        samples = []
-        for payload in self._drain(self._odom_sub):
-            try:
-                samples.append(deserialize_odometry(payload, ros1=self.topics.ros1))
-            except RosConversionError as exc:
-                self._count("invalid_odometry")
-                log.debug("dropped odometry: %s", exc)
-        self._count("odometry", len(samples))
-        return samples
-
-    def read_localization(self) -> LocalizationPose | None:
-        if self._loc_sub is not None and not self._closed:
-            for payload in self._drain(self._loc_sub):
-                try:
-                    self._latest_localization = deserialize_localization(
-                        payload, self.topics.localization_type, ros1=self.topics.ros1
-                    )
-                    self._count("localization")
-                except RosConversionError as exc:
-                    self._count("invalid_localization")
-                    log.debug("dropped localization: %s", exc)
-        return self._latest_localization
 
     def apply_correction(self, correction: PoseCorrection) -> bool:
         if self._closed:
