@@ -254,20 +254,10 @@ install_system_file "$DEPLOY_DIR/systemd/smartedge-robot-bridge@.service" \
 for robot in ${ROBOTS[@]+"${ROBOTS[@]}"}; do
   # With its own certificate (smartedge certs), a bridge connects as identity bridge-<robot>: its
   # client config and a drop-in pointing ZENOH_CONFIG at it.
-  bridge_dropin="$UNIT_DIR/smartedge-robot-bridge@$robot.service.d/zenoh-identity.conf"
   if [ -n "$TLS_DIR" ] && [ -f "$TLS_DIR/bridge-$robot.crt" ] && [ -f "$TLS_DIR/bridge-$robot.key" ]; then
-    install_file 0644 "$TLS_DIR/bridge-$robot.crt" "$ETC/tls/bridge-$robot.crt"
-    install_file 0640 "$TLS_DIR/bridge-$robot.key" "$ETC/tls/bridge-$robot.key"
-    install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client-bridge-$robot.json5" \
-      "s/BACKEND_HOST/$ROUTER_HOST/g" "s|/etc/smartedge/tls/client\\.|$ETC/tls/bridge-$robot.|g"
-    run install -d -m 0755 "$(staged "$(dirname "$bridge_dropin")")"
-    tmp="$(mktemp)"
-    printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-client-bridge-%s.json5\n' "$ETC" "$robot" > "$tmp"
-    install_system_file "$tmp" "$bridge_dropin"
-    rm -f "$tmp"
+    install_identity "smartedge-robot-bridge@$robot" "bridge-$robot" "$ROUTER_HOST"
   else
-    remove_file "$bridge_dropin"
-    remove_file "$ETC/zenoh-client-bridge-$robot.json5"
+    remove_identity "smartedge-robot-bridge@$robot" "bridge-$robot"
   fi
   units+=("smartedge-robot-bridge@$robot.service")
 done

@@ -110,6 +110,29 @@ remove_file() {
   if [ -e "$(staged "$1")" ]; then run rm -f "$(staged "$1")"; fi
 }
 
+# install_identity UNIT IDENTITY ROUTER_HOST: a service instance that connects as its own
+# identity (a certificate from `smartedge certs` in $TLS_DIR, CN = IDENTITY): its certificate
+# and key, its client config, and a drop-in pointing the unit's ZENOH_CONFIG at that config.
+install_identity() {
+  local unit="$1" identity="$2" host="$3" tmp
+  local dropin="$UNIT_DIR/$unit.service.d/zenoh-identity.conf"
+  install_file 0644 "$TLS_DIR/$identity.crt" "$ETC/tls/$identity.crt"
+  install_file 0640 "$TLS_DIR/$identity.key" "$ETC/tls/$identity.key"
+  install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client-$identity.json5" \
+    "s/BACKEND_HOST/$host/g" "s|/etc/smartedge/tls/client\\.|$ETC/tls/$identity.|g"
+  run install -d -m 0755 "$(staged "$(dirname "$dropin")")"
+  tmp="$(mktemp)"
+  printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-client-%s.json5\n' "$ETC" "$identity" > "$tmp"
+  install_system_file "$tmp" "$dropin"
+  rm -f "$tmp"
+}
+
+# remove_identity UNIT IDENTITY: undo install_identity (the unit uses the host's client config).
+remove_identity() {
+  remove_file "$UNIT_DIR/$1.service.d/zenoh-identity.conf"
+  remove_file "$ETC/zenoh-client-$2.json5"
+}
+
 # remove_unit UNIT: stop, disable and delete a unit this installer manages when it is no longer
 # wanted (a router unit not chosen, the viewer under --no-viewer).
 remove_unit() {

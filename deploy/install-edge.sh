@@ -187,20 +187,10 @@ units=()
 for cam in "${CAMERAS[@]}"; do
   # With its own certificate, an agent connects as identity edge-<camera>: its client config
   # and a drop-in pointing ZENOH_CONFIG at it.
-  identity_dropin="$UNIT_DIR/smartedge-edge-agent@$cam.service.d/zenoh-identity.conf"
   if [ "$TLS_PER_CAMERA" = 1 ]; then
-    install_file 0644 "$TLS_DIR/edge-$cam.crt" "$ETC/tls/edge-$cam.crt"
-    install_file 0640 "$TLS_DIR/edge-$cam.key" "$ETC/tls/edge-$cam.key"
-    install_rendered 0640 "$DEPLOY_DIR/zenoh/client-tls.json5" "$ETC/zenoh-client-edge-$cam.json5" \
-      "s/BACKEND_HOST/$BACKEND_HOST/g" "s|/etc/smartedge/tls/client\\.|$ETC/tls/edge-$cam.|g"
-    run install -d -m 0755 "$(staged "$(dirname "$identity_dropin")")"
-    tmp="$(mktemp)"
-    printf '[Service]\nEnvironment=ZENOH_CONFIG=%s/zenoh-client-edge-%s.json5\n' "$ETC" "$cam" > "$tmp"
-    install_system_file "$tmp" "$identity_dropin"
-    rm -f "$tmp"
+    install_identity "smartedge-edge-agent@$cam" "edge-$cam" "$BACKEND_HOST"
   else
-    remove_file "$identity_dropin"
-    remove_file "$ETC/zenoh-client-edge-$cam.json5"
+    remove_identity "smartedge-edge-agent@$cam" "edge-$cam"
   fi
   units+=("smartedge-edge-agent@$cam.service")
 done
