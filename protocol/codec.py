@@ -246,7 +246,8 @@ def _decode(payload: Any, expected: type[M] | None) -> M:
         raise DecodeError(f"expected {expected.SCHEMA}, got {schema}")
     check_payload_size(len(buf), schema)
     _check_unknown_keys(spans, _known_keys(cls) | _ENVELOPE, "")
-    return _record_from_wire("", cls, _build_known(data, spans, cls, schema, ""), schema)
+    return _record_from_wire(
+        "", cls, _build_known(data, spans, cls, schema, "", (0, len(buf))), schema)
 
 
 # --------------------------------------------------------------------------------------------
@@ -379,26 +380,42 @@ def _known_keys(cls: type) -> frozenset[str]:
 
 
 def _build_known(
-    data: memoryview, spans: Mapping[str, Span], cls: type, schema: str, path: str
+    data: memoryview, spans: Mapping[str, Span], cls: type, schema: str, path: str,
+    record: Span | None = None,
 ) -> dict[str, Any]:
     """The known fields of a record as plain msgpack values; containers have their entry counts
-    checked from their headers first, nested records are scanned the same way."""
+    checked from their headers first, nested records are scanned the same way. ``record``: the
+    record's own span; when given and the record holds no nested records, it is unpacked in one
+    go once the checks passed (its unknown keys are already bounded in number and size)."""
+    specs = _field_specs(cls, schema)
+    whole = record is not None and not _has_nested(cls, schema)
     obj: dict[str, Any] = {}
-    for name, _kind, _required, nested in _field_specs(cls, schema):
+    for name, _kind, _required, nested in specs:
         span = spans.get(name)
         if span is None:
             continue
-        where = f"{path}.{name}" if path else name
-        kind, count = _container_header(data, span[0])
         limit = MAX_ENTRIES.get((schema, name))
-        if limit is not None and kind and count > limit:
-            raise LimitError("too_many_entries",
-                             f"{where}: {count} entries (limit {limit})")
-        if nested is not None and kind == "list":
-            obj[name] = _build_nested(data, span, nested, where)
-        else:
+        if limit is not None or nested is not None:
+            kind, count = _container_header(data, span[0])
+            if limit is not None and kind and count > limit:
+                where = f"{path}.{name}" if path else name
+                raise LimitError("too_many_entries", f"{where}: {count} entries (limit {limit})")
+            if nested is not None and kind == "list":
+                where = f"{path}.{name}" if path else name
+                obj[name] = _build_nested(data, span, nested, where)
+                continue
+        if not whole:
             obj[name] = _unpack(data[span[0] : span[1]])
+    if whole:
+        assert record is not None
+        full = _unpack(data[record[0] : record[1]])
+        return {name: full[name] for name, *_ in specs if name in full}
     return obj
+
+
+@functools.cache
+def _has_nested(cls: type, schema: str) -> bool:
+    return any(nested is not None for *_, nested in _field_specs(cls, schema))
 
 
 def _build_nested(data: memoryview, span: Span, cls: type, path: str) -> list[Any]:
@@ -415,5 +432,6 @@ def _build_nested(data: memoryview, span: Span, cls: type, path: str) -> list[An
             continue
         spans = _scan_map(unpacker, data, span[0], where)
         _check_unknown_keys(spans, _known_keys(cls), where)
-        items.append(_build_known(data, spans, cls, cls.__name__, where))
+        record = (start, span[0] + unpacker.tell())
+        items.append(_build_known(data, spans, cls, cls.__name__, where, record))
     return items
