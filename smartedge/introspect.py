@@ -39,7 +39,9 @@ from protocol.session import add_session_arguments, make_config, options_from_ar
 
 #: counters shown in the status table: those that mean trouble (others are in `echo`)
 PROBLEM_WORDS = ("drop", "invalid", "error", "late", "future", "unknown", "bad", "overflow",
-                 "skipped", "image_size", "failed", "rejected")
+                 "skipped", "image_size", "failed", "rejected", "rate_limited", "stale",
+                 "mismatch", "lost", "unconfirmed", "reset", "outside_floor", "jump",
+                 "window_exceeded")
 
 
 def summarize(msg: Message) -> str:
