@@ -95,11 +95,9 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, Final
 
 from protocol.errors import UsageError
-from protocol.messages import PoseCorrection, PoseEstimate
 from robot_bridge.adapters.base import (
     POSE_STREAMS,
     LocalizationPose,
-    MapToOdom,
     RobotAdapter,
 )
 from robot_bridge.adapters.ros2 import (
@@ -107,12 +105,9 @@ from robot_bridge.adapters.ros2 import (
     ODOMETRY_TYPE,
     POSE_WITH_COVARIANCE_STAMPED_TYPE,
     TF_MESSAGE_TYPE,
+    RosAdapterBase,
     RosConversionError,
-    RosReadingAdapter,
     RosTopics,
-    serialize_correction,
-    serialize_map_to_odom,
-    serialize_pose_estimate,
 )
 
 if TYPE_CHECKING:
@@ -652,7 +647,7 @@ class _Publisher:
         return seq
 
 
-class RmwZenohAdapter(RosReadingAdapter):
+class RmwZenohAdapter(RosAdapterBase):
     """A ROS 2 robot (Jazzy or newer) on rmw_zenoh, reached directly over Zenoh.
 
     ``session``: an open ``zenoh.Session`` (not owned: the caller closes it) that reaches the
@@ -822,57 +817,15 @@ class RmwZenohAdapter(RosReadingAdapter):
 
     # -- bridge -> robot ---------------------------------------------------------------------
 
-    def _put(self, get_publisher: Callable[[], _Publisher], payload: bytes, published: str,
-             failed: str) -> bool:
-        try:
-            get_publisher().put(payload, time.time_ns())
-        except Exception as exc:  # a dead session must not take the bridge down
-            self._count(failed)
-            log.warning("could not publish (%s): %s", failed, exc)
-            return False
-        self._count(published)
-        return True
-
-    def apply_correction(self, correction: PoseCorrection) -> bool:
-        if self._closed:
-            return False
-        try:
-            payload = serialize_correction(correction, frame_id=self.topics.map_frame)
-        except RosConversionError as exc:
-            self._count("correction_invalid")
-            log.warning("correction: %s", exc)
-            return False
-        return self._put(lambda: self._correction_pub, payload, "corrections_published",
-                         "correction_publish_failed")
-
-    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
-        if self._closed:
-            return False
-        if stream not in self._output_topics:
-            raise ValueError(f"unknown pose stream {stream!r}: expected one of {POSE_STREAMS}")
-        topic = self._output_topics[stream]
-        try:
-            payload = serialize_pose_estimate(estimate, frame_id=self.topics.map_frame)
-        except RosConversionError as exc:
-            self._count("pose_output_invalid")
-            log.warning("pose output: %s", exc)
-            return False
-        return self._put(
-            lambda: self._output(topic, POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_OUTPUT_QOS),
-            payload, f"pose_{stream}_published", f"pose_{stream}_publish_failed")
-
-    def publish_transform(self, transform: MapToOdom) -> bool:
-        if self._closed:
-            return False
-        topic = self._tf_topic
-        try:
-            payload = serialize_map_to_odom(transform)
-        except RosConversionError as exc:
-            self._count("tf_invalid")
-            log.warning("map -> odom: %s", exc)
-            return False
-        return self._put(lambda: self._output(topic, TF_MESSAGE_TYPE, TF_QOS), payload,
-                         "tf_published", "tf_publish_failed")
+    def _send(self, target: str, payload: bytes) -> None:
+        if target == "correction":
+            publisher = self._correction_pub
+        elif target == "tf":
+            publisher = self._output(self._tf_topic, TF_MESSAGE_TYPE, TF_QOS)
+        else:
+            publisher = self._output(self._output_topics[target.removeprefix("pose_")],
+                                     POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_OUTPUT_QOS)
+        publisher.put(payload, time.time_ns())
 
     def close(self) -> None:
         if self._closed:

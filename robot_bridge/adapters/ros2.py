@@ -25,6 +25,7 @@ import functools
 import logging
 import math
 import re
+from collections.abc import Callable
 from typing import Any, Final
 
 import numpy as np
@@ -32,6 +33,7 @@ import numpy as np
 from protocol.geometry import quaternion_to_yaw, yaw_to_quaternion
 from protocol.messages import PoseCorrection, PoseEstimate
 from robot_bridge.adapters.base import (
+    POSE_STREAMS,
     LocalizationPose,
     MapToOdom,
     OdometrySample,
@@ -512,12 +514,15 @@ class RosConfig:
         return dataclasses.replace(topics, **changes)
 
 
-class RosReadingAdapter(RobotAdapter):
+class RosAdapterBase(RobotAdapter):
     """What the ROS adapters share: reading odometry and the robot's localization from their
-    subscriptions' ring channels. A subclass sets ``topics``, ``_odom_sub``, ``_loc_sub`` (or
-    ``None``), ``_closed`` and ``_latest_localization``, and may override :meth:`_drain` (the
-    rmw_zenoh adapter checks each sample's attachment there). Undecodable payloads are counted
-    (``invalid_odometry``, ``invalid_localization``) and dropped."""
+    subscriptions' ring channels, and writing corrections, pose outputs and the transform as
+    ROS messages. A subclass sets ``topics``, ``_odom_sub``, ``_loc_sub`` (or ``None``),
+    ``_closed`` and ``_latest_localization``, implements :meth:`_send` (which publisher takes a
+    payload), and may override :meth:`_drain` (the rmw_zenoh adapter checks each sample's
+    attachment there). Undecodable payloads are counted (``invalid_odometry``,
+    ``invalid_localization``) and dropped; a message that cannot be encoded is counted
+    ``<what>_invalid``, one that cannot be sent ``<what>_publish_failed``."""
 
     topics: RosTopics
     _odom_sub: Any
@@ -560,8 +565,47 @@ class RosReadingAdapter(RobotAdapter):
                     log.debug("dropped localization: %s", exc)
         return self._latest_localization
 
+    def _send(self, target: str, payload: bytes) -> None:
+        """Put ``payload`` on the publisher of ``target``: ``correction``, ``pose_fused``,
+        ``pose_cameras`` or ``tf``. Raises when the transport fails."""
+        raise NotImplementedError
 
-class RosZenohAdapter(RosReadingAdapter):
+    def _write(self, target: str, encode: Callable[[], bytes], published: str) -> bool:
+        if self._closed:
+            return False
+        try:
+            payload = encode()
+        except RosConversionError as exc:
+            self._count(f"{target}_invalid")
+            log.warning("%s not sent: %s", target, exc)
+            return False
+        try:
+            self._send(target, payload)
+        except Exception as exc:  # a dead session must not take the bridge down
+            self._count(f"{target}_publish_failed")
+            log.warning("could not publish %s: %s", target, exc)
+            return False
+        self._count(published)
+        return True
+
+    def apply_correction(self, correction: PoseCorrection) -> bool:
+        return self._write("correction", lambda: serialize_correction(
+            correction, frame_id=self.topics.map_frame, ros1=self.topics.ros1),
+            "corrections_published")
+
+    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
+        if stream not in POSE_STREAMS:
+            raise ValueError(f"unknown pose stream {stream!r}: expected one of {POSE_STREAMS}")
+        return self._write(f"pose_{stream}", lambda: serialize_pose_estimate(
+            estimate, frame_id=self.topics.map_frame, ros1=self.topics.ros1),
+            f"pose_{stream}_published")
+
+    def publish_transform(self, transform: MapToOdom) -> bool:
+        return self._write("tf", lambda: serialize_map_to_odom(transform, ros1=self.topics.ros1),
+                           "tf_published")
+
+
+class RosZenohAdapter(RosAdapterBase):
     """A ROS robot reached over Zenoh through zenoh-bridge-ros2dds (or zenoh-plugin-ros1).
 
     Uses an open ``zenoh.Session`` (not owned: the caller closes it). Subscriptions hand
@@ -617,55 +661,14 @@ class RosZenohAdapter(RosReadingAdapter):
             self._output_publishers[topic] = pub
         return pub
 
-    def _publish(self, topic: str, ros_type: str, payload: bytes, what: str) -> bool:
-        try:
-            self._output_publisher(topic, ros_type).put(payload)
-        except Exception as exc:  # a dead session must not take the bridge down
-            self._count(f"{what}_publish_failed")
-            log.warning("could not publish %s on %s: %s", what, topic, exc)
-            return False
-        self._count(f"{what}_published")
-        return True
-
-    def publish_pose(self, estimate: PoseEstimate, stream: str = "fused") -> bool:
-        if self._closed:
-            return False
-        topic = self.topics.pose_output_topic(stream)
-        try:
-            payload = serialize_pose_estimate(
-                estimate, frame_id=self.topics.map_frame, ros1=self.topics.ros1)
-        except RosConversionError as exc:
-            self._count("pose_output_invalid")
-            log.warning("pose output: %s", exc)
-            return False
-        return self._publish(topic, POSE_WITH_COVARIANCE_STAMPED_TYPE, payload,
-                             f"pose_{stream}")
-
-    def publish_transform(self, transform: MapToOdom) -> bool:
-        if self._closed:
-            return False
-        try:
-            payload = serialize_map_to_odom(transform, ros1=self.topics.ros1)
-        except RosConversionError as exc:
-            self._count("tf_invalid")
-            log.warning("map -> odom: %s", exc)
-            return False
-        return self._publish(self.topics.tf_topic, TF_MESSAGE_TYPE, payload, "tf")
-
-    def apply_correction(self, correction: PoseCorrection) -> bool:
-        if self._closed:
-            return False
-        try:
-            payload = serialize_correction(
-                correction, frame_id=self.topics.map_frame, ros1=self.topics.ros1
-            )
+    def _send(self, target: str, payload: bytes) -> None:
+        if target == "correction":
             self._publisher.put(payload)
-        except Exception as exc:  # a dead session must not take the bridge down
-            self._count("correction_publish_failed")
-            log.warning("could not publish correction: %s", exc)
-            return False
-        self._count("corrections_published")
-        return True
+        elif target == "tf":
+            self._output_publisher(self.topics.tf_topic, TF_MESSAGE_TYPE).put(payload)
+        else:
+            topic = self.topics.pose_output_topic(target.removeprefix("pose_"))
+            self._output_publisher(topic, POSE_WITH_COVARIANCE_STAMPED_TYPE).put(payload)
 
     def close(self) -> None:
         if self._closed:
