@@ -131,23 +131,32 @@ def rig(zenoh_pair, example_site):
     return make
 
 
-def test_future_stamped_fake_is_refused_and_genuine_estimates_still_used(rig) -> None:
-    """The probe's attack: a fused pose 0.95 m off, stamped 0.3 s ahead, at 50 Hz, next to
-    the backend's genuine estimates at 10 Hz. Every fake is refused; the genuine ones are not
-    'late' and correct the robot at each stop."""
-    r = rig(DriftingRobot(scale=1.04, yaw_bias_rad_per_m=0.01))
+def _three_stops_under_fakes(r: Rig, offset_m: float, ahead_ns: int) -> tuple[int, int]:
+    """Three stops (4 s driving, 6 s stopped each) while a peer posts a fused pose
+    ``offset_m`` ahead of the robot's localization, stamped ``ahead_ns`` after now, at 50 Hz,
+    next to the backend's genuine estimates at 10 Hz; the robot must end each stop within 5 cm.
+    Returns (fakes, genuine) sent."""
     fakes = genuine = 0
     for _stop in range(3):
-        for k in range(500):  # 4 s driving (drift builds up), 6 s stopped
+        for k in range(500):
             loc = r.localization()
-            r.put(r.pose_key, r.estimate(loc[0] + 0.95, loc[1], loc[2],
-                                         stamp_ns=r.robot.t_ns + 300_000_000, std_m=0.001))
+            r.put(r.pose_key, r.estimate(loc[0] + offset_m, loc[1], loc[2],
+                                         stamp_ns=r.robot.t_ns + ahead_ns, std_m=0.001))
             fakes += 1
             if k % 5 == 0:
                 r.put(r.pose_key, r.genuine(genuine))
                 genuine += 1
             r.step(vx=0.5 if k < 200 else 0.0)
         assert r.error_m() < 0.05, r.counters
+    return fakes, genuine
+
+
+def test_future_stamped_fake_is_refused_and_genuine_estimates_still_used(rig) -> None:
+    """The probe's attack: a fused pose 0.95 m off, stamped 0.3 s ahead, at 50 Hz, next to
+    the backend's genuine estimates at 10 Hz. Every fake is refused; the genuine ones are not
+    'late' and correct the robot at each stop."""
+    r = rig(DriftingRobot(scale=1.04, yaw_bias_rad_per_m=0.01))
+    fakes, genuine = _three_stops_under_fakes(r, 0.95, ahead_ns=300_000_000)
     c = r.counters
     assert c["bridge.future_stamp_estimate"] == fakes
     assert c["bridge.received_estimate_fused"] == genuine
@@ -356,16 +365,7 @@ def test_fakes_holding_the_newest_stamp_do_not_block_genuine_corrections(rig) ->
     estimates arrive 'late'. The fakes are refused as a jump too large; the bridge then falls
     back to the genuine estimates of the stop, and the robot is corrected at every stop."""
     r = rig(DriftingRobot(scale=1.04, yaw_bias_rad_per_m=0.01))
-    genuine = 0
-    for _stop in range(3):
-        for k in range(500):  # 4 s driving, 6 s stopped
-            loc = r.localization()
-            r.put(r.pose_key, r.estimate(loc[0] + 1.5, loc[1], loc[2], std_m=0.001))
-            if k % 5 == 0:
-                r.put(r.pose_key, r.genuine(genuine))
-                genuine += 1
-            r.step(vx=0.5 if k < 200 else 0.0)
-        assert r.error_m() < 0.05, r.counters
+    _three_stops_under_fakes(r, 1.5, ahead_ns=0)
     c = r.counters
     assert c["bridge.late_estimate"] > 0 and c["bridge.skip_jump_too_large"] >= 3
     assert c["bridge.fallback_estimate"] == 3 == c["bridge.corrections_accepted"]
