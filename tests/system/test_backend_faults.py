@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -33,7 +32,7 @@ import pytest
 from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.session import loopback_config
-from tests.conftest import REPO_ROOT, free_tcp_port, wait_until
+from tests.conftest import REPO_ROOT, free_tcp_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("gtsam")
@@ -90,12 +89,7 @@ def backend(tmp_path: Path) -> Iterator[Backend]:
         assert wait_until(lambda: bool(b.statuses), 60, 0.1), log.read_text()[-3000:]
         yield b
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
         for sub in subs:
             sub.undeclare()
         hub.close()

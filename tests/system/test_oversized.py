@@ -18,7 +18,6 @@ see the figures (docs/reliability.md).
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -32,7 +31,7 @@ from protocol import decode, encode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
 from smartedge.reliability import RssSampler, hostile_payloads, rss_mib
-from tests.conftest import REPO_ROOT, free_tcp_port, wait_until
+from tests.conftest import REPO_ROOT, free_tcp_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("gtsam")
@@ -152,12 +151,7 @@ def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
                    "from the truth")
         figures["rss_final_mib"] = rss_mib(backend.pid)
     finally:
-        backend.send_signal(signal.SIGTERM)
-        try:
-            backend.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            backend.kill()
-            backend.wait()
+        stop_process(backend)
         hub.close()
     figures["exit_code"] = backend.returncode
     return figures
