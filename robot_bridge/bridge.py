@@ -207,6 +207,8 @@ class RobotBridge:
         self._estimates: dict[str, PoseEstimate] = {}
         # every accepted estimate of the last moments per source, newest stamp or not
         self._recent: dict[str, collections.deque[PoseEstimate]] = {}
+        self._fallback_context: tuple[int, int] | None = None
+        self._fallback_refused: set[tuple[str, int, int]] = set()
         self._last_decision: CorrectionDecision = CorrectionDecision("moving")
         self._counted: collections.deque[tuple[Any, str]] = collections.deque(maxlen=8)
         self._pose_output = PoseOutput(config.pose_output, config.world_frame)
@@ -654,14 +656,25 @@ class RobotBridge:
         before camera-only) when the newest one was refused by a plausibility gate, or
         ``None``."""
         assert motion.still_since_ns is not None
+        # an estimate a gate refused stays refused while the localization (a new reading at
+        # least every pump) and the stop are the same: each is tried once, not at every
+        # odometry message (2.4 ms per message with 64 forged estimates to try)
+        context = (id(self._localization), motion.stop_id)
+        if context != self._fallback_context:
+            self._fallback_context = context
+            self._fallback_refused.clear()
         for source in SOURCE_PREFERENCE:
             candidates = sorted(self._recent.get(source, ()), key=lambda e: -e.stamp_ns)
             for est in candidates:
                 if est is refused or est.stamp_ns < motion.still_since_ns:
                     continue
+                key = (est.source, est.seq, est.stamp_ns)
+                if key in self._fallback_refused:
+                    continue
                 alt = self._policy.decide(est, self._localization, motion, self._now_ns)
                 if alt.send:
                     return alt
+                self._fallback_refused.add(key)
         return None
 
     def _evaluate(self) -> Outbox:
