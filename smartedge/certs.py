@@ -44,6 +44,7 @@ from typing import Any, Final
 from protocol import acl
 from protocol.errors import SmartedgeError
 from protocol.site import Site, load_site
+from robot_bridge.adapters.ros2 import RosConfig
 
 log = logging.getLogger(__name__)
 
@@ -383,6 +384,9 @@ def main(argv: Sequence[str]) -> int:
     args = build_parser().parse_args(list(argv))
     try:
         site = load_site(args.site)
+        # the bridge's parser validates the ros section (errors name the file and key); the
+        # ground floor's acl module then only reads the keys it names
+        RosConfig.from_site(site)
         ros_keys = acl.RosKeys.from_section(site.section("ros"), ros1=args.ros1)
         names = make_certs(
             site, Path(args.out), router_hosts=args.router_host, days=args.days,
