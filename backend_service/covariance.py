@@ -27,6 +27,7 @@ Pure numpy, no I/O.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from typing import Final
@@ -34,13 +35,16 @@ from typing import Final
 import numpy as np
 
 from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rotvec, wrap_angle
+from protocol.geometry import distort_normalized, distort_normalized_jacobian, wrap_angle
 
-__all__ = ["CovarianceParts", "ErrorModel", "fuse_with_prior", "propagate_correlated"]
+__all__ = [
+    "CovarianceParts",
+    "ErrorModel",
+    "fuse_with_prior",
+    "project_with_extrinsic_jacobian",
+    "propagate_correlated",
+]
 
-#: finite-difference steps of the extrinsic derivative: rotation (rad), translation (m)
-_EPS_ROT: Final = 1e-4
-_EPS_T: Final = 1e-3
 #: chi-square(3) 99.9 % quantile: a plain solve and a prior further apart (Mahalanobis, with
 #: both covariances) than this contradict each other; the prior is then not used
 PRIOR_GATE_CHI2: Final = 16.27
@@ -78,30 +82,67 @@ class CovarianceParts:
         return CovarianceParts(self.frame[ix], self.systematic[ix])
 
 
-def _perturbed(camera: CameraModel, rotvec: np.ndarray, dt_m: np.ndarray) -> CameraModel:
-    """The camera rotated about its optical centre by ``rotvec`` (world frame) and moved by
-    ``dt_m``."""
-    T_world_cam = invert_transform(camera.T_cam_world)
-    T_world_cam[:3, :3] = rotation_from_rotvec(rotvec) @ T_world_cam[:3, :3]
-    T_world_cam[:3, 3] += dt_m
-    return dataclasses.replace(camera, T_cam_world=invert_transform(T_world_cam))
+@dataclasses.dataclass(frozen=True, eq=False)
+class _CameraStack:
+    """The cameras of one frame-set as stacked arrays (C leading), for vectorized projection."""
+
+    R_cam_world: np.ndarray  # (C, 3, 3)
+    t_cam_world: np.ndarray  # (C, 3)
+    focal: np.ndarray  # (C, 2, 2) K[:2, :2]
+    principal: np.ndarray  # (C, 2)
+    dist: np.ndarray  # (C, 8) zero-padded OpenCV coefficients
+    centre_world: np.ndarray  # (C, 3) optical centres, metres
 
 
-def extrinsic_jacobian(camera: CameraModel, points_world: np.ndarray) -> np.ndarray:
-    """(2M, 6) d(pixels)/d(camera rotation (rad, world axes), camera position (m)), numerically."""
-    uv0, _ = camera.project(points_world)
-    cols = []
-    for k in range(6):
-        rot, dt = np.zeros(3), np.zeros(3)
-        if k < 3:
-            rot[k] = _EPS_ROT
-            eps = _EPS_ROT
-        else:
-            dt[k - 3] = _EPS_T
-            eps = _EPS_T
-        uv, _ = _perturbed(camera, rot, dt).project(points_world)
-        cols.append(((uv - uv0) / eps).reshape(-1))
-    return np.stack(cols, axis=1)
+@functools.lru_cache(maxsize=64)
+def _camera_stack(cameras: tuple[CameraModel, ...]) -> _CameraStack:
+    # CameraModel compares by identity (eq=False): the site's cameras are the cache's keys
+    T = np.stack([cam.T_cam_world for cam in cameras])
+    dist = np.zeros((len(cameras), 8))
+    for c, cam in enumerate(cameras):
+        dist[c, :cam.dist.size] = cam.dist
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    return _CameraStack(R, t, np.stack([cam.K[:2, :2] for cam in cameras]),
+                        np.stack([cam.K[:2, 2] for cam in cameras]), dist,
+                        -np.einsum("cji,cj->ci", R, t))
+
+
+def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world: np.ndarray
+                                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of ``points_world`` (M, 3) in every camera and their derivative with respect to
+    each camera's pose, in closed form and vectorized over cameras.
+
+    Returns ``uv`` (C, M, 2) distorted pixels (NaN behind a camera) and ``G`` (C, M, 2, 6):
+    d(u, v)/d(rotation of the camera about its optical centre (rad, world axes), position of
+    the camera (m, world axes)) — the camera's ``T_world_cam`` perturbed on the left,
+    R' = Exp(w) R, c' = c + dc. With a = p - c, the camera-frame point p_cam = R^T a moves by
+    R^T [a]x dw - R^T dc; the chain rule through the perspective division, the lens distortion
+    (:func:`protocol.geometry.distort_normalized_jacobian`) and the focal lengths gives G.
+    """
+    stack = _camera_stack(tuple(cameras))
+    P = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    R, t = stack.R_cam_world, stack.t_cam_world
+    p_cam = np.einsum("cij,mj->cmi", R, P) + t[:, None, :]  # (C, M, 3)
+    z = p_cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = np.where(z > 1e-9, 1.0 / z, np.nan)
+    xy = p_cam[..., :2] * inv_z[..., None]
+    dist = stack.dist[:, None, :]
+    xy_d = distort_normalized(xy, dist)
+    uv = np.einsum("cij,cmj->cmi", stack.focal, xy_d) + stack.principal[:, None, :]
+    # d(x, y)/d(p_cam): [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+    d_xy = np.zeros((*z.shape, 2, 3))
+    d_xy[..., 0, 0] = inv_z
+    d_xy[..., 1, 1] = inv_z
+    d_xy[..., :, 2] = -xy * inv_z[..., None]
+    d_uv = np.einsum("cij,cmjk,cmkl->cmil", stack.focal,
+                     distort_normalized_jacobian(xy, dist), d_xy)  # (C, M, 2, 3)
+    d_uv_a = np.einsum("cmij,cjk->cmik", d_uv, R)  # d(u, v)/d(a), a = p - c in world axes
+    a = P[None, :, :] - stack.centre_world[:, None, :]  # (C, M, 3)
+    G = np.empty((*z.shape, 2, 6))
+    G[..., 0:3] = np.cross(d_uv_a, a[..., None, :])  # row . (a x dw) = (row x a) . dw
+    G[..., 3:] = -d_uv_a
+    return uv, G
 
 
 def propagate_correlated(A: np.ndarray, cameras: Sequence[CameraModel],
@@ -111,31 +152,35 @@ def propagate_correlated(A: np.ndarray, cameras: Sequence[CameraModel],
 
     ``A``: (n, 2CM) sensitivity of the solution to the raw pixel residuals (camera-major, u/v
     interleaved per keypoint, zero columns for unused keypoints); ``points_world``: (M, 3)
-    keypoints at the solution; ``weights``: (C, M) > 0 where a keypoint was used."""
+    keypoints at the solution; ``weights``: (C, M) > 0 where a keypoint was used. Vectorized
+    over cameras: one pass of array operations whatever the number of cameras."""
     n = A.shape[0]
-    M = points_world.shape[0]
+    C = len(cameras)
     frame = np.zeros((n, n))
     systematic = np.zeros((n, n))
+    if C == 0 or not model.any:
+        return frame, systematic
+    M = points_world.shape[0]
+    used = np.asarray(weights).reshape(C, M) > 0  # (C, M)
+    A4 = A.reshape(n, C, M, 2)
     s_rot = math.radians(model.extrinsic_sigma_deg)
-    for c, cam in enumerate(cameras):
-        used = weights[c] > 0
-        if not used.any():
-            continue
-        Ac = A[:, 2 * M * c:2 * M * (c + 1)]
-        uv, _ = cam.project(points_world)
-        if model.detection_shift_sigma_px > 0:
-            G = np.tile(np.eye(2), (M, 1))  # every keypoint moves by the same offset
-            AG = Ac @ G
-            frame += model.detection_shift_sigma_px ** 2 * AG @ AG.T
-        if model.detection_scale_sigma > 0:
-            centroid = uv[used].mean(axis=0)
-            g = np.where(used[:, None], uv - centroid, 0.0).reshape(-1)
-            ag = Ac @ g
-            frame += model.detection_scale_sigma ** 2 * np.outer(ag, ag)
-        if model.extrinsic_sigma_m > 0 or s_rot > 0:
-            AG = Ac @ extrinsic_jacobian(cam, points_world)
-            S = np.diag([s_rot ** 2] * 3 + [model.extrinsic_sigma_m ** 2] * 3)
-            systematic += AG @ S @ AG.T
+    need_extrinsic = model.extrinsic_sigma_m > 0 or s_rot > 0
+    if model.detection_scale_sigma > 0 or need_extrinsic:
+        uv, G = project_with_extrinsic_jacobian(cameras, points_world)
+    if model.detection_shift_sigma_px > 0:
+        AG = A4.sum(axis=2).reshape(n, 2 * C)  # every keypoint moves by the same offset
+        frame += model.detection_shift_sigma_px ** 2 * AG @ AG.T
+    if model.detection_scale_sigma > 0:
+        count = np.maximum(used.sum(axis=1), 1)[:, None]
+        centroid = np.where(used[..., None], uv, 0.0).sum(axis=1) / count  # (C, 2)
+        g = np.where(used[..., None], uv - centroid[:, None, :], 0.0)  # (C, M, 2)
+        ag = np.einsum("ncmk,cmk->nc", A4, g)
+        frame += model.detection_scale_sigma ** 2 * ag @ ag.T
+    if need_extrinsic:
+        G = np.where(used[..., None, None], G, 0.0)  # unused keypoints may be behind (NaN)
+        AG = np.einsum("ncmk,cmkj->ncj", A4, G).reshape(n, C * 6)
+        S = np.tile([s_rot ** 2] * 3 + [model.extrinsic_sigma_m ** 2] * 3, C)
+        systematic += (AG * S) @ AG.T
     return frame, systematic
 
 

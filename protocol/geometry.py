@@ -262,6 +262,37 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
+def distort_normalized_jacobian(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(..., 2, 2) derivative of :func:`distort_normalized` with respect to its input, in closed
+    form: row i is d(distorted coordinate i)/d(x, y).
+
+    ``xy`` and ``dist`` as in :func:`distort_normalized` (leading axes broadcast). Without
+    distortion coefficients the result is the identity.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64)
+    n = dist.shape[-1] if dist.ndim else 0
+    if n > 8:
+        raise ValueError(f"{n} distortion coefficients; OpenCV's model has at most 8 here")
+    d = np.zeros((*dist.shape[:-1], 8)) if dist.ndim else np.zeros(8)
+    d[..., :n] = dist
+    k1, k2, p1, p2, k3, k4, k5, k6 = (d[..., i] for i in range(8))
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    dradial_dr2 = (dnum * den - num * dden) / (den * den)
+    out = np.empty((*np.broadcast_shapes(x.shape, k1.shape), 2, 2))
+    out[..., 0, 0] = radial + 2 * x * x * dradial_dr2 + 2 * p1 * y + 6 * p2 * x
+    out[..., 0, 1] = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+    out[..., 1, 0] = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+    out[..., 1, 1] = radial + 2 * y * y * dradial_dr2 + 6 * p1 * y + 2 * p2 * x
+    return out
+
+
 def undistort_normalized(xy_distorted: np.ndarray, dist: np.ndarray, *,
                          iterations: int = 20, tol: float = 1e-12) -> np.ndarray:
     """Invert :func:`distort_normalized`: (..., 2) distorted normalized coordinates (what

@@ -15,6 +15,7 @@ from protocol.geometry import (
     StaticDetector,
     angle_diff,
     distort_normalized,
+    distort_normalized_jacobian,
     invert_transform,
     lens_fold_radius,
     quaternion_to_rotation,
@@ -293,3 +294,26 @@ def test_lens_fold_radius_matches_the_analytic_fold_of_k1(k1: float) -> None:
 def test_lens_fold_radius_is_infinite_for_lenses_that_keep_growing() -> None:
     assert math.isinf(lens_fold_radius(np.zeros(5)))
     assert math.isinf(lens_fold_radius(np.array([0.1, 0.01, 0.0, 0.0, 0.0])))
+
+
+@settings(max_examples=60, deadline=None)
+@given(DIST_COEFFS, st.integers(0, 2**31), st.sampled_from([0, 4, 5, 8]))
+def test_distortion_jacobian_matches_central_differences(coeffs, seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    dist = np.array([*coeffs, 0.02, -0.01, 0.005])[:n]
+    xy = rng.uniform(-0.6, 0.6, (30, 2))
+    eps = 1e-6
+    cols = [(distort_normalized(xy + e, dist) - distort_normalized(xy - e, dist)) / (2 * eps)
+            for e in (np.array([eps, 0.0]), np.array([0.0, eps]))]
+    np.testing.assert_allclose(distort_normalized_jacobian(xy, dist), np.stack(cols, axis=-1),
+                               rtol=1e-6, atol=1e-7)
+
+
+def test_distortion_jacobian_broadcasts_one_row_per_camera() -> None:
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-0.5, 0.5, (2, 6, 2))  # (camera, keypoint, 2)
+    dist = np.array([[-0.3, 0.1, 0.01, -0.01, 0.02, 0.0, 0.0, 0.0], [0.0] * 8])
+    J = distort_normalized_jacobian(xy, dist[:, None, :])
+    assert J.shape == (2, 6, 2, 2)
+    np.testing.assert_allclose(J[1], np.broadcast_to(np.eye(2), (6, 2, 2)))
+    np.testing.assert_allclose(J[0], distort_normalized_jacobian(xy[0], dist[0]))
