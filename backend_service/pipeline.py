@@ -92,6 +92,10 @@ class PipelineConfig:
     ``publish_max_age_s``: the backend service drops (and counts, ``stale_dropped``) a pose
     older than this when it would be published, e.g. after a stall (the pipeline itself never
     reads the clock; see :class:`~backend_service.service.BackendNode`).
+    ``max_input_delay_s``: the backend service sheds (counts, ``shed``) camera detections that
+    waited longer than this in its input queue: when the host cannot keep up, the oldest
+    frame-sets go first and the latency stays bounded instead of growing until every pose is
+    stale.
     """
 
     solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
@@ -103,6 +107,7 @@ class PipelineConfig:
     static_max_yaw_rate_radps: float = 0.02
     static_dwell_s: float = 1.0
     publish_max_age_s: float = 1.0
+    max_input_delay_s: float = 0.25
 
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_SOURCES:
@@ -111,6 +116,8 @@ class PipelineConfig:
             raise ValueError("PipelineConfig.prior_max_age_s must be >= 0")
         if not self.publish_max_age_s > 0:
             raise ValueError("PipelineConfig.publish_max_age_s must be > 0")
+        if not self.max_input_delay_s > 0:
+            raise ValueError("PipelineConfig.max_input_delay_s must be > 0")
 
     @classmethod
     def from_site(cls, site: Site, **overrides: object) -> PipelineConfig:
@@ -121,7 +128,8 @@ class PipelineConfig:
         th = site.thresholds
         reader = site.section_reader()
         pose = site.section("pose")
-        own = {"prior", "prior_max_age_s", "fuse_while_moving", "publish_max_age_s"}
+        own = {"prior", "prior_max_age_s", "fuse_while_moving", "publish_max_age_s",
+               "max_input_delay_s"}
         solver_fields = {f.name for f in dataclasses.fields(SolverConfig)}
         reader.no_unknown("pose", pose, own | solver_fields)
         solver = reader.section("pose", {k: v for k, v in pose.items() if k in solver_fields},

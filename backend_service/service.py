@@ -43,6 +43,10 @@ class BackendNode(ServiceNode):
     (never below 0): on a live site, where sensors share the backend's time base, that floor is
     the transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is
     the replay's offset, so replayed poses are not all stale.
+
+    Load shedding: detections that waited in the input queue longer than ``max_input_delay_s``
+    are dropped by the runner before they are decoded (``shed``, ``shed.<key>``), oldest first,
+    and the status reports ``degraded`` with how many since the previous status.
     """
 
     service = "backend"
@@ -66,11 +70,13 @@ class BackendNode(ServiceNode):
         self._input_delays: collections.deque[int] = collections.deque(maxlen=INPUT_DELAY_WINDOW)
         self._delay_floor_ns = 0
         self._stale_run = 0
+        self._shed_seen = 0
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
         return [
-            Subscription(keys.detections_key(s, "*"), RobotDetections, capacity=4096),
+            Subscription(keys.detections_key(s, "*"), RobotDetections, capacity=4096,
+                         max_queue_delay_s=self.pipeline.config.max_input_delay_s),
             Subscription(keys.odom_key(s, "*"), Odometry, capacity=4096, drop_oldest=False),
             Subscription(keys.localization_key(s, "*"), PoseEstimate, capacity=256),
             Subscription(keys.alive_key(s, "*", "*"), liveliness=True),
@@ -151,6 +157,12 @@ class BackendNode(ServiceNode):
         problems = self.pipeline.problems(now) if now else []
         if self._stale_run:
             problems.append(f"{self._stale_run} stale poses dropped (the worker stalled?)")
+        shed = self.stats.snapshot_counters().get("shed", 0)
+        if shed > self._shed_seen:
+            limit_ms = self.pipeline.config.max_input_delay_s * 1e3
+            problems.append(f"shedding load: {shed - self._shed_seen} detections waited more "
+                            f"than {limit_ms:.0f} ms and were dropped since the last status")
+            self._shed_seen = shed
         if problems:
             shown = "; ".join(problems[:6]) + (f"; +{len(problems) - 6} more"
                                                if len(problems) > 6 else "")

@@ -64,6 +64,9 @@ class Subscription:
     ``max_payload_bytes``: larger samples are refused in the Zenoh callback, before their bytes
     are copied (``None``: the message type's cap, :func:`protocol.limits.payload_cap`).
     ``liveliness``: subscribe to liveliness tokens; the node gets ``alive(key, present)`` calls.
+    ``max_queue_delay_s``: a sample that waited longer than this in the channel is shed when the
+    worker reaches it (counted ``shed``, ``shed.<key_expr>``; ``None``: never): when the worker
+    cannot keep up, the oldest inputs go first and the delay stays bounded instead of growing.
     """
 
     key_expr: str
@@ -73,6 +76,12 @@ class Subscription:
     liveliness: bool = False
     max_queued_bytes: int | None = None
     max_payload_bytes: int | None = None
+    max_queue_delay_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.max_queue_delay_s is not None and not self.max_queue_delay_s > 0:
+            raise ValueError(f"Subscription {self.key_expr}: max_queue_delay_s must be > 0, "
+                             f"got {self.max_queue_delay_s}")
 
     @property
     def schema(self) -> str | None:
@@ -302,10 +311,12 @@ def watchdog_period_s() -> float | None:
 class _Channel:
     """Bounded FIFO between Zenoh threads and the worker, bounded in messages (``capacity``) and
     in payload bytes (``max_bytes``); overflow drops the oldest or the newest sample and counts
-    it (``dropped``, ``dropped.<name>``, and ``dropped.byte_budget`` when the bytes overflowed)."""
+    it (``dropped``, ``dropped.<name>``, and ``dropped.byte_budget`` when the bytes overflowed).
+    With ``max_delay_ns``, :meth:`pop` sheds the samples that waited longer than that (counted
+    ``shed``, ``shed.<name>``): load shedding, oldest first."""
 
     def __init__(self, capacity: int, drop_oldest: bool, stats: Stats, name: str,
-                 max_bytes: int = DEFAULT_CHANNEL_BYTES) -> None:
+                 max_bytes: int = DEFAULT_CHANNEL_BYTES, max_delay_ns: int | None = None) -> None:
         self._q: collections.deque[tuple[str, bytes, int]] = collections.deque()
         self._capacity = max(1, capacity)
         self._max_bytes = max(1, max_bytes)
@@ -313,6 +324,7 @@ class _Channel:
         self._drop_oldest = drop_oldest
         self._stats = stats
         self._name = name
+        self._max_delay_ns = max_delay_ns
         self._lock = threading.Lock()  # Zenoh threads put, the worker pops
 
     def put(self, item: tuple[str, bytes, int]) -> None:
@@ -334,14 +346,27 @@ class _Channel:
         if over_bytes:
             self._stats.count("dropped.byte_budget", over_bytes)
 
-    def pop(self) -> tuple[str, bytes, int] | None:
+    def pop(self, now_ns: int | None = None) -> tuple[str, bytes, int] | None:
+        """The oldest sample, or ``None``; with a delay bound, samples received before
+        ``now_ns`` minus the bound are shed on the way (``now_ns`` defaults to the wall clock,
+        the clock of the receive stamps)."""
+        shed = 0
         with self._lock:
+            if self._max_delay_ns is not None and self._q:
+                oldest_ok = (time.time_ns() if now_ns is None else now_ns) - self._max_delay_ns
+                while self._q and self._q[0][2] < oldest_ok:
+                    self._bytes -= len(self._q.popleft()[1])
+                    shed += 1
             try:
                 item = self._q.popleft()
             except IndexError:
-                return None
-            self._bytes -= len(item[1])
-            return item
+                item = None
+            else:
+                self._bytes -= len(item[1])
+        if shed:
+            self._stats.count("shed", shed)
+            self._stats.count(f"shed.{self._name}", shed)
+        return item
 
     @property
     def queued_bytes(self) -> int:
@@ -459,8 +484,10 @@ class ZenohRunner:
                         )
                     )
                     continue
+                max_delay_ns = (None if sub.max_queue_delay_s is None
+                                else round(sub.max_queue_delay_s * 1e9))
                 channel = _Channel(sub.capacity, sub.drop_oldest, node.stats, sub.key_expr,
-                                   sub.byte_budget)
+                                   sub.byte_budget, max_delay_ns)
                 channels.append((sub, channel))
 
                 def on_sample(sample: Any, _c: _Channel = channel, _s: Subscription = sub) -> None:

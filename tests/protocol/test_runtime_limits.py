@@ -133,3 +133,28 @@ def test_zenoh_runner_refuses_oversized_samples_in_the_callback() -> None:
         runner.stop()
         thread.join(10)
     assert not thread.is_alive()
+
+
+def test_a_delay_bounded_channel_sheds_the_oldest_samples_when_popped() -> None:
+    stats = Stats()
+    channel = _Channel(100, True, stats, "sub", max_bytes=10_000, max_delay_ns=50)
+    for recv_ns in (0, 10, 60, 100):
+        channel.put(("k", bytes(5), recv_ns))
+    item = channel.pop(now_ns=100)  # 0 and 10 waited more than 50 ns: shed, oldest first
+    assert item is not None and item[2] == 60
+    assert len(channel) == 1 and channel.queued_bytes == 5
+    assert stats.snapshot_counters() == {"shed": 2, "shed.sub": 2}
+    assert channel.pop(now_ns=1_000) is None  # the last one is shed too, nothing returned
+    assert stats.snapshot_counters()["shed"] == 3 and channel.queued_bytes == 0
+
+
+def test_a_channel_without_a_delay_bound_never_sheds() -> None:
+    stats = Stats()
+    channel = _Channel(100, True, stats, "sub")
+    channel.put(("k", b"x", 0))
+    assert channel.pop(now_ns=10**18) is not None and stats.snapshot_counters() == {}
+
+
+def test_a_subscription_refuses_a_non_positive_delay_bound() -> None:
+    with pytest.raises(ValueError, match="max_queue_delay_s"):
+        Subscription("k/*", Odometry, max_queue_delay_s=0.0)
