@@ -11,6 +11,7 @@ synchronizer and the solve), and dropped frame-sets (published frames without a 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import platform
@@ -20,7 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -75,14 +76,16 @@ def write_ring_site(path: Path, n_cameras: int) -> Site:
     return load_site(path)
 
 
-def _robot_pose(t_s: float) -> np.ndarray:
+def robot_pose(t_s: float) -> np.ndarray:
     w = ROBOT_SPEED_MPS / ROBOT_CIRCLE_M
     return np.array([ROBOT_CIRCLE_M * math.cos(w * t_s), ROBOT_CIRCLE_M * math.sin(w * t_s),
                      w * t_s + math.pi / 2])
 
 
-def _detections(site: Site, pose: np.ndarray, stamp_ns: int, seq: int,
-                rng: np.random.Generator) -> list[tuple[str, bytes]]:
+def detection_payloads(site: Site, pose: np.ndarray, stamp_ns: int, seq: int,
+                       rng: np.random.Generator) -> list[tuple[str, bytes]]:
+    """(key, encoded RobotDetections) of every camera seeing the robot at ``pose`` (x, y,
+    theta), its keypoints with 1 px Gaussian noise."""
     model = site.robot_model()
     pts = model.keypoints_base_m @ rotation_z(pose[2]).T + [pose[0], pose[1], 0.0]
     out = []
@@ -139,7 +142,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
                 stamp = start_ns + k * period_ns
                 # each camera encodes its own frame in parallel on its own board: prepare all
                 # payloads first, then send them together at the capture time
-                frame = _detections(site, _robot_pose(k / rate_hz), stamp, k, rng)
+                frame = detection_payloads(site, robot_pose(k / rate_hz), stamp, k, rng)
                 while (now := time.time_ns()) < stamp:
                     time.sleep(min(0.002, (stamp - now) * 1e-9))
                 if now - stamp > period_ns:
@@ -165,6 +168,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
             "frames": len(stamps),
             "late_publish": late_publish,
             "backend_dropped": float(last.counters.get("dropped", 0)) if last else math.nan,
+            "backend_shed": float(last.counters.get("shed", 0)) if last else math.nan,
         }
     finally:
         backend.send_signal(signal.SIGTERM)
@@ -174,6 +178,28 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
             backend.kill()
 
 
+def _busy_loop() -> None:
+    while True:
+        pass
+
+
+@contextlib.contextmanager
+def competing_load(n_processes: int) -> Iterator[None]:
+    """``n_processes`` processes spinning on the CPU for the duration (a busy host)."""
+    import multiprocessing
+
+    procs = [multiprocessing.Process(target=_busy_loop, daemon=True) for _ in range(n_processes)]
+    for p in procs:
+        p.start()
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.join(5)
+
+
 def main(argv: Sequence[str]) -> int:
     parser = argparse.ArgumentParser(prog="smartedge bench backend", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -181,19 +207,39 @@ def main(argv: Sequence[str]) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="measured time per case")
     parser.add_argument("--warmup", type=float, default=2.0, help="unmeasured start per case")
     parser.add_argument("--rate", type=float, default=30.0, help="frames per second")
+    parser.add_argument("--stage-frames", type=int, default=60,
+                        help="frame-sets per case of the in-process stage breakdown (0: skip)")
+    parser.add_argument("--load", default="0",
+                        help="comma-separated numbers of competing busy processes: each "
+                             "Zenoh case runs once per value, e.g. 0,2 for quiet and busy")
+    parser.add_argument("--no-zenoh", action="store_true",
+                        help="only the in-process stage breakdown")
     args = parser.parse_args(list(argv))
+    counts = [int(v) for v in args.cameras.split(",")]
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
-          f"{platform.python_version()}; backend in its own process, Zenoh on loopback, "
-          f"{args.rate:.0f} Hz, 12 keypoints per camera, {args.seconds:.0f} s per case")
-    print(f"{'cameras':>8}{'frame-sets/s':>14}{'p50 ms':>9}{'p99 ms':>9}{'dropped':>10}"
-          f"{'late pub':>10}")
+          f"{platform.python_version()}")
+    if args.stage_frames > 0:
+        from smartedge.bench.backend_stages import print_stage_table
+
+        print_stage_table(counts, args.stage_frames)
+        print()
+    if args.no_zenoh:
+        return 0
+    print(f"backend in its own process, Zenoh on loopback, {args.rate:.0f} Hz, 12 keypoints per "
+          f"camera, {args.seconds:.0f} s per case")
+    print(f"{'cameras':>8}{'load':>6}{'frame-sets/s':>14}{'p50 ms':>9}{'p99 ms':>9}"
+          f"{'dropped':>10}{'shed':>7}{'late pub':>10}")
     with tempfile.TemporaryDirectory(prefix="smartedge-bench-") as tmp:
-        for n in (int(v) for v in args.cameras.split(",")):
-            r = run_case(n, args.seconds, args.rate, args.warmup, Path(tmp))
-            print(f"{n:>8}{r['frame_sets_per_s']:>14.1f}{r['p50_ms']:>9.2f}{r['p99_ms']:>9.2f}"
-                  f"{int(r['dropped']):>6}/{int(r['frames']):<4}{int(r['late_publish']):>9}",
-                  flush=True)
+        for n in counts:
+            for load in (int(v) for v in args.load.split(",")):
+                with competing_load(load):
+                    r = run_case(n, args.seconds, args.rate, args.warmup, Path(tmp))
+                print(f"{n:>8}{load:>6}{r['frame_sets_per_s']:>14.1f}{r['p50_ms']:>9.2f}"
+                      f"{r['p99_ms']:>9.2f}{int(r['dropped']):>6}/{int(r['frames']):<4}"
+                      f"{int(r['backend_shed']):>6}{int(r['late_publish']):>9}", flush=True)
     print("latency: detection stamp -> camera pose received by a subscriber (both Zenoh hops, "
-          "sync, solve); dropped: frames without a pose; late pub: frames this publisher "
-          "sent more than one period late (the load generator shares the 2 cores)")
+          "sync, solve); dropped: frames without a pose; shed: detections the backend dropped "
+          "after waiting longer than pose.max_input_delay_s; load: competing busy processes; "
+          "late pub: frames this publisher sent more than one period late (the load generator "
+          "shares the cores)")
     return 0
