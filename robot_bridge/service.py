@@ -15,7 +15,7 @@ backend or the link is gone the status says so and nothing else changes for the 
 Adapters are plug-ins (:mod:`robot_bridge.adapters.registry`); ``--adapter`` offers the
 registered ones: ``ros2`` (ROS 2 through zenoh-bridge-ros2dds), ``ros1``
 (zenoh-plugin-ros1), and ``sim`` (the simulated robot, registered by ``smartedge robot-bridge``,
-see :mod:`smartedge.plugins`); see docs/robot_bridge.md.
+see :mod:`smartedge.sim.plugins`); see docs/robot_bridge.md.
 """
 
 from __future__ import annotations

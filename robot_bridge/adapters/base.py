@@ -4,7 +4,8 @@ An adapter speaks the robot's own language (a simulated robot object, ROS 2 topi
 ...) and hands the bridge plain planar readings. It never blocks: ``read_*`` return what has
 arrived since the last call (possibly nothing) and ``apply_correction`` returns at once. The
 bridge core never imports an adapter; the service shell (or :func:`robot_bridge.bridge.pump`)
-moves data between the two.
+moves data between the two. :class:`AdapterSetup` is what an ``--adapter`` plug-in builds
+(:mod:`robot_bridge.adapters.registry`).
 """
 
 from __future__ import annotations
@@ -12,10 +13,15 @@ from __future__ import annotations
 import abc
 import dataclasses
 import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from protocol.messages import PoseCorrection, PoseEstimate
+
+if TYPE_CHECKING:
+    from protocol.site import Site
 
 
 def _zero_cov() -> np.ndarray:
@@ -130,3 +136,20 @@ class RobotAdapter(abc.ABC):
 
     def close(self) -> None:  # noqa: B027 (optional hook, default does nothing)
         """Release transport resources; idempotent."""
+
+
+@dataclasses.dataclass(frozen=True)
+class AdapterSetup:
+    """What an adapter plug-in builds for one bridge.
+
+    ``factory(session)`` builds the adapter once the Zenoh session is open (the ROS adapters
+    are Zenoh clients themselves). ``advance(now_ns)``: called before every pump with the wall
+    clock (ns), for a robot simulated in the bridge's process; ``None`` for a real robot.
+    ``site`` and ``robot_id``: what the adapter brings along (the simulated site and its
+    robot), used when ``--site`` / ``--robot`` are not given.
+    """
+
+    factory: Callable[[Any], RobotAdapter]
+    advance: Callable[[int], None] | None = None
+    site: Site | None = None
+    robot_id: str | None = None

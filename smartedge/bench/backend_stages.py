@@ -32,6 +32,7 @@ import protocol
 from backend_service import covariance, estimate, fusion, multi_frame, pipeline, sync
 from protocol.camera import CameraModel
 from protocol.geometry import invert_transform, rotation_from_rotvec
+from smartedge.bench.ring_site import detection_payloads, robot_pose, write_ring_site
 
 #: the stages, in the order a frame-set goes through them
 STAGES: Final = ("decode", "sync", "solve", "covariance", "averaging", "fusion", "publish")
@@ -139,8 +140,6 @@ def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool =
                    rate_hz: float = 30.0) -> StageFigures:
     """Drive one :class:`BackendPipeline` over ``frames`` frame-sets of ``n_cameras`` ring
     cameras and return the CPU per frame-set by stage."""
-    from smartedge.bench.backend import detection_payloads, robot_pose, write_ring_site
-
     with tempfile.TemporaryDirectory(prefix="smartedge-stages-") as tmp:
         site = write_ring_site(Path(tmp) / "ring.yaml", n_cameras)
     rng = np.random.default_rng(0)

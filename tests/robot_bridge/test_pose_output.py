@@ -166,7 +166,7 @@ def test_bridge_feeds_the_output_only_what_it_accepted() -> None:
 
 def test_site_sections_parse_and_errors_name_the_key(tmp_path, example_site_path) -> None:
     from protocol.site import load_site
-    from robot_bridge.adapters.registry import ros_config, ros_topics
+    from robot_bridge.adapters.ros_plugin import ros_config, ros_topics
 
     text = example_site_path.read_text()
     good = tmp_path / "site.yaml"

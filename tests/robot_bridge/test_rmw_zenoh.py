@@ -1,220 +1,53 @@
-"""The rmw_zenoh adapter: keys, liveliness tokens, attachment and type hashes against fixtures
-taken from rmw_zenoh's design document (fixtures/rmw_zenoh_design.json), then two real Zenoh
-sessions on loopback where one plays the robot's rmw_zenoh nodes. The robot side is written
-here from the documented layout (struct, not the module's codec) and drops samples without a
-valid attachment, as rmw_zenoh's subscription callback does."""
+"""The rmw_zenoh adapter and its ``--adapter`` plug-in: two real Zenoh sessions on loopback where
+one plays the robot's rmw_zenoh nodes. The robot side is written here from the documented
+layout (struct, not the wire module's codec) and drops samples without a valid attachment, as
+rmw_zenoh's subscription callback does. The wire codec itself: test_rmw_zenoh_wire.py."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import secrets
 import struct
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from protocol.errors import UsageError
 from protocol.messages import PoseCorrection, PoseEstimate
 from robot_bridge.adapters import rmw_zenoh as rz
+from robot_bridge.adapters import rmw_zenoh_wire as wire
 from robot_bridge.adapters import ros2
 from robot_bridge.adapters.base import MapToOdom
 from robot_bridge.bridge import BridgeConfig, RobotBridge
 from tests.conftest import wait_until
+from tests.robot_bridge.test_rmw_zenoh_wire import HASHES
 from tests.robot_bridge.test_ros2_cdr import make_odometry
 
 pytest.importorskip("rosbags")
 
-FIXTURES = json.loads(
-    (Path(__file__).parent / "fixtures" / "rmw_zenoh_design.json").read_text())
-HASHES = FIXTURES["type_hashes"]
 S = 1_000_000_000
 PWCS = ros2.POSE_WITH_COVARIANCE_STAMPED_TYPE
 ODOM = ros2.ODOMETRY_TYPE
 
 
 # --------------------------------------------------------------------------------------------
-# pure functions against the design document
+# the bridge's choices: domain id, QoS of its entities
 # --------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("case", FIXTURES["topic_keys"], ids=lambda c: c["key"][:24])
-def test_topic_keys_of_the_design_document(case) -> None:
-    key = rz.topic_key(case["domain_id"], case["topic"], case["ros_type"], case.get("type_hash"))
-    assert key == case["key"]
-
-
-@pytest.mark.parametrize("case", FIXTURES["liveliness_tokens"], ids=lambda c: c["kind"])
-def test_liveliness_tokens_of_the_design_document(case) -> None:
-    qos = rz.QosProfile(depth=case["depth"]) if "depth" in case else None
-    key = rz.liveliness_token_key(
-        case["domain_id"], case["zid"], case["node_id"], case["entity_id"], case["kind"],
-        node_name=case["node_name"], topic=case.get("topic"), ros_type=case.get("ros_type"),
-        type_hash_=case.get("type_hash"), qos=qos)
-    assert key == case["key"]
-    token = rz.parse_liveliness_token(key)  # what rmw_zenoh's graph cache reads back
-    assert (token.domain_id, token.zid, token.kind, token.node_name) == (
-        case["domain_id"], case["zid"], case["kind"], case["node_name"])
-    assert token.namespace == "/" and token.enclave == "/"
-    if case["kind"] != rz.NODE:
-        assert token.topic == case["topic"] and token.qos == rz.QosProfile(depth=case["depth"])
-        assert token.ros_type == rz.dds_type_name(case["ros_type"])
-
-
-@pytest.mark.parametrize("ros_type", sorted(HASHES))
-def test_type_hash_and_key_of_each_message_the_bridge_uses(ros_type) -> None:
-    assert rz.type_hash(ros_type) == HASHES[ros_type]
-    package, _, name = ros_type.split("/")
-    assert rz.dds_type_name(ros_type) == f"{package}::msg::dds_::{name}_"
-    assert rz.topic_key(3, "/robot1/x", ros_type) == (
-        f"3/robot1/x/{package}::msg::dds_::{name}_/{HASHES[ros_type]}")
-
-
-def test_keys_of_the_hsr_and_nav2_topic_sets() -> None:
-    cases = {
-        ("switched_odom", ODOM): "0/switched_odom/nav_msgs::msg::dds_::Odometry_/",
-        ("laser_2d_correct_pose", PWCS):
-            "0/laser_2d_correct_pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/",
-        ("global_pose", ros2.POSE_STAMPED_TYPE):
-            "0/global_pose/geometry_msgs::msg::dds_::PoseStamped_/",
-        ("odom", ODOM): "0/odom/nav_msgs::msg::dds_::Odometry_/",
-        ("initialpose", PWCS):
-            "0/initialpose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/",
-        ("tf", ros2.TF_MESSAGE_TYPE): "0/tf/tf2_msgs::msg::dds_::TFMessage_/",
-        ("smartedge/pose", PWCS):
-            "0/smartedge/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/",
-    }
-    for (topic, ros_type), prefix in cases.items():
-        fqn = rz.fully_qualified_name(topic)
-        assert rz.topic_key(0, fqn, ros_type) == prefix + HASHES[ros_type]
-
-
-def test_names_resolve_like_ros() -> None:
-    fqn = rz.fully_qualified_name
-    assert fqn("switched_odom") == "/switched_odom"
-    assert fqn("odom", "robot1") == "/robot1/odom" == fqn("odom", "/robot1/")
-    assert fqn("/odom", "robot1") == "/odom"  # absolute names ignore the namespace
-    assert fqn("smartedge/pose", "/a/b") == "/a/b/smartedge/pose"
-    assert rz.node_namespace("") == rz.node_namespace("/") == "/"
-    assert rz.mangle_name("/robot1/odom") == "%robot1%odom"
-    assert rz.demangle_name("%robot1%odom") == "/robot1/odom"
-    for bad in ("", "/", "a//b", "odom*", "~/odom", "1odom", "od om", "odom/"):
-        with pytest.raises(ValueError):
-            fqn(bad)
-    for bad in ("geometry_msgs/PoseStamped", "a/msg/b/c", "", "a/msg/B*"):
-        with pytest.raises(ValueError):
-            rz.dds_type_name(bad)
-    with pytest.raises(ValueError):
-        rz.type_hash("nope_msgs/msg/Nothing")
-    with pytest.raises(ValueError):
-        rz.topic_key(-1, "/odom", ODOM)
-
-
-def test_attachment_layout_of_the_design_document() -> None:
-    a = FIXTURES["attachment"]
-    gid = bytes.fromhex(a["source_gid_hex"])
-    data = rz.encode_attachment(a["sequence_number"], a["source_timestamp_ns"], gid)
-    assert data.hex() == a["hex"] and len(data) == rz.ATTACHMENT_SIZE == 33
-    assert struct.unpack_from("<q", data, 0)[0] == a["sequence_number"]
-    assert struct.unpack_from("<q", data, 8)[0] == a["source_timestamp_ns"]
-    assert data[16] == 16 and data[17:] == gid
-    assert rz.decode_attachment(data) == rz.Attachment(
-        a["sequence_number"], a["source_timestamp_ns"], gid)
-
-
-def test_attachment_is_what_the_zenoh_ext_serializer_writes() -> None:
-    """rmw_zenoh serializes (int64, int64, std::array<uint8_t, 16>) with zenoh-ext; zenoh's own
-    Python serializer of (Int64, Int64, bytes) is the independent reference for both layouts."""
-    ext = pytest.importorskip("zenoh.ext")
-    gid = secrets.token_bytes(16)
-    for seq, stamp in ((1, 0), (2**63 - 1, -(2**63)), (42, 1_700_000_000 * S)):
-        compact = ext.z_serialize((ext.Int64(seq), ext.Int64(stamp), gid)).to_bytes()
-        assert rz.encode_attachment(seq, stamp, gid) == compact
-        keyed = ext.z_serialize(("sequence_number", ext.Int64(seq), "source_timestamp",
-                                 ext.Int64(stamp), "source_gid", gid)).to_bytes()
-        assert rz.encode_keyed_attachment(seq, stamp, gid) == keyed and len(keyed) == 77
-        assert rz.decode_attachment(keyed) == rz.decode_attachment(compact)
-
-
-@settings(max_examples=200, deadline=None)
-@given(seq=st.integers(-(2**63), 2**63 - 1), stamp=st.integers(-(2**63), 2**63 - 1),
-       gid=st.binary(min_size=16, max_size=16), keyed=st.booleans())
-def test_attachment_round_trip(seq, stamp, gid, keyed) -> None:
-    encode = rz.encode_keyed_attachment if keyed else rz.encode_attachment
-    assert rz.decode_attachment(encode(seq, stamp, gid)) == rz.Attachment(seq, stamp, gid)
-
-
-@settings(max_examples=300, deadline=None)
-@given(data=st.binary(max_size=100))
-def test_decoding_garbage_raises_only_attachment_error(data) -> None:
-    try:
-        info = rz.decode_attachment(data)
-    except rz.AttachmentError:
-        return
-    assert len(info.source_gid) == 16 and len(data) >= 33
-
-
-def test_attachment_rejections() -> None:
-    good = rz.encode_attachment(1, 2, bytes(16))
-    for bad in (b"", good[:32], good[:16] + b"\x0f" + bytes(16), "text", None):
-        with pytest.raises(rz.AttachmentError):
-            rz.decode_attachment(bad)
-    assert rz.decode_attachment(good + b"extra").sequence_number == 1  # as zenoh-cpp reads it
-    for args in ((2**63, 0, bytes(16)), (0, 0, bytes(15)), (True, 0, bytes(16))):
-        with pytest.raises(ValueError):
-            rz.encode_attachment(*args)
-
-
-def test_qos_encoding() -> None:
-    qos_to = rz.qos_to_keyexpr
-    adapt = rz.adapt_qos
-    assert qos_to(rz.QosProfile(depth=10)) == "::,10:,:,:,,"  # rclcpp QoS(10)
-    system_default = rz.QosProfile(rz.Reliability.SYSTEM_DEFAULT, rz.Durability.SYSTEM_DEFAULT,
-                                   rz.History.SYSTEM_DEFAULT, 0, (0, 0), (0, 0),
-                                   rz.Liveliness.SYSTEM_DEFAULT, (0, 0))
-    assert adapt(system_default) == rz.RMW_ZENOH_DEFAULT_QOS
-    assert qos_to(adapt(system_default)) == "::,:,:,:,,"
-    sensor = rz.QosProfile(rz.Reliability.BEST_EFFORT, rz.Durability.TRANSIENT_LOCAL,
-                           rz.History.KEEP_ALL, 5, (1, 500), (0, 0), rz.Liveliness.AUTOMATIC)
-    assert qos_to(adapt(sensor)) == "2:1:2,5:1,500:,:,,"
-    assert rz.qos_from_keyexpr("2:1:2,5:1,500:,:,,") == adapt(sensor)
-    assert qos_to(rz.adapt_qos(rz.CORRECTION_QOS)) == "::2,:,:,:,,"
+def test_qos_the_bridges_entities_announce() -> None:
+    qos_to = wire.qos_to_keyexpr
+    adapt = wire.adapt_qos
+    assert qos_to(adapt(rz.CORRECTION_QOS)) == "::2,:,:,:,,"
     assert qos_to(rz.TF_QOS) == "::,100:,:,:,,"
     assert qos_to(rz.POSE_OUTPUT_QOS) == "::,10:,:,:,,"
     assert qos_to(rz.SUBSCRIPTION_QOS) == "2::,10:,:,:,,"
-    for bad in ("", "::,10:,:,:", "::,10:,:,:,", "9::,:,:,:,,", "::,x:,:,:,,", ":::,:,:,:,,"):
-        with pytest.raises(ValueError):
-            rz.qos_from_keyexpr(bad)
     # how rmw_zenoh declares the Zenoh publisher: (reliable, congestion control BLOCK)
-    assert rz.zenoh_publication_mode(adapt(rz.CORRECTION_QOS)) == (True, True)
-    assert rz.zenoh_publication_mode(rz.POSE_OUTPUT_QOS) == (True, False)
-    assert rz.zenoh_publication_mode(adapt(sensor)) == (False, False)
-
-
-def test_token_builder_rejections() -> None:
-    ok = dict(node_name="n", topic="/odom", ros_type=ODOM)
-    rz.liveliness_token_key(0, "ab12", 1, 2, rz.PUBLISHER, **ok)
-    for args, kwargs in (
-        ((0, "ab12", 1, 2, "XX"), ok),
-        ((0, "AB-12", 1, 2, rz.PUBLISHER), ok),
-        ((0, "ab12", 1, 2, rz.NODE), {"node_name": "n"}),  # a node's ids are equal
-        ((0, "ab12", 1, 2, rz.PUBLISHER), {"node_name": "n"}),  # no topic
-        ((0, "ab12", 1, 2, rz.PUBLISHER), {**ok, "node_name": "bad name"}),
-        ((0, "ab12", -1, 2, rz.PUBLISHER), ok),
-    ):
-        with pytest.raises(ValueError):
-            rz.liveliness_token_key(*args, **kwargs)
-    for bad in ("@ros2_lv/0/ab/0/0/NN/%/%", "@other/0/ab/0/0/NN/%/%/n",
-                "@ros2_lv/0/ab/0/0/XX/%/%/n", "@ros2_lv/0/ab/0/1/MP/%/%/n/%odom",
-                "@ros2_lv/0/ab/0/0/NN/%//n"):
-        with pytest.raises(ValueError):
-            rz.parse_liveliness_token(bad)
+    assert wire.zenoh_publication_mode(adapt(rz.CORRECTION_QOS)) == (True, True)
+    assert wire.zenoh_publication_mode(rz.POSE_OUTPUT_QOS) == (True, False)
 
 
 def test_domain_id_from_flag_or_environment() -> None:
@@ -437,7 +270,7 @@ def test_liveliness_tokens_make_the_bridge_visible(zenoh_pair) -> None:
                     if r.ok is not None}
 
         assert wait_until(lambda: len(visible()) == 4)
-        tokens = {rz.parse_liveliness_token(k) for k in visible()}  # as the graph cache does
+        tokens = {wire.parse_liveliness_token(k) for k in visible()}  # as the graph cache does
         assert {t.zid for t in tokens} == {zid} and {t.domain_id for t in tokens} == {5}
         assert {(t.node_name, t.namespace, t.enclave) for t in tokens} == {
             ("site_bridge", "/robot1", "/")}
@@ -452,13 +285,13 @@ def test_liveliness_tokens_make_the_bridge_visible(zenoh_pair) -> None:
             ("MP", "/robot1/laser_2d_correct_pose",
              "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_", HASHES[PWCS]),
         }
-        node = next(t for t in tokens if t.kind == rz.NODE)
+        node = next(t for t in tokens if t.kind == wire.NODE)
         assert (f"@ros2_lv/5/{zid}/{node.node_id}/{node.node_id}/NN/%/%robot1/site_bridge"
                 in visible())
         # the pose output appears with its first message
         adapter.publish_pose(PoseEstimate("r", 1, 1, 0.0, 0.0, 0.0, np.eye(3), "cameras", ()))
         assert wait_until(lambda: len(visible()) == 5)
-        pose_token = next(rz.parse_liveliness_token(k) for k in visible()
+        pose_token = next(wire.parse_liveliness_token(k) for k in visible()
                           if "smartedge" in k)
         assert pose_token.topic == "/robot1/smartedge/pose" and pose_token.kind == "MP"
         assert pose_token.qos == rz.POSE_OUTPUT_QOS
@@ -526,7 +359,7 @@ def test_bridge_corrects_a_static_robot_over_rmw_zenoh(zenoh_pair) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from robot_bridge.adapters.registry import ROS_ADAPTERS
+    from robot_bridge.adapters.ros_plugin import ROS_ADAPTERS
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--adapter", default="rmw_zenoh")
@@ -555,7 +388,7 @@ def test_plugin_options_and_build(zenoh_pair, example_site, monkeypatch) -> None
     adapter = rz.RMW_ZENOH_ADAPTER.build(args, site).factory(bridge_side)
     try:
         assert adapter.domain_id == 3 and adapter.topics.correction_topic == "laser_2d_correct_pose"
-        assert adapter._encode is rz.encode_keyed_attachment
+        assert adapter._encode is wire.encode_keyed_attachment
     finally:
         adapter.close()
     with pytest.raises(UsageError):

@@ -138,7 +138,7 @@ def test_corrections_carry_the_sites_world_frame(zenoh_pair, example_site) -> No
     import argparse
     import dataclasses
 
-    from robot_bridge.adapters.registry import ROS_ADAPTERS
+    from robot_bridge.adapters.ros_plugin import ROS_ADAPTERS
 
     bridge_side, _, _ = zenoh_pair
     site = dataclasses.replace(example_site, world_frame="lab_map")
