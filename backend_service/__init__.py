@@ -1,10 +1,14 @@
-"""Backend service: frame-set synchronization, multi-view pose estimation (CasADi), pose-graph
-fusion (GTSAM), semantic map (Open3D), Rerun logging and the service loop.
+"""Backend service: the robots' allocentric poses from the edge cameras' keypoint detections.
 
-The algorithmic modules (frame sets, solver, initialization, averaging, fusion) are pure: they take
-messages and site data and never touch Zenoh. Only ``backend_service.service`` does. Heavy
-dependencies are imported lazily by the modules that need them, so ``import backend_service``
-stays cheap.
+The per-robot pipeline (:mod:`backend_service.pipeline`): frame-set synchronization and
+association of detections to robots, multi-view pose estimation (CasADi), initialization,
+the single-camera rule, averaging while the robot is static and pose-graph fusion with odometry
+(GTSAM); and the service node (``smartedge backend``). The semantic map is the mapper's
+(package ``mapper``), a service of its own.
+
+The algorithmic modules are pure: they take messages and site data and never touch Zenoh. Only
+``backend_service.service`` does. Heavy dependencies are imported lazily by the modules that
+need them, so ``import backend_service`` stays cheap.
 """
 
 from __future__ import annotations

@@ -8,6 +8,10 @@ Service packages never import ``simulation``, ``smartedge`` or each other: every
 service package is imported in a fresh interpreter and nothing of those may be loaded, and no
 import statement in the package (lazy ones inside functions included) may name them. The
 simulation (a plug-in wired in from the top floor) names no service and no top floor either.
+
+Each heavy dependency is imported in exactly one package (:data:`HEAVY_OWNERS`: open3d only in
+``mapper``, casadi and gtsam only in ``backend_service``, ...); a service package neither names
+nor loads another package's.
 """
 
 from __future__ import annotations
@@ -23,9 +27,19 @@ import pytest
 from tests.conftest import REPO_ROOT
 
 BLOCKED = ("casadi", "gtsam", "open3d", "rerun", "torch", "scipy", "matplotlib", "rosbags")
-SERVICES = ("edge_agent", "robot_bridge", "backend_service")
+SERVICES = ("edge_agent", "robot_bridge", "backend_service", "mapper")
 #: top-level packages no service package may import (besides the other services)
 ABOVE_SERVICES = ("simulation", "smartedge")
+#: each heavy dependency and the one package of the project that imports it
+HEAVY_OWNERS = {
+    "casadi": "backend_service",
+    "gtsam": "backend_service",
+    "open3d": "mapper",
+    "torch": "edge_agent",  # edge_agent/training, the train extra
+    "moderngl": "simulation",
+    "rerun": "smartedge",
+}
+PACKAGES = ("protocol", *SERVICES, "simulation", "smartedge")
 
 EDGE_SCRIPT = textwrap.dedent(
     """
@@ -47,13 +61,13 @@ EDGE_SCRIPT = textwrap.dedent(
             importlib.import_module(info.name)
     import smartedge.cli
     # what `smartedge edge-agent` loads: the plug-in assembly and the simulated source
-    from smartedge.plugins import register_sim_source
+    from smartedge.sim.plugins import register_sim_source
     register_sim_source()
     from edge_agent.service import build_parser
     build_parser().parse_args(["--camera", "cam1", "--source", "sim"])
     leaked = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
     assert not leaked, leaked
-    services = ("backend_service", "robot_bridge")
+    services = ("backend_service", "mapper", "robot_bridge")
     others = sorted(m for m in sys.modules if m.split(".")[0] in services)
     assert not others, others
     print("ok")
@@ -91,7 +105,10 @@ def test_protocol_and_edge_agent_import_with_edge_extra_only() -> None:
 
 
 def _forbidden(package: str) -> tuple[str, ...]:
-    return ABOVE_SERVICES + tuple(s for s in SERVICES if s != package)
+    """What a service package may neither name nor load: the floors above, the other services
+    and the other packages' heavy dependencies."""
+    return (ABOVE_SERVICES + tuple(s for s in SERVICES if s != package)
+            + tuple(dep for dep, owner in HEAVY_OWNERS.items() if owner != package))
 
 
 @pytest.mark.parametrize("package", SERVICES)
@@ -125,3 +142,16 @@ def test_package_names_no_forbidden_import(package: str) -> None:
         if name.split(".")[0] in forbidden
     ]
     assert not bad, bad
+
+
+@pytest.mark.parametrize(("dependency", "owner"), sorted(HEAVY_OWNERS.items()))
+def test_each_heavy_dependency_is_imported_in_one_package(dependency: str, owner: str) -> None:
+    """Lazy imports inside functions included."""
+    where = sorted({
+        package
+        for package in PACKAGES
+        for path in (REPO_ROOT / package).rglob("*.py")
+        for _, name in _imported_names(path)
+        if name.split(".")[0] == dependency
+    })
+    assert where == [owner], f"{dependency} imported in {where}, expected only in {owner}"

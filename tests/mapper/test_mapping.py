@@ -10,21 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend_service.map_service import MapperNode, load_or_start_map
-from backend_service.mapping import MappingConfig, SemanticMapping, interpolate_pose
-from backend_service.semantic_map import (
-    MapError,
-    SemanticMapConfig,
-    SemanticVoxelMap,
-    read_ply_points,
-)
+from mapper.map_io import save_map_npz, write_map_ply
+from mapper.mapping import MappingConfig, SemanticMapping, interpolate_pose
+from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap
+from mapper.service import MapperNode, load_or_start_map
 from protocol import encode, keys
 from protocol.geometry import rotation_z
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.runtime import ScriptedRunner
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
 from protocol.site import load_site
-from smartedge.bench.map import robot_view, sample_room, synthetic_room
+from simulation.synthetic_room import robot_view, sample_room, synthetic_room
 from tests.conftest import EXAMPLE_SITE
 
 ROBOT = "hsr"
@@ -347,9 +343,10 @@ def test_unreadable_snapshot_is_moved_aside_and_the_map_starts_from_the_prior(
         site, room, tmp_path: Path) -> None:
     points, normals, _ = room
     prior = tmp_path / "room.ply"
-    SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals).to_ply(prior)
+    write_map_ply(SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals),
+                  prior)
     snapshot = tmp_path / "map.npz"
-    fresh_mapping(site, room).map.save_npz(snapshot)
+    save_map_npz(fresh_mapping(site, room).map, snapshot)
     snapshot.write_bytes(snapshot.read_bytes()[:1000])  # truncated
     config = MappingConfig(prior_model=str(prior))
     mapping, how = load_or_start_map(site, config, snapshot)
@@ -359,44 +356,17 @@ def test_unreadable_snapshot_is_moved_aside_and_the_map_starts_from_the_prior(
     assert mapping.map.is_prior().all() and len(mapping.map) > 1000
 
 
-def test_ply_prior_round_trip_and_errors(tmp_path: Path, room) -> None:
-    points, normals, _ = room
-    m = SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals)
-    path = tmp_path / "room.ply"
-    m.to_ply(path)
-    got, got_normals = read_ply_points(path)
-    np.testing.assert_allclose(got, m.means(), atol=1e-5)
-    assert got_normals is not None and got_normals.shape == got.shape
-    ascii_path = tmp_path / "ascii.ply"
-    ascii_path.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\n"
-                          "property float y\nproperty float z\nend_header\n1 2 3\n4 5 6\n")
-    got, got_normals = read_ply_points(ascii_path)
-    np.testing.assert_array_equal(got, [[1, 2, 3], [4, 5, 6]])
-    assert got_normals is None
-    truncated = tmp_path / "truncated.ply"
-    truncated.write_bytes(path.read_bytes()[:-100])
-    with pytest.raises(MapError, match=r"truncated\.ply.*truncated"):
-        read_ply_points(truncated)
-    with pytest.raises(MapError, match="no such PLY"):
-        read_ply_points(tmp_path / "missing.ply")
-    no_z = tmp_path / "no_z.ply"
-    no_z.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
-                    "property float y\nend_header\n1 2\n")
-    with pytest.raises(MapError, match=r"\['z'\] missing"):
-        read_ply_points(no_z)
-
-
 def test_command_line_paths_are_relative_to_the_working_directory(
         room, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``--snapshot`` / ``--prior-model`` given on the command line are the user's paths (the
     working directory), not relative to the site file; a bad prior model is a config error."""
-    from backend_service.map_service import build_node, build_parser
+    from mapper.service import build_node, build_parser
     from protocol.errors import SmartedgeError
 
     points, normals, _ = room
     monkeypatch.chdir(tmp_path)
-    SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals).to_ply(
-        tmp_path / "room.ply")
+    write_map_ply(SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(), normals),
+                  tmp_path / "room.ply")
     args = build_parser().parse_args(["--site", str(EXAMPLE_SITE), "--prior-model", "room.ply",
                                       "--snapshot", "maps/lab.npz"])
     node = build_node(args)

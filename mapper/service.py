@@ -1,16 +1,18 @@
 """``smartedge mapper``: the semantic mapping service.
 
-:class:`~backend_service.mapping.SemanticMapping` on the wire: semantic clouds of the static edge
-sensors (``.../edge/<camera>/cloud``) and of the robots (``.../robot/<robot>/cloud``) and the
-backend's fused poses (``.../robot/<robot>/pose``, to place the robots' clouds) in; the map's
-semantic voxels on ``.../map/<id>/voxels`` every ``publish_period_s`` out, and in the status the
-map's size and each robot's latest ICP alignment offset (``smartedge status`` shows it).
+:class:`~mapper.mapping.SemanticMapping` on the wire: semantic clouds of the static edge sensors
+(``.../edge/<camera>/cloud``) and of the robots (``.../robot/<robot>/cloud``) and the backend's
+fused poses (``.../robot/<robot>/pose``, to place the robots' clouds) in; the map's semantic
+voxels on ``.../map/<id>/voxels`` every ``publish_period_s`` out, and in the status the map's
+size and each robot's latest ICP alignment offset (``smartedge status`` shows it). The node
+(:class:`MapperNode`) is transport-free; :func:`main` runs it on Zenoh.
 
 A service of its own, next to the backend: ICP on a robot cloud takes tens of milliseconds, and
 a pose estimate must never wait for it; the map can be restarted, or left out, without touching
 localization. The map is kept in ``snapshot_path`` (site file, ``map:`` section): loaded at
 start, written every ``snapshot_period_s`` and when the service stops. A snapshot that cannot be
 read is moved aside (``<name>.unreadable-<time>``, logged) and the map starts from the prior.
+Snapshot and prior model files are :mod:`mapper.map_io`'s.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from backend_service.mapping import MappingConfig, SemanticMapping
-from backend_service.semantic_map import MapError, SemanticVoxelMap, read_ply_points
+from mapper.map_io import load_map_npz, read_ply_points, save_map_npz
+from mapper.mapping import MappingConfig, SemanticMapping
+from mapper.semantic_map import MapError
 from protocol import keys
 from protocol.errors import UsageError
 from protocol.messages import Message, PoseEstimate, SemanticCloud
@@ -49,7 +52,7 @@ def load_or_start_map(site: Site, config: MappingConfig, snapshot: Path | None
     map configuration, else from the prior model (or empty). Returns it and how it started."""
     if snapshot is not None and snapshot.exists():
         try:
-            saved = SemanticVoxelMap.load_npz(snapshot)
+            saved = load_map_npz(snapshot)
             if saved.config != config.map:
                 raise MapError(f"{snapshot}: saved with another map configuration "
                                f"({saved.config}), the site file says {config.map}")
@@ -135,7 +138,7 @@ class MapperNode(ServiceNode):
             return False
         try:
             self.snapshot_path.parent.mkdir(parents=True, exist_ok=True)
-            self.mapping.map.save_npz(self.snapshot_path)
+            save_map_npz(self.mapping.map, self.snapshot_path)
         except OSError as exc:
             self.stats.count("snapshot_failed")
             log.error("map snapshot %s not written: %s", self.snapshot_path, exc)
@@ -200,4 +203,6 @@ def build_node(args: argparse.Namespace) -> MapperNode:
 
 
 def main(argv: Sequence[str]) -> int:
+    """``smartedge mapper`` with ``argv`` (the arguments after the command): the node on Zenoh
+    until stopped; returns the exit status."""
     return service_main("mapper", argv, build_parser, build_node)

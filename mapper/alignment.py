@@ -8,11 +8,12 @@ downsampled per level with ``voxel_down_sample``, against the map's voxel means 
 gates the result: enough overlap (fitness), small residuals, a correction no larger than the
 expected pose error, and a well-constrained geometry (surface normals in all three directions).
 
-This is the only module of ``backend_service`` that imports Open3D.
+Open3D, the mapper's heavy dependency, is imported here and nowhere else in the project's
+packages.
 
 Error policy: a malformed call (arrays of the wrong shape or type, a bad configuration) raises
-:class:`backend_service.semantic_map.MapError`; a cloud that cannot be aligned (non-finite
-points, too few points, too little map nearby) or an alignment that fails a gate returns an
+:class:`mapper.semantic_map.MapError`; a cloud that cannot be aligned (non-finite points, too
+few points, too little map nearby) or an alignment that fails a gate returns an
 :class:`AlignmentResult` with ``accepted=False`` and the ``reason``, so the caller counts it per
 reason and goes on.
 """
@@ -26,7 +27,7 @@ import math
 import numpy as np
 import open3d as o3d
 
-from backend_service.semantic_map import MapError
+from mapper.semantic_map import MapError
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Semantic mapping: semantic clouds in, one allocentric voxel map out. Transport-free, one object.
 
-:class:`SemanticMapping` is what the mapper service (:mod:`backend_service.map_service`),
+:class:`SemanticMapping` is what the mapper service (:mod:`mapper.service`),
 ``smartedge evaluate paper`` and tests drive, the same way (the paper's Sec. III-C):
 
 1. **where the cloud is**: a static edge sensor's cloud comes in the site's world frame (or in
@@ -9,7 +9,7 @@
    robot's fused pose at the cloud's stamp (interpolated between the two fused poses around it,
    at most ``max_pose_gap_s`` apart);
 2. **ICP gate** (robot clouds): the placed cloud is aligned to the map with coarse-to-fine
-   point-to-plane ICP (:func:`~backend_service.cloud_alignment.align_to_map`) and fused only when
+   point-to-plane ICP (:func:`~mapper.alignment.align_to_map`) and fused only when
    fitness, inlier RMSE, offset and geometry pass the gate; the alignment offset (how far the
    fused pose put the cloud from where the map says it is) is reported per robot: a measure of
    the localization's quality;
@@ -35,13 +35,13 @@ from typing import Final
 
 import numpy as np
 
-from backend_service.cloud_alignment import (
+from mapper.alignment import (
     AlignmentConfig,
     AlignmentResult,
     align_to_map,
     consistency,
 )
-from backend_service.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
+from mapper.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
 from protocol.geometry import se3_from_planar, wrap_angle
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.site import Site

@@ -1,16 +1,15 @@
-"""The semantic voxel map: Bayesian fusion, input checks, carving, prior, files."""
+"""The semantic voxel map: Bayesian fusion, input checks, carving, prior, state arrays."""
 
 from __future__ import annotations
 
 import math
-import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-import backend_service.semantic_map as semantic_map
-from backend_service.semantic_map import (
+import mapper.semantic_map as semantic_map
+from mapper.semantic_map import (
+    STATE_FIELDS,
     MapError,
     SemanticMapConfig,
     SemanticVoxelMap,
@@ -22,26 +21,12 @@ from protocol.semantic_classes import (
     SEMANTIC_CLASS_ID,
     SEMANTIC_CLASSES,
 )
+from tests.mapper.scenes import busy_map, noisy_labels, plane_points
 
 FLOOR = SEMANTIC_CLASS_ID["floor"]
 TABLE = SEMANTIC_CLASS_ID["table"]
 BOX = SEMANTIC_CLASS_ID["box"]
 C = len(SEMANTIC_CLASSES)
-
-
-def plane_points(rng: np.random.Generator, n: int, *, size_m: float = 1.0, z: float = 0.0,
-                 noise_m: float = 0.005) -> np.ndarray:
-    """(n, 3) points on the square [0.02, size - 0.02]² at height z, with noise (the margin
-    keeps the noise from making sparse voxels past the square's edges)."""
-    xy = rng.uniform(0.02, size_m - 0.02, (n, 2))
-    pts = np.column_stack([xy, np.full(n, z)])
-    return pts + rng.normal(0.0, noise_m, pts.shape)
-
-
-def noisy_labels(rng: np.random.Generator, n: int, label: int, wrong: float,
-                 confidence: float) -> tuple[np.ndarray, np.ndarray]:
-    ids = np.where(rng.random(n) < wrong, rng.integers(0, C, n), label).astype(np.uint8)
-    return ids, np.full(n, confidence, dtype=np.float32)
 
 
 def test_two_noisy_views_raise_confidence() -> None:
@@ -297,104 +282,56 @@ def test_prior_voxels_have_no_semantics_and_coverage_counts_them() -> None:
         m.coverage(np.ones(3, dtype=bool))
 
 
-def _busy_map() -> SemanticVoxelMap:
-    rng = np.random.default_rng(7)
-    m = SemanticVoxelMap.from_prior_points(
-        plane_points(rng, 5000, size_m=2.0), SemanticMapConfig(voxel_size_m=0.1,
-                                                               carve_free_space=True))
-    for k in range(3):
-        pts = plane_points(rng, 3000, size_m=2.0, z=0.02 * k)
-        m.integrate(pts, *noisy_labels(rng, 3000, FLOOR, 0.3, 0.8),
-                    sensor_origin_world=np.array([1.0, 1.0, 1.5]))
-    return m
-
-
-def test_save_and_load_round_trip_exactly(tmp_path: Path) -> None:
-    m = _busy_map()
-    path = tmp_path / "map.npz"
-    m.save_npz(path)
-    loaded = SemanticVoxelMap.load_npz(path)
-    assert loaded == m and loaded.config == m.config
-    for name in ("keys", "log_probs", "hits", "misses", "point_counts", "means", "normals"):
-        a, b = getattr(m, name)(), getattr(loaded, name)()
-        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
-    # the loaded map goes on exactly like the original
+def test_state_arrays_rebuild_the_same_map() -> None:
+    m = busy_map()
+    arrays = m.state_arrays()
+    assert tuple(arrays) == STATE_FIELDS
+    assert all(len(a) == len(m) for a in arrays.values())
+    assert arrays["log_probs"].shape == (len(m), C) and arrays["sum_dd"].shape == (len(m), 6)
+    rebuilt = SemanticVoxelMap.from_state_arrays(m.config, arrays)
+    assert rebuilt == m and rebuilt.config == m.config
+    hits = m.hits()
+    arrays["hits"] += np.uint32(7)  # copies: the map keeps its own state
+    assert rebuilt == m and np.array_equal(m.hits(), hits)
+    # the rebuilt map finds its voxels by key and goes on exactly like the original
     rng = np.random.default_rng(8)
     pts = plane_points(rng, 500, size_m=3.0)
-    for target in (m, loaded):
+    for target in (m, rebuilt):
         target.integrate(pts, np.full(500, TABLE), np.full(500, 0.6),
                          sensor_origin_world=np.array([0.0, 0.0, 1.0]))
-    assert loaded == m
-    compressed = tmp_path / "small.npz"
-    m.save_npz(compressed, compress=True)
-    assert SemanticVoxelMap.load_npz(compressed) == m
+    assert rebuilt == m
+    empty = SemanticVoxelMap()
+    assert SemanticVoxelMap.from_state_arrays(empty.config, empty.state_arrays()) == empty
 
 
-def test_broken_files_raise_map_error_naming_the_file(tmp_path: Path) -> None:
-    m = _busy_map()
-    good = tmp_path / "map.npz"
-    m.save_npz(good)
-    data = good.read_bytes()
-    truncated = tmp_path / "truncated.npz"
-    truncated.write_bytes(data[: len(data) // 2])
-    with pytest.raises(MapError, match=re.escape(str(truncated))):
-        SemanticVoxelMap.load_npz(truncated)
-    foreign = tmp_path / "foreign.npz"
-    np.savez(foreign, keys=np.arange(3))
-    with pytest.raises(MapError, match=re.escape(f"{foreign}: not a semantic map")):
-        SemanticVoxelMap.load_npz(foreign)
-    text = tmp_path / "notes.npz"
-    text.write_text("hello")
-    with pytest.raises(MapError, match=re.escape(str(text))):
-        SemanticVoxelMap.load_npz(text)
-    with pytest.raises(MapError, match=re.escape(str(tmp_path / "missing.npz"))):
-        SemanticVoxelMap.load_npz(tmp_path / "missing.npz")
-    # a damaged byte in the middle of an array (zip CRC) or in a header
-    corrupt = tmp_path / "corrupt.npz"
-    flipped = bytearray(data)
-    flipped[len(data) // 3] ^= 0xFF
-    corrupt.write_bytes(bytes(flipped))
-    with pytest.raises(MapError, match=re.escape(str(corrupt))):
-        SemanticVoxelMap.load_npz(corrupt)
-    # the right format with an inconsistent array
-    with np.load(good) as z:
-        arrays = {k: z[k] for k in z.files}
-    arrays["hits"] = arrays["hits"][:-1]
-    inconsistent = tmp_path / "inconsistent.npz"
-    np.savez(inconsistent, **arrays)
-    with pytest.raises(MapError, match=re.escape(f"{inconsistent}: hits")):
-        SemanticVoxelMap.load_npz(inconsistent)
+def test_state_arrays_are_checked_naming_the_field() -> None:
+    m = busy_map()
+    good = m.state_arrays()
 
+    def broken(**changes: object) -> dict:
+        out = dict(good)
+        out.update(changes)
+        return {k: v for k, v in out.items() if v is not None}
 
-def test_ply_reads_back_with_open3d(tmp_path: Path) -> None:
-    import open3d as o3d
-
-    m = _busy_map()
-    table = plane_points(np.random.default_rng(9), 500, size_m=0.5, z=0.75)
-    m.integrate(table, np.full(500, TABLE), np.full(500, 0.9))
-    path = tmp_path / "map.ply"
-    m.to_ply(path)
-    cloud = o3d.io.read_point_cloud(str(path))
-    assert len(cloud.points) == len(m)
-    np.testing.assert_allclose(np.asarray(cloud.points), m.means(), atol=1e-5)
-    assert cloud.has_normals() and cloud.has_colors()
-    labels = m.labels()
-    colors = np.round(np.asarray(cloud.colors) * 255).astype(np.uint8)
-    np.testing.assert_array_equal(colors[labels == TABLE][0], SEMANTIC_CLASS_COLORS[TABLE])
-    np.testing.assert_array_equal(colors[labels == -1][0], (128, 128, 128))
-    # the scalar properties, read by hand
-    raw = path.read_bytes()
-    header, body = raw.split(b"end_header\n", 1)
-    assert b"property int label" in header and b"property float confidence" in header
-    dtype = np.dtype([("xyz", "<f4", 3), ("n", "<f4", 3), ("rgb", "u1", 3), ("label", "<i4"),
-                      ("confidence", "<f4")])
-    rows = np.frombuffer(body, dtype=dtype)
-    np.testing.assert_array_equal(rows["label"], labels)
-    np.testing.assert_array_equal(rows["confidence"], m.confidence())
+    cases = [
+        (broken(sum_dd=None), r"missing arrays \['sum_dd'\]"),
+        (broken(hits=good["hits"].astype(np.int64)), "hits: expected uint32"),
+        (broken(misses=good["misses"][:-1]), "misses: expected uint32 of shape"),
+        (broken(log_probs=good["log_probs"][:, :-1]), "log_probs: expected float32"),
+        (broken(keys=np.concatenate([good["keys"][:-1], good["keys"][:1]])),
+         "keys: duplicate voxel keys"),
+        (broken(point_count=np.zeros(len(m), dtype=np.int64)),
+         "point_count: voxels without points"),
+    ]
+    for arrays, match in cases:
+        with pytest.raises(MapError, match=match):
+            SemanticVoxelMap.from_state_arrays(m.config, arrays)
+    with pytest.raises(MapError, match="config: expected a SemanticMapConfig"):
+        SemanticVoxelMap.from_state_arrays({"voxel_size_m": 0.1}, good)  # type: ignore[arg-type]
 
 
 def test_copy_is_independent() -> None:
-    m = _busy_map()
+    m = busy_map()
     c = m.copy()
     assert c == m and c is not m
     c.integrate(np.array([[5.0, 5.0, 5.0]]), np.array([TABLE]), np.array([0.9]))
@@ -412,7 +349,7 @@ def test_class_legend_matches_the_simulation() -> None:
 def test_geometry_in_a_box_is_the_whole_maps_geometry_there() -> None:
     """The ICP gate's per-cloud query: the same means and normals as the whole map's, for the
     occupied voxels with centres in the box (computed without the rest of the map)."""
-    m = _busy_map()
+    m = busy_map()
     lo, hi = np.array([0.2, 0.1, -0.1]), np.array([0.7, 0.8, 0.3])
     means, normals = m.geometry_in_box(lo, hi)
     c = m.voxel_centers()

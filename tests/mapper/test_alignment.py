@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from backend_service.cloud_alignment import AlignmentConfig, AlignmentResult, align_to_map
-from backend_service.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
-from smartedge.bench.map import (
+from mapper.alignment import AlignmentConfig, AlignmentResult, align_to_map
+from mapper.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
+from simulation.synthetic_room import (
     pose_matrix,
     robot_view,
     sample_room,

@@ -32,34 +32,26 @@ of one voxel in one scan are summed (``evidence="sum"``, independent points) or 
 (``evidence="mean"``, the default: the scan is one observation of the voxel, so the result does
 not depend on point density and a majority of scans wins); the voxel's log-probabilities get that
 added and are re-normalised. Everything is vectorised over points and voxels.
+
+The map's state goes in and out as plain arrays (:meth:`SemanticVoxelMap.state_arrays`,
+:meth:`SemanticVoxelMap.from_state_arrays`); files (the ``.npz`` snapshot, PLY export, prior
+models) are :mod:`mapper.map_io`'s.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
-import os
-import zipfile
-import zlib
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Final
 
 import numpy as np
 
 from protocol.errors import SmartedgeError
-from protocol.semantic_classes import (
-    NO_SEMANTICS_COLOR,
-    NUM_SEMANTIC_CLASSES,
-    class_colors,
-)
+from protocol.semantic_classes import NUM_SEMANTIC_CLASSES
 
 logger = logging.getLogger(__name__)
-
-#: Name and version written into every map file (``format`` / ``version`` fields).
-MAP_FILE_FORMAT: Final = "smartedge.semantic_voxel_map"
-MAP_FILE_VERSION: Final = 1
 
 _AXIS_BITS: Final = 21
 _AXIS_OFFSET: Final = 1 << (_AXIS_BITS - 1)  # voxel indices in [-2**20, 2**20)
@@ -69,6 +61,25 @@ _CARVE_CHUNK_SAMPLES: Final = 1 << 20
 #: Largest dense grid of rows built for carving (4 bytes a cell); bigger ray boxes look up keys.
 _CARVE_GRID_MAX_CELLS: Final = 1 << 24
 _EVIDENCE_MODES: Final = ("mean", "sum")
+
+#: The per-voxel state by public name (:meth:`SemanticVoxelMap.state_arrays`) → attribute.
+_STATE_ATTRS: Final = {
+    "keys": "_keys", "log_probs": "_log_probs", "hits": "_hits", "misses": "_misses",
+    "point_count": "_count", "sum_d": "_sum_d", "sum_dd": "_sum_dd", "semantic": "_semantic",
+    "prior": "_prior", "prior_normal_sum": "_prior_normal_sum",
+}
+#: Names of the per-voxel state arrays, in :meth:`SemanticVoxelMap.state_arrays` order.
+STATE_FIELDS: Final = tuple(_STATE_ATTRS)
+
+
+def _state_layout(num_classes: int) -> dict[str, tuple[tuple[int, ...], type]]:
+    """Per state field: the trailing shape of its (K, ...) array and its dtype."""
+    return {
+        "keys": ((), np.int64), "log_probs": ((num_classes,), np.float32),
+        "hits": ((), np.uint32), "misses": ((), np.uint32), "point_count": ((), np.int64),
+        "sum_d": ((3,), np.float64), "sum_dd": ((6,), np.float64), "semantic": ((), np.bool_),
+        "prior": ((), np.bool_), "prior_normal_sum": ((3,), np.float64),
+    }
 
 
 class MapError(SmartedgeError, ValueError):
@@ -267,7 +278,7 @@ def _column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class SemanticVoxelMap:
     """Sparse semantic voxel map in the world (map) frame; see the module docstring.
 
-    Not thread-safe: one owner (the backend's map worker) mutates it.
+    Not thread-safe: one owner (the mapper's worker) mutates it.
     """
 
     __hash__ = None  # type: ignore[assignment]  # mutable, compared by content
@@ -300,19 +311,9 @@ class SemanticVoxelMap:
         c = self.config.num_classes
         old = self.__dict__.get("_keys")
         n = self._n if old is not None else 0
-        fields = {
-            "_keys": ((), np.int64, 0),
-            "_log_probs": ((c,), np.float32, -math.log(c)),
-            "_hits": ((), np.uint32, 0),
-            "_misses": ((), np.uint32, 0),
-            "_count": ((), np.int64, 0),
-            "_sum_d": ((3,), np.float64, 0.0),
-            "_sum_dd": ((6,), np.float64, 0.0),
-            "_semantic": ((), np.bool_, False),
-            "_prior": ((), np.bool_, False),
-            "_prior_normal_sum": ((3,), np.float64, 0.0),
-        }
-        for name, (tail, dtype, fill) in fields.items():
+        for field, (tail, dtype) in _state_layout(c).items():
+            name = _STATE_ATTRS[field]
+            fill = -math.log(c) if field == "log_probs" else 0  # uniform classes, zero counts
             arr: np.ndarray = np.full((capacity, *tail), fill, dtype=dtype)
             if old is not None:
                 arr[:n] = getattr(self, name)[:n]
@@ -753,8 +754,7 @@ class SemanticVoxelMap:
 
     # -- identity ------------------------------------------------------------------------------
 
-    _STATE: Final = ("_keys", "_log_probs", "_hits", "_misses", "_count", "_sum_d", "_sum_dd",
-                     "_semantic", "_prior", "_prior_normal_sum")
+    _STATE: Final = tuple(_STATE_ATTRS.values())
 
     def copy(self) -> SemanticVoxelMap:
         """A deep copy."""
@@ -806,255 +806,50 @@ class SemanticVoxelMap:
         return (f"SemanticVoxelMap({self._n} voxels, voxel {self.config.voxel_size_m} m, "
                 f"{self.config.num_classes} classes)")
 
-    # -- files ---------------------------------------------------------------------------------
+    # -- state (what a map file holds; see mapper.map_io) --------------------------------------
 
-    def save_npz(self, path: str | os.PathLike[str], *, compress: bool = False) -> None:
-        """Write the map to ``path`` (an ``.npz`` zip of ``.npy`` arrays, written to a temporary
-        file and renamed into place).
-
-        Fields: ``format`` (str, :data:`MAP_FILE_FORMAT`), ``version`` (int64,
-        :data:`MAP_FILE_VERSION`), ``config`` (str: JSON of :class:`SemanticMapConfig`), and
-        per voxel, in row order: ``keys`` (K,) int64 packed voxel keys, ``log_probs`` (K, C)
-        float32, ``hits`` / ``misses`` (K,) uint32, ``point_count`` (K,) int64, ``sum_d`` (K, 3)
-        float64 (sum of point offsets from the voxel centre, m), ``sum_dd`` (K, 6) float64 (sums
-        of their products xx, xy, xz, yy, yz, zz, m²), ``semantic`` / ``prior`` (K,) bool,
-        ``prior_normal_sum`` (K, 3) float64.
-        """
-        path = Path(path)
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The per-voxel state, copies in row order (K voxels, C classes), by the names of
+        :data:`STATE_FIELDS`: ``keys`` (K,) int64 packed voxel keys (:func:`pack_voxel_keys`),
+        ``log_probs`` (K, C) float32, ``hits`` / ``misses`` (K,) uint32, ``point_count`` (K,)
+        int64, ``sum_d`` (K, 3) float64 (sum of the points' offsets from the voxel centre, m),
+        ``sum_dd`` (K, 6) float64 (sums of their products xx, xy, xz, yy, yz, zz, m²),
+        ``semantic`` / ``prior`` (K,) bool, ``prior_normal_sum`` (K, 3) float64 (sum of the
+        prior's unit normals). :meth:`from_state_arrays` rebuilds the same map from them."""
         n = self._n
-        arrays = {name.lstrip("_"): getattr(self, name)[:n] for name in self._STATE}
-        arrays["point_count"] = arrays.pop("count")
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as f:
-            (np.savez_compressed if compress else np.savez)(
-                f,
-                format=np.array(MAP_FILE_FORMAT),
-                version=np.array(MAP_FILE_VERSION, dtype=np.int64),
-                config=np.array(json.dumps(dataclasses.asdict(self.config), sort_keys=True)),
-                **arrays,
-            )
-        os.replace(tmp, path)
+        return {name: getattr(self, attr)[:n].copy() for name, attr in _STATE_ATTRS.items()}
 
     @classmethod
-    def load_npz(cls, path: str | os.PathLike[str]) -> SemanticVoxelMap:
-        """Read a map written by :meth:`save_npz`. Raises :class:`MapError` naming the file and
-        what is wrong for a missing, truncated, corrupt or foreign file."""
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                return cls._from_npz(data, str(path))
-        except MapError:
-            raise
-        except FileNotFoundError as exc:
-            raise MapError(f"{path}: no such map file") from exc
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error,
-                AttributeError, TypeError) as exc:
-            raise MapError(f"{path}: not a readable semantic map file "
-                           f"({type(exc).__name__}: {exc})") from exc
-
-    @classmethod
-    def _from_npz(cls, data: object, where: str) -> SemanticVoxelMap:
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise MapError(f"{where}: not an .npz archive (a single array)")
-        names = set(data.files)
-        if "format" not in names or str(data["format"][()]) != MAP_FILE_FORMAT:
-            raise MapError(f"{where}: not a semantic map file (format field missing or not "
-                           f"{MAP_FILE_FORMAT!r})")
-        version = int(data["version"][()]) if "version" in names else None
-        if version != MAP_FILE_VERSION:
-            raise MapError(f"{where}: map file version {version}, this build reads "
-                           f"{MAP_FILE_VERSION}")
-        try:
-            raw = json.loads(str(data["config"][()]))
-            fields = {f.name for f in dataclasses.fields(SemanticMapConfig)}
-            unknown = set(raw) - fields
-            if unknown:
-                raise MapError(f"{where}: config: unknown keys {sorted(unknown)}")
-            config = SemanticMapConfig(**raw)
-        except MapError as exc:
-            if str(exc).startswith(where):
-                raise
-            raise MapError(f"{where}: {exc}") from exc
-        except (json.JSONDecodeError, TypeError, AttributeError) as exc:
-            raise MapError(f"{where}: config: not a valid JSON object ({exc})") from exc
-        c = config.num_classes
-        expected = {
-            "keys": ((), np.int64), "log_probs": ((c,), np.float32), "hits": ((), np.uint32),
-            "misses": ((), np.uint32), "point_count": ((), np.int64), "sum_d": ((3,), np.float64),
-            "sum_dd": ((6,), np.float64), "semantic": ((), np.bool_), "prior": ((), np.bool_),
-            "prior_normal_sum": ((3,), np.float64),
-        }
-        missing = sorted(set(expected) - names)
+    def from_state_arrays(cls, config: SemanticMapConfig,
+                          arrays: Mapping[str, np.ndarray]) -> SemanticVoxelMap:
+        """The map of ``config`` holding ``arrays`` (as :meth:`state_arrays` returns them: every
+        field of :data:`STATE_FIELDS`, exact dtypes, one row per voxel). Raises
+        :class:`MapError` naming the field and what is wrong: missing fields, a dtype or shape
+        that does not match, duplicate voxel keys, voxels without points."""
+        if not isinstance(config, SemanticMapConfig):
+            raise MapError(f"config: expected a SemanticMapConfig, got {type(config).__name__}")
+        missing = [name for name in STATE_FIELDS if name not in arrays]
         if missing:
-            raise MapError(f"{where}: missing arrays {missing}")
-        arrays = {}
-        n = None
-        for name, (tail, dtype) in expected.items():
-            arr = data[name]
+            raise MapError(f"missing arrays {missing}")
+        n: int | None = None
+        for name, (tail, dtype) in _state_layout(config.num_classes).items():
+            arr = np.asarray(arrays[name])
             if n is None:
                 n = len(arr) if arr.ndim else -1
             if arr.dtype != dtype or arr.shape != (n, *tail):
-                raise MapError(f"{where}: {name}: expected {np.dtype(dtype)} of shape "
-                               f"{(n, *tail)}, got {arr.dtype} {arr.shape}")
-            arrays[name] = arr
+                raise MapError(f"{name}: expected {np.dtype(dtype)} of shape {(n, *tail)}, got "
+                               f"{arr.dtype} {arr.shape}")
         assert n is not None
-        keys = arrays["keys"]
+        keys = np.asarray(arrays["keys"])
         order = np.argsort(keys, kind="stable")
         if n > 1 and np.any(np.diff(keys[order]) == 0):
-            raise MapError(f"{where}: keys: duplicate voxel keys")
-        if n and np.any(arrays["point_count"] < 1):
-            raise MapError(f"{where}: point_count: voxels without points")
+            raise MapError("keys: duplicate voxel keys")
+        if n and np.any(np.asarray(arrays["point_count"]) < 1):
+            raise MapError("point_count: voxels without points")
         out = cls(config, capacity=max(n, 1))
-        for name in cls._STATE:
-            getattr(out, name)[:n] = arrays["point_count" if name == "_count" else name[1:]]
+        for name, attr in _STATE_ATTRS.items():
+            getattr(out, attr)[:n] = arrays[name]
         out._n = n
         out._index_keys = keys[order].astype(np.int64)
         out._index_rows = order.astype(np.int64)
         return out
-
-    def to_ply(self, path: str | os.PathLike[str], *, positions: str = "mean") -> None:
-        """Write the voxels as a binary little-endian PLY point cloud (CloudCompare, Open3D,
-        MeshLab read it): ``x y z`` float32 (voxel means, or centres with
-        ``positions="center"``), ``nx ny nz`` float32 (0 where undefined), ``red green blue``
-        uchar (class colour of the label, grey without semantics), ``label`` int32 (-1 without
-        semantics), ``confidence`` float32."""
-        if positions not in ("mean", "center"):
-            raise MapError(f"positions: 'mean' or 'center', got {positions!r}")
-        n = self._n
-        xyz = self.means() if positions == "mean" else self.voxel_centers()
-        normals = np.nan_to_num(self.normals(), nan=0.0)
-        labels = self.labels()
-        colors = np.empty((n, 3), dtype=np.uint8)
-        colors[:] = NO_SEMANTICS_COLOR
-        sem = labels >= 0
-        colors[sem] = class_colors(self.config.num_classes)[labels[sem]]
-        vertex = np.empty(n, dtype=[
-            ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
-            ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("label", "<i4"),
-            ("confidence", "<f4"),
-        ])
-        for a, name in enumerate("xyz"):
-            vertex[name] = xyz[:, a]
-            vertex["n" + name] = normals[:, a]
-        for a, name in enumerate(("red", "green", "blue")):
-            vertex[name] = colors[:, a]
-        vertex["label"] = labels
-        vertex["confidence"] = self.confidence()
-        props = "".join(
-            f"property {kind} {name}\n" for name, kind in (
-                ("x", "float"), ("y", "float"), ("z", "float"), ("nx", "float"),
-                ("ny", "float"), ("nz", "float"), ("red", "uchar"), ("green", "uchar"),
-                ("blue", "uchar"), ("label", "int"), ("confidence", "float"))
-        )
-        header = (
-            "ply\nformat binary_little_endian 1.0\n"
-            f"comment smartedge semantic voxel map, voxel_size_m {self.config.voxel_size_m}\n"
-            f"element vertex {n}\n{props}end_header\n"
-        )
-        with open(path, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(vertex.tobytes())
-
-
-# ----------------------------------------------------------------------------------------------
-# prior models
-
-
-_PLY_TYPES: Final = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-#: Largest header read (bytes) and vertex count accepted from a PLY file.
-_PLY_MAX_HEADER: Final = 64 * 1024
-_PLY_MAX_VERTICES: Final = 50_000_000
-
-
-def read_ply_points(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (N, 3) float64 and, when the file has ``nx ny nz``, normals (N, 3) of a PLY
-    point cloud (``ascii`` or ``binary_little_endian``/``binary_big_endian``; the ``vertex``
-    element must come first; other elements such as faces are ignored). This is how a prior
-    geometric model of the site is read (e.g. exported from CAD or CloudCompare, or written
-    by :meth:`SemanticVoxelMap.to_ply`). Raises :class:`MapError` naming the file and what is
-    wrong."""
-    where = str(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(_PLY_MAX_HEADER)
-            end = head.find(b"end_header")
-            if not head.startswith(b"ply") or end < 0:
-                raise MapError(f"{where}: not a PLY file (no 'ply' magic or no end_header in "
-                               f"the first {_PLY_MAX_HEADER} bytes)")
-            nl = head.find(b"\n", end)
-            if nl < 0:
-                raise MapError(f"{where}: truncated after end_header")
-            header = head[:nl].decode("ascii", errors="replace").splitlines()
-            fmt, count, props = _parse_ply_header(header, where)
-            f.seek(nl + 1)
-            if fmt == "ascii":
-                rows = [f.readline().split() for _ in range(count)]
-                if any(len(r) < len(props) for r in rows):
-                    raise MapError(f"{where}: truncated: fewer than {count} vertex rows")
-                table = np.array([r[:len(props)] for r in rows], dtype=np.float64).reshape(
-                    count, len(props))
-                column = {name: table[:, i] for i, (name, _) in enumerate(props)}
-            else:
-                order = "<" if fmt == "binary_little_endian" else ">"
-                dtype = np.dtype([(name, order + kind) for name, kind in props])
-                raw = f.read(dtype.itemsize * count)
-                if len(raw) < dtype.itemsize * count:
-                    raise MapError(f"{where}: truncated: {len(raw)} bytes of vertex data, "
-                                   f"expected {dtype.itemsize * count}")
-                data = np.frombuffer(raw, dtype=dtype, count=count)
-                column = {name: data[name].astype(np.float64) for name, _ in props}
-    except FileNotFoundError as exc:
-        raise MapError(f"{where}: no such PLY file") from exc
-    except (OSError, ValueError) as exc:
-        if isinstance(exc, MapError):
-            raise
-        raise MapError(f"{where}: not a readable PLY point cloud ({exc})") from exc
-    points = np.stack([column["x"], column["y"], column["z"]], axis=1)
-    if not np.isfinite(points).all():
-        raise MapError(f"{where}: vertices with NaN or inf coordinates")
-    normals = None
-    if {"nx", "ny", "nz"} <= set(column):
-        normals = np.stack([column["nx"], column["ny"], column["nz"]], axis=1)
-        normals = np.where(np.isfinite(normals), normals, 0.0)
-    return points, normals
-
-
-def _parse_ply_header(lines: list[str], where: str) -> tuple[str, int, list[tuple[str, str]]]:
-    fmt = ""
-    element = None
-    count = -1
-    props: list[tuple[str, str]] = []
-    for line in lines[1:]:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1] if len(words) > 1 else ""
-        elif words[0] == "element":
-            if element == "vertex":
-                break  # the vertex element is complete
-            element = words[1] if len(words) > 1 else ""
-            if element != "vertex":
-                raise MapError(f"{where}: the 'vertex' element must come first, found "
-                               f"{element!r}")
-            try:
-                count = int(words[2])
-            except (IndexError, ValueError):
-                raise MapError(f"{where}: bad element line {line!r}") from None
-        elif words[0] == "property" and element == "vertex":
-            if len(words) != 3 or words[1] not in _PLY_TYPES:
-                raise MapError(f"{where}: unsupported vertex property {line!r} (scalar "
-                               "properties only)")
-            props.append((words[2], _PLY_TYPES[words[1]]))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise MapError(f"{where}: unsupported PLY format {fmt!r}")
-    if not 0 <= count <= _PLY_MAX_VERTICES:
-        raise MapError(f"{where}: vertex count {count} missing or above {_PLY_MAX_VERTICES}")
-    names = [n for n, _ in props]
-    missing = [n for n in ("x", "y", "z") if n not in names]
-    if missing:
-        raise MapError(f"{where}: vertex properties {missing} missing")
-    return fmt, count, props
