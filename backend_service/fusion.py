@@ -12,7 +12,8 @@ keyframes (``Pose2`` variables of the robot base in the map frame):
   is inserted there by interpolating the odometry and the between factor is split in two;
 - the graph is optimized (one ISAM2 update) per new keyframe and per camera estimate;
 - the fused pose is published at odometry rate: the latest optimized keyframe composed with the
-  odometry since that keyframe, with its marginal covariance propagated along the odometry;
+  odometry since that keyframe, with its marginal covariance propagated along the odometry
+  (the odometry buffer is a :class:`~protocol.history.StampedHistory`);
 - memory stays bounded: when keyframes fall out of a sliding window (time and count), the old
   part of the graph is marginalized into a Gaussian prior on the oldest kept keyframe and ISAM2
   is rebuilt over the kept keyframes.
@@ -36,14 +37,15 @@ import collections
 import dataclasses
 import logging
 import math
-from typing import Final
+from typing import Final, NamedTuple
 
 import gtsam
 import numpy as np
 
 from protocol.geometry import rotation_z
+from protocol.history import StampedHistory
 from protocol.messages import Odometry, PoseEstimate
-from protocol.site import Site
+from protocol.site import ClockPolicy, Site
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +73,9 @@ class FusionConfig:
     threshold ``robust_threshold`` in sigmas; ``camera_sigma_floor_*`` is added in quadrature
     to guard against over-confident estimates; estimates with a sigma above
     ``max_camera_sigma_m`` / ``max_camera_sigma_rad`` carry no information and are rejected.
+    An estimate newer than the newest odometry waits (at most ``max_pending`` of them) for the
+    odometry to cover its stamp, if it is at most the site's ``clock.max_age_ms`` ahead of that
+    odometry (:class:`~protocol.site.ClockPolicy`; else ``camera_future``).
 
     Poisoned stamps: odometry is accepted in stamp order, so one message stamped far in the
     future (the service drops those against its clock, but a replay has none) would make every
@@ -111,7 +116,6 @@ class FusionConfig:
     camera_sigma_floor_rad: float = 0.002
     max_camera_sigma_m: float = 5.0
     max_camera_sigma_rad: float = 3.0
-    max_future_s: float = 1.0
     max_pending: int = 16
     out_of_order_reset_count: int = 25
     out_of_order_reset_gap_s: float = 5.0
@@ -158,8 +162,8 @@ class FusionConfig:
                              "max_pending >= 1")
         if self.out_of_order_reset_count < 1:
             raise ValueError("FusionConfig.out_of_order_reset_count must be >= 1")
-        if self.extra_iterations < 0 or self.max_future_s < 0:
-            raise ValueError("FusionConfig: extra_iterations and max_future_s must be >= 0")
+        if self.extra_iterations < 0:
+            raise ValueError("FusionConfig.extra_iterations must be >= 0")
 
 
 def fusion_config_from_site(site: Site) -> FusionConfig:
@@ -199,6 +203,24 @@ def _interpolate(a: gtsam.Pose2, b: gtsam.Pose2, alpha: float) -> gtsam.Pose2:
 
 def _motion(delta: gtsam.Pose2) -> tuple[float, float]:
     return math.hypot(delta.x(), delta.y()), abs(delta.theta())
+
+
+class _OdomSample(NamedTuple):
+    """One odometry reading: ``T_odom_robot`` and its (3, 3) covariance along odom axes (``None``
+    unless ``use_odometry_covariance``)."""
+
+    T_odom_robot: gtsam.Pose2
+    cov_odom: np.ndarray | None
+
+
+def _blend_odometry(a: _OdomSample, b: _OdomSample, alpha: float) -> _OdomSample:
+    """The odometry ``alpha`` of the way from ``a`` to ``b``: the pose along the SE(2) geodesic,
+    the covariance linear (at a reading's own stamp, ``alpha`` 0, that reading)."""
+    if alpha == 0.0:
+        return a
+    cov = None if a.cov_odom is None or b.cov_odom is None else (
+        (1 - alpha) * a.cov_odom + alpha * b.cov_odom)
+    return _OdomSample(_interpolate(a.T_odom_robot, b.T_odom_robot, alpha), cov)
 
 
 @dataclasses.dataclass
@@ -270,22 +292,26 @@ class PoseGraphFusion:
     Feed every :class:`protocol.Odometry` of the robot to :meth:`add_odometry` (it returns the
     fused pose at that stamp) and every camera :class:`protocol.PoseEstimate` to
     :meth:`add_camera_estimate`, in arrival order. ``counters`` counts events and rejection
-    reasons; ``last_reject_reason`` names the latest rejection.
+    reasons; ``last_reject_reason`` names the latest rejection. ``clock``: the site's clock
+    policy (default :class:`~protocol.site.ClockPolicy`'s defaults).
     """
 
-    def __init__(self, robot_id: str, config: FusionConfig | None = None) -> None:
+    def __init__(self, robot_id: str, config: FusionConfig | None = None,
+                 clock: ClockPolicy | None = None) -> None:
         self.robot_id = robot_id
         self.config = config if config is not None else FusionConfig()
+        self.clock = clock if clock is not None else ClockPolicy()
+        # a camera estimate waits for odometry at most one input age ahead of the newest
+        self._max_camera_lead_ns = self.clock.max_age_ns
         self.counters: collections.Counter[str] = collections.Counter()
         self._ooo_run = 0  # consecutive out-of-order odometry messages
         self._ooo_last_stamp = 0
         self.last_reject_reason = ""
         self._seq = 0
         self._next_key = 0
-        # odometry buffer, sorted by stamp: interpolation source for keyframes at any stamp
-        self._odom_stamps: list[int] = []
-        self._odom_poses: list[gtsam.Pose2] = []
-        self._odom_covs: list[np.ndarray | None] = []
+        # odometry in stamp order (only newer stamps are accepted): interpolation source for
+        # keyframes at any stamp; trimmed at anchoring, marginalization and before the anchor
+        self._odom: StampedHistory[_OdomSample] = StampedHistory(out_of_order="drop")
         self._pending: list[_PendingPrior] = []
         self._reset_graph()
 
@@ -316,16 +342,14 @@ class PoseGraphFusion:
         """Sizes of the internal buffers (for boundedness checks and status)."""
         return {
             "keyframes": len(self._kfs),
-            "odometry_samples": len(self._odom_stamps),
+            "odometry_samples": len(self._odom),
             "factor_records": len(self._between) + sum(len(v) for v in self._priors.values()),
             "pending_camera": len(self._pending),
         }
 
     def reset(self) -> None:
         """Forget the graph, the odometry buffer and pending estimates (counters are kept)."""
-        self._odom_stamps.clear()
-        self._odom_poses.clear()
-        self._odom_covs.clear()
+        self._odom.clear()
         self._pending.clear()
         self._reset_graph()
 
@@ -344,8 +368,9 @@ class PoseGraphFusion:
         cov = None
         if self.config.use_odometry_covariance:
             cov = np.asarray(msg.covariance, dtype=np.float64)
-        if self._odom_stamps:
-            last_stamp = self._odom_stamps[-1]
+        last = self._odom.latest()
+        if last is not None:
+            last_stamp = last.stamp_ns
             if stamp <= last_stamp:
                 if not self._out_of_order_run(stamp, last_stamp):
                     return self._reject("odometry_out_of_order")
@@ -357,11 +382,9 @@ class PoseGraphFusion:
                     (last_stamp - stamp) * 1e-9)
                 return self._restart_after_jump(stamp, T_odom, cov)
             self._ooo_run = 0
-            if self._is_jump(self._odom_poses[-1], T_odom, (stamp - last_stamp) / _NS_PER_S):
+            if self._is_jump(last.item.T_odom_robot, T_odom, (stamp - last_stamp) / _NS_PER_S):
                 return self._restart_after_jump(stamp, T_odom, cov)
-        self._odom_stamps.append(stamp)
-        self._odom_poses.append(T_odom)
-        self._odom_covs.append(cov)
+        self._odom.insert(stamp, _OdomSample(T_odom, cov))
         self.counters["odometry_accepted"] += 1
         if not self.anchored:
             self._prune_pre_anchor_buffer()
@@ -369,7 +392,7 @@ class PoseGraphFusion:
         if not self.anchored:
             self.counters["uninitialized"] += 1
             return None
-        self._apply_keyframe_policy(len(self._odom_stamps) - 1)
+        self._apply_keyframe_policy(stamp, self._odom.latest().item)  # type: ignore[union-attr]
         return self._fused_at_latest()
 
     def add_camera_estimate(self, est: PoseEstimate) -> PoseEstimate | None:
@@ -402,7 +425,9 @@ class PoseGraphFusion:
         residual to the later keyframe's estimate is spread linearly in time. ``None`` outside
         the window or the odometry buffer.
         """
-        if not self._kfs or stamp_ns < self._kf_stamps[0] or stamp_ns > self._odom_stamps[-1]:
+        newest = self._odom.latest()
+        if not self._kfs or stamp_ns < self._kf_stamps[0] or newest is None or (
+                stamp_ns > newest.stamp_ns):
             return None
         i = bisect.bisect_right(self._kf_stamps, stamp_ns) - 1
         kf = self._kfs[i]
@@ -410,7 +435,7 @@ class PoseGraphFusion:
         if T_odom is None:
             return None
         T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
-        delta = kf.T_odom_robot.between(T_odom[0])
+        delta = kf.T_odom_robot.between(T_odom.T_odom_robot)
         T_world = T_world_kf.compose(delta)
         if i + 1 < len(self._kfs):
             nxt = self._kfs[i + 1]
@@ -523,20 +548,9 @@ class PoseGraphFusion:
     # odometry buffer and keyframes
     # ----------------------------------------------------------------------------------------
 
-    def _odom_at(self, stamp_ns: int) -> tuple[gtsam.Pose2, np.ndarray | None] | None:
+    def _odom_at(self, stamp_ns: int) -> _OdomSample | None:
         """Odometry pose (and covariance) interpolated at ``stamp_ns``; None outside buffer."""
-        stamps = self._odom_stamps
-        if not stamps or stamp_ns < stamps[0] or stamp_ns > stamps[-1]:
-            return None
-        j = bisect.bisect_left(stamps, stamp_ns)
-        if stamps[j] == stamp_ns:
-            return self._odom_poses[j], self._odom_covs[j]
-        t0, t1 = stamps[j - 1], stamps[j]
-        alpha = (stamp_ns - t0) / (t1 - t0)
-        pose = _interpolate(self._odom_poses[j - 1], self._odom_poses[j], alpha)
-        c0, c1 = self._odom_covs[j - 1], self._odom_covs[j]
-        cov = None if c0 is None or c1 is None else (1 - alpha) * c0 + alpha * c1
-        return pose, cov
+        return self._odom.interpolate(stamp_ns, _blend_odometry)
 
     def _odometry_noise(
         self,
@@ -582,9 +596,8 @@ class PoseGraphFusion:
         measured = a.T_odom_robot.between(b.T_odom_robot)
         return _Factor("between", a.key, b.key, measured, cov, robust=False)
 
-    def _apply_keyframe_policy(self, sample_index: int) -> None:
-        stamp = self._odom_stamps[sample_index]
-        T_odom = self._odom_poses[sample_index]
+    def _apply_keyframe_policy(self, stamp: int, sample: _OdomSample) -> None:
+        T_odom = sample.T_odom_robot
         last = self._kfs[-1]
         if stamp <= last.stamp_ns:
             return
@@ -598,7 +611,7 @@ class PoseGraphFusion:
             or (moved and dt_s >= cfg.keyframe_interval_s)
         ):
             batch = _Batch()
-            self._insert_keyframe(stamp, T_odom, self._odom_covs[sample_index], batch)
+            self._insert_keyframe(stamp, T_odom, sample.cov_odom, batch)
             if self._update(batch):
                 self.counters["keyframes_created"] += 1
                 self._maybe_marginalize()
@@ -652,11 +665,9 @@ class PoseGraphFusion:
         assert T_world is not None and cov_world is not None and isinstance(est, PoseEstimate)
         stamp = int(est.stamp_ns)
         prior = _PendingPrior(stamp, T_world, cov_world, robust, kind)
-        if not self._odom_stamps or stamp > self._odom_stamps[-1]:
-            if (
-                self._odom_stamps
-                and stamp - self._odom_stamps[-1] > self.config.max_future_s * _NS_PER_S
-            ):
+        newest = self._odom.latest()
+        if newest is None or stamp > newest.stamp_ns:
+            if newest is not None and stamp - newest.stamp_ns > self._max_camera_lead_ns:
                 return self._reject("camera_future")
             bisect.insort(self._pending, prior, key=lambda p: p.stamp_ns)
             self.counters["camera_deferred"] += 1
@@ -713,10 +724,9 @@ class PoseGraphFusion:
             return False
         self.counters[f"{prior.kind}_fused"] += 1
         self.counters["anchored"] += 1
-        self._prune_odometry_before(kf.stamp_ns)
-        first = bisect.bisect_right(self._odom_stamps, kf.stamp_ns)
-        for j in range(first, len(self._odom_stamps)):
-            self._apply_keyframe_policy(j)
+        self._odom.trim_before(kf.stamp_ns)
+        for stamp, sample in self._odom.newer_than(kf.stamp_ns):
+            self._apply_keyframe_policy(stamp, sample)
         return True
 
     def _restart_after_jump(
@@ -728,9 +738,7 @@ class PoseGraphFusion:
         self.last_reject_reason = "odometry_jump"
         last = self._fused_at_latest() if self.anchored else None
         self.reset()
-        self._odom_stamps.append(stamp)
-        self._odom_poses.append(T_odom)
-        self._odom_covs.append(cov)
+        self._odom.insert(stamp, _OdomSample(T_odom, cov))
         if last is None:
             return None
         cfg = self.config
@@ -812,11 +820,10 @@ class PoseGraphFusion:
         return 0.5 * (cov + cov.T)
 
     def _fused_at_latest(self) -> PoseEstimate | None:
-        stamp = self._odom_stamps[-1]
+        stamp, odom = self._odom.latest()  # type: ignore[misc]
         kf = self._kfs[-1]
         T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
-        odom = (self._odom_poses[-1], self._odom_covs[-1])
-        T_world = T_world_kf.compose(kf.T_odom_robot.between(odom[0]))
+        T_world = T_world_kf.compose(kf.T_odom_robot.between(odom.T_odom_robot))
         cov_body = self._propagate(cov_kf, kf, odom, stamp)
         return self._make_estimate(stamp, T_world, cov_body)
 
@@ -844,18 +851,8 @@ class PoseGraphFusion:
     # bounded memory
     # ----------------------------------------------------------------------------------------
 
-    def _prune_odometry_before(self, stamp_ns: int) -> None:
-        """Drop odometry samples older than the one bracketing ``stamp_ns`` from below."""
-        j = bisect.bisect_right(self._odom_stamps, stamp_ns) - 1
-        if j > 0:
-            del self._odom_stamps[:j]
-            del self._odom_poses[:j]
-            del self._odom_covs[:j]
-
     def _prune_pre_anchor_buffer(self) -> None:
-        horizon = self._odom_stamps[-1] - int(self.config.pre_anchor_buffer_s * _NS_PER_S)
-        if self._odom_stamps[0] < horizon:
-            self._prune_odometry_before(horizon)
+        self._odom.trim_to_age(int(self.config.pre_anchor_buffer_s * _NS_PER_S))
 
     def _maybe_marginalize(self) -> None:
         cfg = self.config
@@ -907,6 +904,6 @@ class PoseGraphFusion:
         self._isam = gtsam.ISAM2(params)
         self._kfs = list(kept)
         self._kf_stamps = [kf.stamp_ns for kf in kept]
-        self._prune_odometry_before(root.stamp_ns)
+        self._odom.trim_before(root.stamp_ns)
         if self._update(batch):
             self.counters["marginalizations"] += 1

@@ -29,7 +29,6 @@ wall clock for a decision (the solve latency is measured for the status only).
 
 from __future__ import annotations
 
-import bisect
 import collections
 import dataclasses
 import logging
@@ -44,8 +43,9 @@ from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
 from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
 from protocol.geometry import MotionState, StaticDetector
+from protocol.history import StampedHistory
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
-from protocol.site import Site
+from protocol.site import ClockPolicy, Site
 
 if TYPE_CHECKING:  # gtsam is imported only where the pose graph is built
     from backend_service.fusion import FusionConfig
@@ -85,13 +85,13 @@ class PipelineConfig:
     ``solver``: the pose solve. ``multi_frame``: averaging while static. ``prior``: where a
     solve's prior comes from first: ``"fused"`` (the pose graph at the frame-set's stamp, the
     service default) or ``"localization"`` (the robot's own localization nearest the stamp, the
-    paper's protocol); without it, the newest camera estimate at most ``prior_max_age_s`` old,
-    then the other source. ``fuse_while_moving``: also fuse single-frame estimates while the
-    robot moves (the paper fuses only the averages at static waypoints). Static detection:
-    ``static_max_speed_mps``, ``static_max_yaw_rate_radps`` for ``static_dwell_s``.
-    ``publish_max_age_s``: the backend service drops (and counts, ``stale_dropped``) a pose
-    older than this when it would be published, e.g. after a stall (the pipeline itself never
-    reads the clock; see :class:`~backend_service.service.BackendNode`).
+    paper's protocol); without it, the newest camera estimate, then the other source (a prior
+    is used only when stamped within the site's ``clock.max_age_ms`` of the frame-set).
+    ``fuse_while_moving``: also fuse single-frame estimates while the robot moves (the paper
+    fuses only the averages at static waypoints). Static detection: ``static_max_speed_mps``,
+    ``static_max_yaw_rate_radps`` for ``static_dwell_s``. A pose older than ``clock.max_age_ms``
+    when it would be published is dropped by the backend service (``stale_dropped``; the
+    pipeline itself never reads the clock; see :class:`~backend_service.service.BackendNode`).
     ``max_input_delay_s``: the backend service sheds (counts, ``shed``) camera detections that
     waited longer than this in its input queue: when the host cannot keep up, the oldest
     frame-sets go first and the latency stays bounded instead of growing until every pose is
@@ -101,21 +101,15 @@ class PipelineConfig:
     solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
     multi_frame: MultiFrameConfig = dataclasses.field(default_factory=MultiFrameConfig)
     prior: str = "fused"
-    prior_max_age_s: float = 1.0
     fuse_while_moving: bool = True
     static_max_speed_mps: float = 0.01
     static_max_yaw_rate_radps: float = 0.02
     static_dwell_s: float = 1.0
-    publish_max_age_s: float = 1.0
     max_input_delay_s: float = 0.25
 
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_SOURCES:
             raise ValueError(f"PipelineConfig.prior {self.prior!r} not in {PRIOR_SOURCES}")
-        if not self.prior_max_age_s >= 0:
-            raise ValueError("PipelineConfig.prior_max_age_s must be >= 0")
-        if not self.publish_max_age_s > 0:
-            raise ValueError("PipelineConfig.publish_max_age_s must be > 0")
         if not self.max_input_delay_s > 0:
             raise ValueError("PipelineConfig.max_input_delay_s must be > 0")
 
@@ -128,8 +122,7 @@ class PipelineConfig:
         th = site.thresholds
         reader = site.section_reader()
         pose = site.section("pose")
-        own = {"prior", "prior_max_age_s", "fuse_while_moving", "publish_max_age_s",
-               "max_input_delay_s"}
+        own = {"prior", "fuse_while_moving", "max_input_delay_s"}
         solver_fields = {f.name for f in dataclasses.fields(SolverConfig)}
         reader.no_unknown("pose", pose, own | solver_fields)
         solver = reader.section("pose", {k: v for k, v in pose.items() if k in solver_fields},
@@ -190,10 +183,11 @@ class PipelineOutput:
 
 class RobotTrack:
     """The pipeline's state for one robot: static detector, averager, pose graph, prior
-    sources, and the sequence numbers of what it publishes."""
+    sources, and the sequence numbers of what it publishes. ``clock``: the site's clock policy
+    (a prior is used only when stamped within ``max_age_ms`` of the solve)."""
 
     def __init__(self, robot_id: str, config: PipelineConfig, fusion: Fusion | None,
-                 world_frame: str) -> None:
+                 world_frame: str, clock: ClockPolicy | None = None) -> None:
         self.robot_id = robot_id
         self.config = config
         self.fusion = fusion
@@ -208,9 +202,10 @@ class RobotTrack:
         self.seq_camera = 0
         self.seq_fused = 0
         self._dwell_ns = round(config.static_dwell_s * 1e9)
-        self._max_age_ns = round(config.prior_max_age_s * 1e9)
-        self._localization: collections.deque[PoseEstimate] = collections.deque(
-            maxlen=LOCALIZATION_BUFFER)
+        self._max_age_ns = (clock if clock is not None else ClockPolicy()).max_age_ns
+        # the robot's own localization; messages may overtake each other on the way
+        self._localization: StampedHistory[PoseEstimate] = StampedHistory(
+            LOCALIZATION_BUFFER, out_of_order="insert")
 
     @property
     def motion(self) -> MotionState:
@@ -226,25 +221,11 @@ class RobotTrack:
         return since is not None and stamp_ns - since >= self._dwell_ns
 
     def add_localization(self, est: PoseEstimate) -> None:
-        buf = self._localization
-        if buf and est.stamp_ns <= buf[-1].stamp_ns:
-            if any(e.stamp_ns == est.stamp_ns for e in buf):
-                return
-            items = sorted([*buf, est], key=lambda e: e.stamp_ns)
-            buf.clear()
-            buf.extend(items[-LOCALIZATION_BUFFER:])
-            return
-        buf.append(est)
+        self._localization.insert(est.stamp_ns, est)
 
     def _localization_at(self, stamp_ns: int) -> PoseEstimate | None:
-        buf = self._localization
-        if not buf:
-            return None
-        stamps = [e.stamp_ns for e in buf]
-        i = bisect.bisect_right(stamps, stamp_ns)
-        near = [buf[j] for j in (i - 1, i) if 0 <= j < len(buf)]
-        best = min(near, key=lambda e: abs(e.stamp_ns - stamp_ns))
-        return best if abs(best.stamp_ns - stamp_ns) <= self._max_age_ns else None
+        near = self._localization.nearest(stamp_ns, max_gap_ns=self._max_age_ns)
+        return None if near is None else near.item
 
     def _fused_at(self, stamp_ns: int) -> PoseEstimate | None:
         if self.fusion is None or not self.fusion.anchored:
@@ -294,17 +275,16 @@ class BackendPipeline:
             fcfg = fusion_config or FusionConfig()
 
             def fusion_factory(robot_id: str) -> Fusion:
-                return PoseGraphFusion(robot_id, fcfg)
+                return PoseGraphFusion(robot_id, fcfg, site.clock)
 
         self.sync = FrameSetSynchronizer(site)
         self.tracks: dict[str, RobotTrack] = {
             rid: RobotTrack(rid, self.config,
                             fusion_factory(rid) if with_fusion and fusion_factory else None,
-                            site.world_frame)
+                            site.world_frame, site.clock)
             for rid in site.robots
         }
         self.counters: collections.Counter[str] = collections.Counter()
-        self._max_future_ns = round(site.thresholds.max_future_ms * 1e6)
         self._future_at: dict[str, int] = {}  # counter -> arrival time of the last drop
         self._fusion_resets_seen: dict[str, int] = {}
         self._fusion_reset_at: dict[str, int] = {}
@@ -315,8 +295,8 @@ class BackendPipeline:
         """One wire message as it arrived (``arrival_ns`` on the backend's clock). Detections,
         odometry and the robot's own localization (``PoseEstimate`` with source ``robot``) are
         used; anything else is ignored (counted ``ignored``). Odometry and localization stamped
-        further ahead of ``arrival_ns`` than the site's clock tolerance
-        (``thresholds.max_future_ms``) are dropped (``odometry_future``,
+        further ahead of ``arrival_ns`` than the site's clock policy allows
+        (``clock.max_future_ms``) are dropped (``odometry_future``,
         ``localization_future``): one such stamp would otherwise freeze the fusion."""
         if isinstance(message, RobotDetections):
             return self.on_detections(message, arrival_ns)
@@ -393,7 +373,7 @@ class BackendPipeline:
     # -- internals ---------------------------------------------------------------------------
 
     def _future(self, stamp_ns: int, arrival_ns: int, counter: str) -> bool:
-        if stamp_ns - arrival_ns <= self._max_future_ns:
+        if not self.site.clock.too_far_ahead(stamp_ns, arrival_ns):
             return False
         self.counters[counter] += 1
         self._future_at[counter] = arrival_ns

@@ -35,14 +35,14 @@ INPUT_DELAY_WINDOW: Final = 256
 class BackendNode(ServiceNode):
     """The backend as a transport-free node: a :class:`BackendPipeline` on message keys.
 
-    Freshness: a pose is published only while its age is at most ``publish_max_age_s``
-    (:class:`PipelineConfig`); an older one (the worker was stalled, or its inputs queued) is
-    dropped and counted (``stale_dropped``, ``stale_dropped.pose``,
+    Freshness: a pose is published only while its age is at most the site's ``clock.max_age_ms``
+    (:class:`~protocol.site.ClockPolicy`); an older one (the worker was stalled, or its inputs
+    queued) is dropped and counted (``stale_dropped``, ``stale_dropped.pose``,
     ``stale_dropped.camera_pose``). Its age is the runner's clock (:attr:`clock`, the wall clock
     under Zenoh) minus its stamp, less the smallest stamp-to-arrival delay of the recent inputs
-    (never below 0): on a live site, where sensors share the backend's time base, that floor is
-    the transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is
-    the replay's offset, so replayed poses are not all stale.
+    (never below 0): on a live site, where sensors share the backend's time base, that floor is the
+    transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is the
+    replay's offset, so replayed poses are not all stale.
 
     Load shedding: detections that waited in the input queue longer than ``max_input_delay_s``
     are dropped by the runner before they are decoded (``shed``, ``shed.<key>``), oldest first,
@@ -66,7 +66,7 @@ class BackendNode(ServiceNode):
         self.tick_period_s = tick_period_s
         self._peers: dict[str, bool] = {}
         self._last_now_ns = 0
-        self._max_age_ns = round(self.pipeline.config.publish_max_age_s * 1e9)
+        self._max_age_ns = site.clock.max_age_ns
         self._input_delays: collections.deque[int] = collections.deque(maxlen=INPUT_DELAY_WINDOW)
         self._delay_floor_ns = 0
         self._stale_run = 0

@@ -12,8 +12,8 @@ emitted when
 
 Windows are emitted in stamp order; a message for a window that is already emitted (or older) is
 ``late`` and dropped, so output stamps never go backwards. Other counters: ``duplicate`` (same
-camera, same stamp), ``future`` (stamp more than ``max_future_ms`` ahead of ``now_ns``),
-``unknown_camera``, ``bad_keypoints`` (keypoint count differs from the robot model),
+camera, same stamp), ``future`` (stamp more than the site's ``clock.max_future_ms`` ahead of
+``now_ns``), ``unknown_camera``, ``bad_keypoints`` (keypoint count differs from the robot model),
 ``image_size`` (the message's image size is not the camera's calibrated size nor an exact
 scale of it; an exact scale, e.g. a 424x240 stream of an 848x480 calibration, is converted to
 calibrated pixels, see :func:`~backend_service.frame_set.image_scale`),
@@ -82,7 +82,8 @@ class FrameSetSynchronizer:
 
     ``robot_id``: synchronize only this robot; ``None``: every robot of the site (unidentified
     detections, ``robot_id == ""``, are only attributed when the site has one robot).
-    Thresholds come from ``site.thresholds``. Not thread-safe: call from one worker loop.
+    Thresholds come from ``site.thresholds`` and the clock policy from ``site.clock``. Not
+    thread-safe: call from one worker loop.
     """
 
     def __init__(self, site: Site, robot_id: str | None = None, max_open_windows: int = 32,
@@ -92,7 +93,7 @@ class FrameSetSynchronizer:
         self.window_ns = int(th.sync_window_ms * 1e6)
         self.max_wait_ns = int(th.sync_max_wait_ms * 1e6)
         self.camera_timeout_ns = int(th.camera_timeout_s * 1e9)
-        self.max_future_ns = int(th.max_future_ms * 1e6)
+        self.max_future_ns = site.clock.max_future_ns
         self.max_open_windows = int(max_open_windows)
         if robot_id is not None:
             self.robot_ids: tuple[str, ...] = (robot_id,)

@@ -11,7 +11,7 @@ Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the regist
   detector + keypoint models of the site's robot model (default: the shipped ones in
   ``edge_agent/models/``; ``--model`` overrides). A camera that fails to open or stops
   delivering is reported in the status and retried with back-off.
-- ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.plugins`): the simulated
+- ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.sim.plugins`): the simulated
   site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.
 

@@ -6,7 +6,7 @@ group, and builds the chosen source with ``plugin.build(args, site)``.
 
 The edge agent registers only what it ships (``camera``: OpenCV, image folders, RealSense
 through the ONNX models). Anything else, such as the simulated
-site, is registered from the top floor (:mod:`smartedge.plugins`): this package never imports
+site, is registered from the top floor (:mod:`smartedge.sim.plugins`): this package never imports
 the code that provides it.
 """
 

@@ -7,7 +7,7 @@
    the camera's own frame, placed with its calibrated ``T_world_cam``); a robot's cloud comes in
    the robot's base frame (``robot_base_frame``, default ``base_link``) and is placed with the
    robot's fused pose at the cloud's stamp (interpolated between the two fused poses around it,
-   at most ``max_pose_gap_s`` apart);
+   at most ``max_pose_gap_s`` apart, from a :class:`~protocol.history.StampedHistory` per robot);
 2. **ICP gate** (robot clouds): the placed cloud is aligned to the map with coarse-to-fine
    point-to-plane ICP (:func:`~mapper.alignment.align_to_map`) and fused only when
    fitness, inlier RMSE, offset and geometry pass the gate; the alignment offset (how far the
@@ -19,18 +19,18 @@
 The map starts from a prior geometric model of the empty room without semantics (the paper), or
 from a saved map. Bad input never raises out of :meth:`SemanticMapping.on_cloud`: the cloud is
 rejected, the reason is logged once per sensor and reason and counted (``rejected.<reason>``),
-and the map is unchanged. Time comes from message stamps and the ``now_ns`` the caller passes.
+and the map is unchanged. Time comes from message stamps and the ``now_ns`` the caller passes,
+judged by the site's clock policy (``site.clock``, :class:`~protocol.site.ClockPolicy`).
 """
 
 from __future__ import annotations
 
-import bisect
 import collections
 import dataclasses
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Final
 
 import numpy as np
@@ -42,7 +42,8 @@ from mapper.alignment import (
     consistency,
 )
 from mapper.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
-from protocol.geometry import se3_from_planar, wrap_angle
+from protocol.geometry import se3_from_planar
+from protocol.history import StampedHistory, lerp_se2
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.site import Site
 
@@ -50,6 +51,9 @@ log = logging.getLogger(__name__)
 
 #: Fused poses kept per robot for the stamp lookup (50 Hz odometry: about 80 s).
 POSE_BUFFER: Final = 4096
+#: A semantic cloud may be this many times the site's ``clock.max_age_ms`` old (30 s by
+#: default): it describes the static scene, and segmentation on an edge board is slow.
+CLOUD_AGE_FACTOR: Final = 30
 #: Where a cloud comes from: a static edge sensor or a robot.
 CLOUD_SCOPES: Final = ("edge", "robot")
 #: Where a robot cloud is fused: as the fused pose places it, or moved by the ICP correction.
@@ -73,9 +77,10 @@ class MappingConfig:
     every ``snapshot_period_s`` and on shutdown; empty: not kept). ``publish_period_s``: how often
     the service publishes the map's semantic voxels for viewers (0: never).
     ``robot_base_frame``: the ``frame_id`` of robot clouds placed with the fused pose.
-    ``max_pose_gap_s``: a robot cloud needs fused poses within this of its stamp.
-    ``max_future_s`` / ``max_age_s``: clouds stamped further ahead of / behind the clock are
-    rejected. ``align_robot_clouds``: ICP-gate robot clouds (off: fuse them as the pose puts
+    ``max_pose_gap_s``: a robot cloud needs fused poses within this of its stamp. Clouds
+    stamped more than the site's ``clock.max_future_ms`` ahead of the clock, or more than
+    :data:`CLOUD_AGE_FACTOR` times ``clock.max_age_ms`` behind it, are rejected.
+    ``align_robot_clouds``: ICP-gate robot clouds (off: fuse them as the pose puts
     them, for the comparison of Fig. 7). ``placement``: ``"fused"`` (default) fuses an accepted
     robot cloud where the fused pose puts it and uses ICP as the gate (a cloud that ICP finds
     elsewhere, or that does not fit, is rejected; one the map cannot check (nothing mapped there
@@ -94,8 +99,6 @@ class MappingConfig:
     publish_period_s: float = 5.0
     robot_base_frame: str = "base_link"
     max_pose_gap_s: float = 0.5
-    max_future_s: float = 0.5
-    max_age_s: float = 30.0
     align_robot_clouds: bool = True
     placement: str = "fused"
     max_unverified_std_m: float = 0.10
@@ -104,8 +107,8 @@ class MappingConfig:
     alignment: AlignmentConfig = dataclasses.field(default_factory=AlignmentConfig)
 
     def __post_init__(self) -> None:
-        for name in ("snapshot_period_s", "publish_period_s", "max_pose_gap_s", "max_future_s",
-                     "max_age_s", "max_unverified_std_m"):
+        for name in ("snapshot_period_s", "publish_period_s", "max_pose_gap_s",
+                     "max_unverified_std_m"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise MapError(f"map config: {name}: must be a finite number >= 0, got {value!r}")
@@ -182,29 +185,20 @@ class AlignmentReport:
     accepted: bool
 
 
-def interpolate_pose(poses: Sequence[PoseEstimate], stamp_ns: int,
+def _lerp_poses(a: PoseEstimate, b: PoseEstimate, fraction: float) -> tuple[float, float, float]:
+    return lerp_se2((a.x, a.y, a.theta), (b.x, b.y, b.theta), fraction)
+
+
+def interpolate_pose(poses: StampedHistory[PoseEstimate], stamp_ns: int,
                      max_gap_ns: int) -> tuple[float, float, float] | None:
-    """(x, y, theta) at ``stamp_ns`` from poses sorted by stamp: linear between the two around
-    it (the angle along the shorter arc) when they are at most ``max_gap_ns`` apart, the nearest
-    one when it is within ``max_gap_ns / 2``, else ``None``."""
-    if not poses:
-        return None
-    stamps = [p.stamp_ns for p in poses]
-    i = bisect.bisect_left(stamps, stamp_ns)
-    if i < len(poses) and stamps[i] == stamp_ns:
-        p = poses[i]
-        return p.x, p.y, p.theta
-    if 0 < i < len(poses):
-        a, b = poses[i - 1], poses[i]
-        if b.stamp_ns - a.stamp_ns <= max_gap_ns:
-            f = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
-            return (a.x + f * (b.x - a.x), a.y + f * (b.y - a.y),
-                    wrap_angle(a.theta + f * wrap_angle(b.theta - a.theta)))
-    near = [poses[j] for j in (i - 1, i) if 0 <= j < len(poses)]
-    best = min(near, key=lambda p: abs(p.stamp_ns - stamp_ns))
-    if abs(best.stamp_ns - stamp_ns) <= max_gap_ns // 2:
-        return best.x, best.y, best.theta
-    return None
+    """(x, y, theta) (world frame; m, rad) at ``stamp_ns`` from a history of fused poses:
+    linear between the two around it (the angle along the shorter arc) when they are at most
+    ``max_gap_ns`` apart, the nearest one when it is within ``max_gap_ns / 2``, else ``None``."""
+    pose = poses.interpolate(stamp_ns, _lerp_poses, max_gap_ns=max_gap_ns)
+    if pose is not None:
+        return pose
+    near = poses.nearest(stamp_ns, max_gap_ns=max_gap_ns // 2)
+    return None if near is None else (near.item.x, near.item.y, near.item.theta)
 
 
 class SemanticMapping:
@@ -229,8 +223,9 @@ class SemanticMapping:
             self.map = SemanticVoxelMap(self.config.map)
         self.counters: collections.Counter[str] = collections.Counter()
         self.alignments: dict[str, AlignmentReport] = {}
-        self._poses: dict[str, collections.deque[PoseEstimate]] = {
-            rid: collections.deque(maxlen=POSE_BUFFER) for rid in site.robots}
+        # fused poses per robot; messages may overtake each other on the way
+        self._poses: dict[str, StampedHistory[PoseEstimate]] = {
+            rid: StampedHistory(POSE_BUFFER, out_of_order="insert") for rid in site.robots}
         self._warned: set[tuple[str, str]] = set()
 
     # -- inputs --------------------------------------------------------------------------------
@@ -244,14 +239,7 @@ class SemanticMapping:
         if buf is None:
             self.counters["pose_unknown_robot"] += 1
             return
-        if buf and est.stamp_ns <= buf[-1].stamp_ns:
-            if any(p.stamp_ns == est.stamp_ns for p in buf):
-                return
-            items = sorted([*buf, est], key=lambda p: p.stamp_ns)
-            buf.clear()
-            buf.extend(items[-POSE_BUFFER:])
-            return
-        buf.append(est)
+        buf.insert(est.stamp_ns, est)
 
     def on_cloud(self, msg: SemanticCloud, scope: str, sensor_id: str,
                  now_ns: int) -> CloudOutcome:
@@ -286,12 +274,13 @@ class SemanticMapping:
         known = self.site.cameras if scope == "edge" else self.site.robots
         if sensor_id not in known:
             return reject(f"unknown_sensor: {scope} {sensor_id!r} is not in the site file")
-        if msg.stamp_ns > now_ns + round(cfg.max_future_s * 1e9):
+        clock = self.site.clock
+        if clock.too_far_ahead(msg.stamp_ns, now_ns):
             return reject(f"future_stamp: {(msg.stamp_ns - now_ns) * 1e-9:.3f} s ahead of the "
-                          f"clock (max {cfg.max_future_s} s)")
-        if msg.stamp_ns < now_ns - round(cfg.max_age_s * 1e9):
+                          f"clock (max {clock.max_future_ms * 1e-3:g} s)")
+        if now_ns - msg.stamp_ns > CLOUD_AGE_FACTOR * clock.max_age_ns:
             return reject(f"stale: {(now_ns - msg.stamp_ns) * 1e-9:.1f} s old (max "
-                          f"{cfg.max_age_s} s)")
+                          f"{CLOUD_AGE_FACTOR * clock.max_age_ms * 1e-3:g} s)")
         if len(msg.points_xyz) == 0:
             return reject("empty: no points")
         placed = self._frame_pose(msg, scope, sensor_id)
@@ -358,8 +347,9 @@ class SemanticMapping:
         if pose is None:
             return (f"no_pose: no fused pose of {sensor_id!r} within "
                     f"{self.config.max_pose_gap_s} s of the cloud's stamp")
-        nearest = min(buf, key=lambda p: abs(p.stamp_ns - msg.stamp_ns))
-        cov = np.asarray(nearest.covariance, dtype=np.float64)[:2, :2]
+        nearest = buf.nearest(msg.stamp_ns)
+        assert nearest is not None  # interpolate_pose found one
+        cov = np.asarray(nearest.item.covariance, dtype=np.float64)[:2, :2]
         std = math.sqrt(max(float(np.trace(cov)), 0.0)) if np.isfinite(cov).all() else math.inf
         return se3_from_planar(*pose), std
 

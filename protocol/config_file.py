@@ -1,9 +1,10 @@
 """Reading YAML configuration files with errors that name the file and the dotted key.
 
-:class:`ConfigReader` holds the checks every config parser here shares (site files, camera
-calibration files, simulation scenarios): each raises the reader's error type (a
-:class:`~protocol.errors.ConfigFileError`) carrying the file path, the key such as
-``cameras[2].K`` and the reason.
+:func:`read_yaml_file` reads and parses one (the only ``yaml.safe_load`` of the project's config
+files: site files, scenarios, keypoint files); :class:`ConfigReader` holds the checks every
+config parser here shares (site files, camera calibration files, simulation scenarios): each
+raises the reader's error type (a :class:`~protocol.errors.ConfigFileError`) carrying the file
+path, the key such as ``cameras[2].K`` and the reason.
 """
 
 from __future__ import annotations
@@ -11,12 +12,33 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from protocol.errors import ConfigFileError, SiteConfigError, ValidationError
 from protocol.validation import check_id
+
+
+def read_yaml_file(path: str | Path, what: str,
+                   error: type[ConfigFileError] = SiteConfigError) -> Any:
+    """The parsed YAML document of ``path`` (``what`` names the kind of file in messages, e.g.
+    ``"site file"``); raises ``error(path, "", reason)`` when the file cannot be read, is not
+    UTF-8 text or is not valid YAML. Checking the document is the caller's
+    (:class:`ConfigReader`)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise error(str(p), "", f"cannot read {what}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise error(str(p), "", f"cannot read {what}: not UTF-8 text ({exc.reason})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise error(str(p), "", f"not valid YAML: {exc}") from None
 
 
 def join_key(key: str, name: str) -> str:

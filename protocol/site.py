@@ -1,15 +1,18 @@
-"""The site file: cameras, robot models, robots and thresholds of one installation.
+"""The site file: cameras, robot models, robots, thresholds and the clock policy of one site.
 
 A site file is YAML (see ``deploy/site.example.yaml`` for every key, documented). Loading it
 validates everything and raises :class:`~protocol.errors.SiteConfigError` naming the file and the
 dotted key that is wrong (``cameras[2].K``, ``thresholds.sync_windw_ms``...). Camera intrinsics can
 also come from an OpenCV ``FileStorage`` YAML or a ROS ``camera_info`` YAML
-(:func:`load_camera_calibration`).
+(:func:`load_camera_calibration`). The ``clock`` section is the site's one clock policy
+(:class:`ClockPolicy`): every service judges stamps with it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -20,9 +23,11 @@ import numpy as np
 import yaml
 
 from protocol.camera import DISTORTION_LENGTHS, CameraModel
-from protocol.config_file import ConfigReader, join_key
+from protocol.config_file import ConfigReader, join_key, read_yaml_file
 from protocol.errors import SiteConfigError, UnknownIdError
 from protocol.geometry import invert_transform, quaternion_to_rotation, rotation_from_rpy
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -86,10 +91,9 @@ class Thresholds:
 
     Sync: ``sync_window_ms`` (stamps within this window form one frame-set),
     ``sync_max_wait_ms`` (how long a frame-set waits for late cameras), ``camera_timeout_s``
-    (a camera silent for longer is considered gone), ``max_future_ms`` (the site's clock
-    tolerance: stamps further in the future than this are rejected, by the backend's
-    synchronizer and fusion and by the robot bridge), ``max_camera_rate_hz`` (a camera sending
-    faster is flagged as a rogue source and its excess frames dropped). Pose:
+    (a camera silent for longer is considered gone), ``max_camera_rate_hz`` (a camera sending
+    faster is flagged as a rogue source and its excess frames dropped); how far ahead or how
+    old a stamp may be is the ``clock`` section's (:class:`ClockPolicy`). Pose:
     ``min_keypoint_score``, ``min_keypoints`` (per view),
     ``max_reprojection_rmse_px`` (estimates above are rejected), ``single_camera_max_dtheta_deg``
     and ``single_camera_max_ddepth_m`` (the paper's d_theta and d_depth), ``multi_frame_count``
@@ -105,7 +109,6 @@ class Thresholds:
     sync_window_ms: float = 20.0
     sync_max_wait_ms: float = 100.0
     camera_timeout_s: float = 2.0
-    max_future_ms: float = 100.0
     max_camera_rate_hz: float = 60.0
     min_keypoint_score: float = 0.3
     min_keypoints: int = 4
@@ -128,6 +131,51 @@ class Thresholds:
 
 
 @dataclasses.dataclass(frozen=True)
+class ClockPolicy:
+    """The site's one clock policy (site file section ``clock``): how every service judges a
+    message's ``stamp_ns`` against its own clock (its wall clock on the site's common time
+    base, e.g. chrony; in a replay, the ``now_ns`` the replay passes).
+
+    ``max_future_ms``: how far ahead of the receiver's clock a stamp may be; a message stamped
+    further ahead is refused and counted (backend synchronizer ``future``, backend pipeline
+    ``odometry_future`` / ``localization_future``, robot bridge ``future_stamp_*``, mapper
+    ``future_stamp``): one such stamp would otherwise hold back every message after it.
+    ``max_age_ms``: how old an input may be when it is used: a pose older than this when it
+    would be published is dropped (backend ``stale_dropped``, the bridge's pose output
+    ``stale_*``); a solve's prior (the robot's own localization, the last camera estimate) is
+    used only when stamped within this of the frame-set; a camera estimate waits for the
+    odometry to cover its stamp only when it is at most this far ahead of the newest odometry
+    (fusion ``camera_future``). The mapper derives its longer horizon for semantic clouds from
+    it (``mapper.mapping.CLOUD_AGE_FACTOR``).
+    """
+
+    max_future_ms: float = 100.0
+    max_age_ms: float = 1000.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.max_future_ms) and self.max_future_ms >= 0):
+            raise ValueError(f"max_future_ms must be finite and >= 0, got {self.max_future_ms}")
+        if not (math.isfinite(self.max_age_ms) and self.max_age_ms > 0):
+            raise ValueError(f"max_age_ms must be finite and > 0, got {self.max_age_ms}")
+
+    @property
+    def max_future_ns(self) -> int:
+        return round(self.max_future_ms * 1e6)
+
+    @property
+    def max_age_ns(self) -> int:
+        return round(self.max_age_ms * 1e6)
+
+    def too_far_ahead(self, stamp_ns: int, now_ns: int) -> bool:
+        """``stamp_ns`` is more than ``max_future_ms`` after ``now_ns`` (the receiver's clock)."""
+        return stamp_ns - now_ns > self.max_future_ns
+
+    def too_old(self, stamp_ns: int, now_ns: int) -> bool:
+        """``stamp_ns`` is more than ``max_age_ms`` before ``now_ns`` (the receiver's clock)."""
+        return now_ns - stamp_ns > self.max_age_ns
+
+
+@dataclasses.dataclass(frozen=True)
 class Site:
     """A loaded, validated site: ``cameras`` by id, ``robot_models`` by name, ``robots`` maps a
     robot id to its model name."""
@@ -142,6 +190,7 @@ class Site:
     #: raw package-owned sections (:data:`PACKAGE_SECTIONS`); each package parses its own
     sections: Mapping[str, Mapping[str, Any]] = dataclasses.field(
         default_factory=lambda: MappingProxyType({}))
+    clock: ClockPolicy = dataclasses.field(default_factory=ClockPolicy)
 
     def section_reader(self) -> ConfigReader:
         """A reader whose errors name this site file (for a package parsing its section)."""
@@ -363,7 +412,21 @@ _CAMERA_KEYS: Final = {
 PACKAGE_SECTIONS: Final = (
     "pose", "multi_frame", "fusion", "bridge", "pose_output", "ros", "map", "edge")
 _TOP_KEYS: Final = {
-    "site", "world_frame", "cameras", "robot_models", "robots", "thresholds", *PACKAGE_SECTIONS,
+    "site", "world_frame", "cameras", "robot_models", "robots", "thresholds", "clock",
+    *PACKAGE_SECTIONS,
+}
+#: settings the clock policy replaced: (section, key) -> the ``clock`` key that holds it now.
+#: ``thresholds.max_future_ms`` (the old site-wide value) is still read, with a warning; the
+#: per-service ones are errors that name the new key.
+_CLOCK_PREDECESSORS: Final = {
+    ("thresholds", "max_future_ms"): "max_future_ms",
+    ("bridge", "clock_tolerance_ms"): "max_future_ms",
+    ("map", "max_future_s"): "max_future_ms",
+    ("fusion", "max_future_s"): "max_age_ms",
+    ("map", "max_age_s"): "max_age_ms",
+    ("pose", "prior_max_age_s"): "max_age_ms",
+    ("pose", "publish_max_age_s"): "max_age_ms",
+    ("pose_output", "max_age_s"): "max_age_ms",
 }
 
 
@@ -506,7 +569,28 @@ def _parse_head_camera(ctx: ConfigReader, key: str, value: Any) -> HeadCamera:
 
 
 def _parse_thresholds(ctx: ConfigReader, value: Any) -> Thresholds:
-    return ctx.section("thresholds", value, Thresholds, int_lo=1)
+    node = {k: v for k, v in ctx.mapping("thresholds", value).items() if k != "max_future_ms"}
+    return ctx.section("thresholds", node, Thresholds, int_lo=1)
+
+
+def _parse_clock(ctx: ConfigReader, top: Mapping[str, Any]) -> ClockPolicy:
+    """The ``clock`` section; the settings it replaced (:data:`_CLOCK_PREDECESSORS`) are
+    refused naming the new key, but for ``thresholds.max_future_ms``, read with a warning."""
+    node = dict(ctx.mapping("clock", top.get("clock") or {}))
+    for (section, key), new in _CLOCK_PREDECESSORS.items():
+        old_node = top.get(section)
+        if not isinstance(old_node, Mapping) or key not in old_node:
+            continue
+        old = join_key(section, key)
+        if section != "thresholds":
+            raise ctx.fail(old, f"removed: the site's one clock policy sets it, clock.{new} "
+                           "(docs/configuration.md)")
+        if new in node:
+            raise ctx.fail(old, f"replaced by clock.{new}, which is given too: remove {old}")
+        node[new] = ctx.number(old, old_node[key], lo=0.0)
+        log.warning("%s: %s is deprecated and read as clock.%s: move it there", ctx.path, old,
+                    new)
+    return ctx.section("clock", node, ClockPolicy)
 
 
 def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -> Site:
@@ -553,23 +637,17 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
             raise ctx.fail(join_key(rk, "id"), f"duplicate robot id {rid!r}")
         robots[rid] = model_name
     thresholds = _parse_thresholds(ctx, top.get("thresholds", {}) or {})
+    clock = _parse_clock(ctx, top)
     sections = {
         name: MappingProxyType(dict(ctx.mapping(name, top.get(name) or {})))
         for name in PACKAGE_SECTIONS
     }
     return Site(name, world_frame, cameras, robot_models, robots, thresholds, path,
-                MappingProxyType(sections))
+                MappingProxyType(sections), clock)
 
 
 def load_site(path: str | Path) -> Site:
     """Load and validate a site YAML file; :class:`SiteConfigError` names file and key."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SiteConfigError(str(p), "", f"cannot read site file: {exc.strerror}") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise SiteConfigError(str(p), "", f"not valid YAML: {exc}") from None
+    doc = read_yaml_file(p, "site file", SiteConfigError)
     return parse_site(doc, str(p), p.parent)

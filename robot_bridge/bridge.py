@@ -32,7 +32,7 @@ from typing import Any, Final
 from protocol.errors import ProtocolError
 from protocol.geometry import MotionState, StaticDetector, invert_transform, wrap_angle
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
-from protocol.site import Site, Thresholds
+from protocol.site import ClockPolicy, Site, Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 from robot_bridge.policy import (
     HEADING_JUMP_TOO_LARGE,
@@ -85,14 +85,15 @@ class BridgeConfig:
     ``odometry_lost``). ``correction_confirm_s``: after a correction, the robot's own
     localization must move to it within this long (``corrections_confirmed``, else
     ``corrections_unconfirmed``); robots that report no localization are counted
-    ``corrections_unverifiable``.
-    ``trust``: what an estimate must satisfy, :class:`robot_bridge.policy.TrustConfig`, from the
-    ``bridge`` section's other keys (defaults): ``clock_tolerance_ms`` (50),
+    ``corrections_unverifiable``. ``clock``: the site's clock policy (``clock`` section): estimates
+    and odometry stamped more than ``clock.max_future_ms`` ahead of the bridge's clock are refused
+    (the hosts' clocks must agree this well, e.g. chrony). ``trust``: what an estimate must satisfy,
+    :class:`robot_bridge.policy.TrustConfig`, from the ``bridge`` section's other keys (defaults):
     ``position_std_floor_m`` (0.02), ``yaw_std_floor_deg`` (1), ``init_agreement_count`` (3),
-    ``init_agreement_m`` (0.2), ``init_agreement_deg`` (10), ``floor_area`` (``[x_min, y_min,
-    x_max, y_max]``; default: the cameras' positions +- ``floor_margin_m``) and
-    ``floor_margin_m`` (10); docs/robot_bridge.md, "What the bridge trusts". Built in code
-    without a site, no floor area bounds the initialization.
+    ``init_agreement_m`` (0.2), ``init_agreement_deg`` (10), ``floor_area`` (``[x_min, y_min, x_max,
+    y_max]``; default: the cameras' positions +- ``floor_margin_m``) and ``floor_margin_m`` (10);
+    docs/robot_bridge.md, "What the bridge trusts". Built in code without a site, no floor area
+    bounds the initialization.
     """
 
     robot_id: str
@@ -104,10 +105,11 @@ class BridgeConfig:
     world_frame: str = "map"
     pose_output: PoseOutputConfig = dataclasses.field(default_factory=PoseOutputConfig)
     trust: TrustConfig = dataclasses.field(default_factory=TrustConfig)
+    clock: ClockPolicy = dataclasses.field(default_factory=ClockPolicy)
 
     @classmethod
     def from_site(cls, site: Site, robot_id: str) -> BridgeConfig:
-        """The bridge of ``robot_id``: the site's thresholds and world frame, its ``bridge``
+        """The bridge of ``robot_id``: the site's thresholds, clock and world frame, its ``bridge``
         section (``backend_timeout_s``, ``robot_timeout_s`` and the :class:`TrustConfig` keys,
         ``floor_area`` as ``[x_min, y_min, x_max, y_max]``) and its ``pose_output`` section;
         errors name the file and the key. Without a ``floor_area`` the initialization is bounded
@@ -139,7 +141,7 @@ class BridgeConfig:
             "bridge", {k: v for k, v in node.items() if k in _BRIDGE_KEYS}, cls,
             fields=set(_BRIDGE_KEYS),
             base=cls(robot_id, site.thresholds, world_frame=site.world_frame,
-                     pose_output=pose_output, trust=trust))
+                     pose_output=pose_output, trust=trust, clock=site.clock))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,8 +191,8 @@ class RobotBridge:
     def __init__(self, config: BridgeConfig) -> None:
         self.config = config
         th = config.thresholds
-        # stamps ahead of the bridge's clock by more than the clock tolerance are refused
-        self._max_future_ns = round(min(th.max_future_ms, config.trust.clock_tolerance_ms) * 1e6)
+        # stamps ahead of the bridge's clock by more than the site's clock policy are refused
+        self._max_future_ns = config.clock.max_future_ns
         self._backend_timeout_ns = round(config.backend_timeout_s * NS_PER_S)
         self._robot_timeout_ns = round(config.robot_timeout_s * NS_PER_S)
         self._static = StaticDetector.from_thresholds(th)
@@ -211,7 +213,7 @@ class RobotBridge:
         self._fallback_refused: set[tuple[str, int, int]] = set()
         self._last_decision: CorrectionDecision = CorrectionDecision("moving")
         self._counted: collections.deque[tuple[Any, str]] = collections.deque(maxlen=8)
-        self._pose_output = PoseOutput(config.pose_output, config.world_frame)
+        self._pose_output = PoseOutput(config.pose_output, config.world_frame, config.clock)
         self._warned: set[str] = set()
         # odometry published recently, for a backend that comes back (see odometry_replay_s)
         self._sent_odometry: collections.deque[Odometry] = collections.deque()
@@ -232,7 +234,7 @@ class RobotBridge:
         Returns the :class:`Odometry` message to publish to the backend (at once, whatever the
         backend's state), plus a correction when this sample completes a stop's dwell time.
         ``receive_ns``: when it arrived, on the same clock as the stamps (the service passes
-        its wall clock): stamps more than ``max_future_ms`` after it are rejected. ``None``:
+        its wall clock): stamps more than ``clock.max_future_ms`` after it are rejected. ``None``:
         unknown (replay), the stamp is trusted.
         """
         try:
@@ -565,8 +567,8 @@ class RobotBridge:
             return False
         if what not in self._warned:  # once: a clock problem repeats on every message
             self._warned.add(what)
-            log.warning("%s stamped %.0f ms ahead of the bridge's clock (tolerance %.0f ms): "
-                        "refused; check the hosts' clock synchronization or the sender",
+            log.warning("%s stamped %.0f ms ahead of the bridge's clock (clock.max_future_ms "
+                        "%.0f): refused; check the hosts' clock synchronization or the sender",
                         what, ahead_ns / 1e6, self._max_future_ns / 1e6)
         return True
 

@@ -139,18 +139,17 @@ class TrustConfig:
     """What the bridge demands of an estimate before it moves the robot (site file section
     ``bridge``; docs/robot_bridge.md, "What the bridge trusts").
 
-    ``clock_tolerance_ms``: estimates and odometry stamped further ahead of the bridge's clock
-    are refused (the tighter of this and ``thresholds.max_future_ms``; the hosts' clocks must
-    agree this well, e.g. chrony). ``position_std_floor_m`` / ``yaw_std_floor_deg``: the least
-    uncertainty the bridge assumes of any estimate, whatever its covariance says (the gate and
-    the covariance sent to the robot use the floored one). ``init_agreement_count``: a kidnapped
-    robot is initialized only after this many consecutive estimates of one source in the stop
-    agree within ``init_agreement_m`` and ``init_agreement_deg``. ``floor_area``: ``[x_min,
-    y_min, x_max, y_max]`` (m, world frame): initial poses outside it are refused; when the site
-    file has none, the bounding box of the cameras' positions grown by ``floor_margin_m``.
+    How far ahead of the bridge's clock a stamp may be is the site's clock policy
+    (``clock.max_future_ms``, :class:`~protocol.site.ClockPolicy`). ``position_std_floor_m`` /
+    ``yaw_std_floor_deg``: the least uncertainty the bridge assumes of any estimate, whatever its
+    covariance says (the gate and the covariance sent to the robot use the floored one).
+    ``init_agreement_count``: a kidnapped robot is initialized only after this many consecutive
+    estimates of one source in the stop agree within ``init_agreement_m`` and
+    ``init_agreement_deg``. ``floor_area``: ``[x_min, y_min, x_max, y_max]`` (m, world frame):
+    initial poses outside it are refused; when the site file has none, the bounding box of the
+    cameras' positions grown by ``floor_margin_m``.
     """
 
-    clock_tolerance_ms: float = 50.0
     position_std_floor_m: float = 0.02
     yaw_std_floor_deg: float = 1.0
     init_agreement_count: int = 3

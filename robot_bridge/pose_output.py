@@ -14,15 +14,16 @@ due; the adapter publishes it (``publish_pose`` / ``publish_transform``).
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 from typing import Final
 
 import numpy as np
 
-from protocol.geometry import se2_compose, se2_inverse, wrap_angle
+from protocol.geometry import se2_compose, se2_inverse
+from protocol.history import StampedHistory, lerp_se2
 from protocol.messages import PoseEstimate
+from protocol.site import ClockPolicy
 from robot_bridge.adapters.base import MapToOdom
 
 NS_PER_S: Final = 1_000_000_000
@@ -36,11 +37,12 @@ class PoseOutputConfig:
 
     ``rate_hz``: how often the newest estimates are published (0 turns the output off).
     ``fused`` / ``cameras``: publish the fused estimate (topic ``smartedge/pose``) and / or the
-    camera-only one (``smartedge/camera_pose``). ``max_age_s``: an estimate older than this at
-    publication is not published (after a stall the robot gets nothing rather than the past).
-    ``map_to_odom``: also publish the ``map -> odom`` transform on ``/tf`` (only when the robot's
-    own localizer does not: two publishers of one transform fight). ``odom_frame``: the child
-    frame of that transform when the odometry does not name one. ``transform_tolerance_s``:
+    camera-only one (``smartedge/camera_pose``). An estimate older than the site's
+    ``clock.max_age_ms`` at publication is not published (after a stall the robot gets nothing
+    rather than the past). ``map_to_odom``: also publish the ``map -> odom`` transform on
+    ``/tf`` (only when the robot's own localizer does not: two publishers of one transform
+    fight). ``odom_frame``: the child frame of that transform when the odometry does not name
+    one. ``transform_tolerance_s``:
     the transform is stamped this far after the latest estimate, as AMCL does, and republished
     at ``rate_hz`` with the same offset from the bridge clock. ``odometry_match_s``: the
     odometry must bracket the estimate's stamp, or end at most this long before it.
@@ -49,7 +51,6 @@ class PoseOutputConfig:
     rate_hz: float = 10.0
     fused: bool = True
     cameras: bool = False
-    max_age_s: float = 1.0
     map_to_odom: bool = False
     odom_frame: str = "odom"
     transform_tolerance_s: float = 0.1
@@ -58,7 +59,7 @@ class PoseOutputConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and 0.0 <= self.rate_hz <= 1000.0):
             raise ValueError(f"rate_hz {self.rate_hz}: expected 0 (off) to 1000")
-        for name in ("max_age_s", "transform_tolerance_s", "odometry_match_s"):
+        for name in ("transform_tolerance_s", "odometry_match_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} {value}: expected a finite value >= 0")
@@ -91,21 +92,23 @@ _STREAM_OF_SOURCE: Final = {"fused": "fused", "cameras": "cameras"}
 
 
 class PoseOutput:
-    """Rate-limited selection of the pose output (module docstring). Not thread-safe."""
+    """Rate-limited selection of the pose output (module docstring). ``clock``: the site's clock
+    policy (estimates older than ``max_age_ms`` are not published). Not thread-safe."""
 
-    def __init__(self, config: PoseOutputConfig, world_frame: str = "map") -> None:
+    def __init__(self, config: PoseOutputConfig, world_frame: str = "map",
+                 clock: ClockPolicy | None = None) -> None:
         self.config = config
         self.world_frame = world_frame
+        self.clock = clock if clock is not None else ClockPolicy()
         self._period_ns = round(NS_PER_S / config.rate_hz) if config.rate_hz > 0 else 0
-        self._max_age_ns = round(config.max_age_s * NS_PER_S)
         self._tolerance_ns = round(config.transform_tolerance_s * NS_PER_S)
         self._match_ns = round(config.odometry_match_s * NS_PER_S)
         self._next_ns = 0
         self._latest: dict[str, PoseEstimate] = {}
         self._sent_stamp: dict[str, int] = {}
-        # (stamp_ns, x, y, theta) of the base in the odometry frame, oldest first
-        self._odometry: collections.deque[tuple[int, float, float, float]] = collections.deque(
-            maxlen=ODOMETRY_HISTORY)
+        # (x, y, theta) of the base in the odometry frame (m, rad) by stamp
+        self._odometry: StampedHistory[tuple[float, float, float]] = StampedHistory(
+            ODOMETRY_HISTORY, out_of_order="drop")
         self._odom_frame = config.odom_frame
         self._map_T_odom: np.ndarray | None = None
         self._map_T_odom_stamp_ns = -1  # stamp of the estimate it came from
@@ -122,36 +125,24 @@ class PoseOutput:
 
     def on_odometry(self, stamp_ns: int, x: float, y: float, theta: float,
                     frame_id: str | None = None) -> None:
-        """An odometry reading the bridge accepted (stamps increasing)."""
-        self._odometry.append((int(stamp_ns), float(x), float(y), float(theta)))
+        """An odometry reading the bridge accepted (stamps increasing; an older one is
+        ignored)."""
+        self._odometry.insert(int(stamp_ns), (float(x), float(y), float(theta)))
         if frame_id:
             self._odom_frame = frame_id
 
     def odometry_at(self, stamp_ns: int) -> np.ndarray | None:
         """The base's (x, y, theta) in the odometry frame at ``stamp_ns``: interpolated
         between the readings around it, or the newest when it ends at most
-        ``odometry_match_s`` before; ``None`` otherwise."""
-        odo = self._odometry
-        if not odo or stamp_ns < odo[0][0]:
+        ``odometry_match_s`` before; ``None`` otherwise (also across a gap of more than twice
+        ``odometry_match_s`` between two readings: no motion is invented)."""
+        last = self._odometry.latest()
+        if last is None:
             return None
-        last = odo[-1]
-        if stamp_ns >= last[0]:
-            return np.array(last[1:]) if stamp_ns - last[0] <= self._match_ns else None
-        # binary search over the deque's stamps (the deque is short; index access is O(n)
-        # at worst in the middle, fine for 2048 entries at 10 Hz)
-        lo, hi = 0, len(odo) - 1
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if odo[mid][0] <= stamp_ns:
-                lo = mid
-            else:
-                hi = mid
-        a, b = odo[lo], odo[hi]
-        if b[0] - a[0] > 2 * self._match_ns:
-            return None  # a gap in the odometry: do not invent motion
-        f = (stamp_ns - a[0]) / max(b[0] - a[0], 1)
-        theta = a[3] + f * wrap_angle(b[3] - a[3])
-        return np.array([a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]), wrap_angle(theta)])
+        if stamp_ns >= last.stamp_ns:
+            return np.array(last.item) if stamp_ns - last.stamp_ns <= self._match_ns else None
+        pose = self._odometry.interpolate(stamp_ns, lerp_se2, max_gap_ns=2 * self._match_ns)
+        return None if pose is None else np.array(pose)
 
     def due(self, now_ns: int) -> PoseOutputBatch:
         """What to publish at ``now_ns`` (bridge clock, ns): nothing until a period has passed
@@ -166,7 +157,7 @@ class PoseOutput:
             if est is None or self._sent_stamp.get(stream) == est.stamp_ns:
                 continue
             self._sent_stamp[stream] = est.stamp_ns
-            if now_ns - est.stamp_ns > self._max_age_ns:
+            if self.clock.too_old(est.stamp_ns, now_ns):
                 skipped.append(f"stale_{stream}")
                 continue
             poses.append((stream, est))

@@ -15,7 +15,7 @@ import numpy as np
 
 from backend_service.frame_set import best_detection
 from simulation.scenario import PAPER_SCENARIO, load_scenario
-from smartedge.rendered_detections import RenderedDetections
+from smartedge.sim.rendered_detections import RenderedDetections
 
 
 def _px(value: float) -> int:

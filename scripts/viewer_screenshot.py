@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from smartedge.processes import free_port
 from smartedge.viewer.rerun_view import rerun_cli
 
 CHROMIUM_ARGS = [
@@ -25,12 +26,6 @@ CHROMIUM_ARGS = [
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
 ]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _wait_for_port(port: int, timeout_s: float) -> None:
@@ -62,7 +57,7 @@ def main(argv: list[str]) -> int:
         print("viewer_screenshot: needs playwright (pip install -e '.[docs]')", file=sys.stderr)
         return 2
     width, height = (int(v) for v in args.size.split("x"))
-    web_port, grpc_port = _free_port(), _free_port()
+    web_port, grpc_port = free_port(), free_port()
     server = subprocess.Popen(
         [str(rerun_cli()), "--serve-web", "--web-viewer-port", str(web_port), "--port",
          str(grpc_port), "--renderer", "webgl", str(args.recording)],

@@ -22,9 +22,8 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-import yaml
 
-from protocol.config_file import ConfigReader, join_key
+from protocol.config_file import ConfigReader, join_key, read_yaml_file
 from protocol.errors import ConfigFileError
 from protocol.geometry import rotation_from_rpy
 from protocol.site import RobotModel
@@ -821,12 +820,7 @@ def load_keypoint_file(path: str | Path,
     wrong or unknown key, or a link that is not in ``link_transforms``.
     """
     p = _existing_file(path, "keypoint file")
-    try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RobotMeshError(str(p), "", f"cannot read keypoint file: {exc}") from None
-    except yaml.YAMLError as exc:
-        raise RobotMeshError(str(p), "", f"not valid YAML: {exc}") from None
+    doc = read_yaml_file(p, "keypoint file", RobotMeshError)
     ctx = ConfigReader(str(p), RobotMeshError)
     top = ctx.mapping("", doc)
     ctx.no_unknown("", top, {"keypoints"})

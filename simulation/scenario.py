@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-import yaml
 
-from protocol.config_file import ConfigReader
+from protocol.config_file import ConfigReader, read_yaml_file
 from protocol.errors import ConfigFileError, SiteConfigError
 from protocol.geometry import rotation_z, wrap_angle
 from protocol.site import Site, load_site
@@ -430,14 +429,7 @@ def _sequences(ctx: _Ctx, section: str, node: Mapping[str, Any],
 def load_scenario(path: str | Path = PAPER_SCENARIO, site: Site | None = None) -> Scenario:
     """Load and validate a scenario file (default: the paper's lab)."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ScenarioError(str(p), "", f"cannot read scenario file: {exc.strerror}") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ScenarioError(str(p), "", f"not valid YAML: {exc}") from None
+    doc = read_yaml_file(p, "scenario file", ScenarioError)
     return parse_scenario(doc, str(p), p.parent, site)
 
 

@@ -5,7 +5,6 @@ dependencies installed."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
@@ -14,36 +13,52 @@ from collections.abc import Sequence
 from typing import Final
 
 from smartedge import __version__
+from smartedge.commands import Command, run_command
 
 #: exit status when the reader of our output closed the pipe (128 + SIGPIPE, as a shell reports)
 EXIT_BROKEN_PIPE: Final = 141
 
-#: subcommand → (module, function taking argv and returning an exit code, one-line help).
-#: The edge agent and the robot bridge start through :mod:`smartedge.plugins`, which registers
-#: the simulated source / adapter into them first.
-COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
-    "demo": ("smartedge.demo", "main", "run the whole system on the simulated paper site"),
-    "edge-agent": ("smartedge.plugins", "edge_agent_main", "run an edge agent (one camera)"),
-    "backend": ("backend_service.service", "main", "run the backend service"),
-    "mapper": ("backend_service.map_service", "main",
-               "run the semantic mapping service (clouds in, one semantic voxel map out)"),
-    "router": ("smartedge.router", "main", "run the site's Zenoh router (zenohd optional)"),
-    "certs": ("smartedge.certs", "main", "the site's CA, one certificate per identity, router ACL"),
-    "map": ("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
-    "robot-bridge": ("smartedge.plugins", "robot_bridge_main", "run the robot bridge"),
-    "robot-camera": ("smartedge.robot_camera", "main",
-                     "the simulated robot's head RGB-D camera: semantic clouds in base_link"),
-    "viewer": ("smartedge.viewer", "main", "watch a running system in Rerun (a sink of the keys)"),
-    "evaluate": ("smartedge.evaluate", "main", "trajectory metrics and the paper's experiments"),
-    "bench": ("smartedge.bench", "main", "benchmarks: codec, pose, sim, fusion, backend"),
-    "render": ("smartedge.render_cmd", "main", "rendered camera images with exact labels"),
-    "train": ("smartedge.train_cmd", "main", "train the detector / keypoint CNN on renders"),
-    "site": ("smartedge.site_tool", "main", "check a site file or a camera calibration file"),
-    "status": ("smartedge.introspect", "status_main", "the live services: state, rates, "
-               "latencies, problem counters"),
-    "echo": ("smartedge.introspect", "echo_main", "print every message on a key, decoded"),
-    "record": ("smartedge.record", "record_main", "capture the traffic into an MCAP file"),
-    "replay": ("smartedge.record", "replay_main", "publish an MCAP recording back"),
+#: subcommand → :class:`~smartedge.commands.Command` (module, function taking argv and
+#: returning an exit code, one-line help). The edge agent and the robot bridge start through
+#: :mod:`smartedge.sim.plugins`, which registers the simulated source / adapter into them first.
+COMMANDS: Final[dict[str, Command]] = {
+    "demo": Command("smartedge.demo", "main",
+                    "run the whole system on the simulated paper site"),
+    "edge-agent": Command("smartedge.sim.plugins", "edge_agent_main",
+                          "run an edge agent (one camera)"),
+    "backend": Command("backend_service.service", "main", "run the backend service"),
+    "mapper": Command("mapper.service", "main",
+                      "run the semantic mapping service (clouds in, one semantic voxel map out)"),
+    "router": Command("smartedge.router", "main",
+                      "run the site's Zenoh router (zenohd optional)"),
+    "certs": Command("smartedge.certs", "main",
+                     "the site's CA, one certificate per identity, router ACL"),
+    "map": Command("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
+    "robot-bridge": Command("smartedge.sim.plugins", "robot_bridge_main",
+                            "run the robot bridge"),
+    "robot-camera": Command("smartedge.sim.robot_camera", "main",
+                            "the simulated robot's head RGB-D camera: semantic clouds in "
+                            "base_link"),
+    "viewer": Command("smartedge.viewer", "main",
+                      "watch a running system in Rerun (a sink of the keys)"),
+    "evaluate": Command("smartedge.evaluate", "main",
+                        "trajectory metrics and the paper's experiments"),
+    "bench": Command("smartedge.bench", "main",
+                     "benchmarks (codec, pose, fusion, backend, map, ...) and the fault harness "
+                     "(reliability)"),
+    "render": Command("smartedge.render_cmd", "main",
+                      "rendered camera images with exact labels"),
+    "train": Command("smartedge.train_cmd", "main",
+                     "train the detector / keypoint CNN on renders"),
+    "site": Command("smartedge.site_tool", "main",
+                    "check a site file or a camera calibration file"),
+    "status": Command("smartedge.introspect", "status_main",
+                      "the live services: state, rates, latencies, problem counters"),
+    "echo": Command("smartedge.introspect", "echo_main",
+                    "print every message on a key, decoded"),
+    "record": Command("smartedge.record", "record_main",
+                      "capture the traffic into an MCAP file"),
+    "replay": Command("smartedge.record", "replay_main", "publish an MCAP recording back"),
 }
 
 
@@ -93,28 +108,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="log lines as text or as one JSON object per line",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (_, _, help_txt) in COMMANDS.items():
-        sub.add_parser(name, help=help_txt, add_help=False)
+    for name, command in COMMANDS.items():
+        sub.add_parser(name, help=command.help, add_help=False)
     args, rest = parser.parse_known_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
     _configure_logging(args.log_level, args.log_format)
-    module_name, func_name, _ = COMMANDS[args.command]
     try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        if exc.name == module_name:
-            print(f"smartedge {args.command}: not available in this version", file=sys.stderr)
-            return 2
-        print(
-            f"smartedge {args.command}: missing dependency {exc.name!r}; install the extra that "
-            "provides it (e.g. pip install 'smartedge[backend]')",
-            file=sys.stderr,
-        )
-        return 2
-    try:
-        return int(getattr(module, func_name)(rest) or 0)
+        return run_command(f"smartedge {args.command}", COMMANDS[args.command], rest)
     except BrokenPipeError:
         # the reader went away (`smartedge evaluate ate ... | head`): no traceback; stdout is
         # pointed at /dev/null so that the interpreter's final flush does not fail again

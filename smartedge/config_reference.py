@@ -54,14 +54,14 @@ class Section:
 
 
 def sections() -> list[Section]:
-    from backend_service.cloud_alignment import AlignmentConfig
     from backend_service.estimate import SolverConfig
     from backend_service.fusion import FusionConfig
-    from backend_service.mapping import MappingConfig
     from backend_service.multi_frame import MultiFrameConfig
     from backend_service.pipeline import PipelineConfig
-    from backend_service.semantic_map import SemanticMapConfig
-    from protocol.site import Thresholds
+    from mapper.alignment import AlignmentConfig
+    from mapper.mapping import MappingConfig
+    from mapper.semantic_map import SemanticMapConfig
+    from protocol.site import ClockPolicy, Thresholds
     from robot_bridge.adapters.ros2 import RosConfig
     from robot_bridge.bridge import BridgeConfig
     from robot_bridge.policy import TrustConfig
@@ -73,14 +73,23 @@ def sections() -> list[Section]:
                 "Thresholds several packages read; the static-robot detection here is the one "
                 "detector both the backend (averaging while static) and the robot bridge "
                 "(corrections when static) use."),
+        Section("clock", "protocol (every service: the one clock policy)",
+                ((ClockPolicy, None),),
+                "How far ahead of a receiver's clock a stamp may be and how old an input may be "
+                "when it is used, for every service; no service has a tolerance of its own. "
+                "`thresholds.max_future_ms` of older site files is read as "
+                "`clock.max_future_ms` with a warning; the per-service settings it replaced "
+                "(`bridge.clock_tolerance_ms`, `fusion.max_future_s`, `map.max_future_s`, "
+                "`map.max_age_s`, `pose.prior_max_age_s`, `pose.publish_max_age_s`, "
+                "`pose_output.max_age_s`) are errors naming the `clock` key."),
         Section("pose", "backend_service (pipeline + solver)",
-                ((PipelineConfig, frozenset({"prior", "prior_max_age_s", "fuse_while_moving"})),
+                ((PipelineConfig, frozenset({"prior", "fuse_while_moving"})),
                  (SolverConfig, None)),
                 "`smartedge backend --robust-loss/--solver` override the file."),
         Section("multi_frame", "backend_service", ((MultiFrameConfig, None),),
                 "`count` defaults to `thresholds.multi_frame_count`."),
         Section("fusion", "backend_service (pose graph)", ((FusionConfig, None),)),
-        Section("map", "backend_service (semantic mapping, `smartedge mapper`)",
+        Section("map", "mapper (the semantic map, `smartedge mapper`)",
                 ((MappingConfig, None), (SemanticMapConfig, None), (AlignmentConfig, None)),
                 "One flat section for the mapper, the voxel map and the ICP gate; the ICP's "
                 "per-level tuples (voxel_sizes_m, max_correspondence_m, max_iterations) keep "

@@ -19,7 +19,6 @@ import dataclasses
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -34,17 +33,12 @@ from protocol import decode, keys
 from protocol.geometry import wrap_angle_array
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
+from smartedge.processes import free_port, stop_processes
 
 STARTUP_S: Final = 4.0
 STARTUP_PROCESSES_S: Final = 10.0
 DEMO_STOP_S: Final = 4.0
 DEMO_MAX_SPEED_MPS: Final = 0.4
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @dataclasses.dataclass
@@ -257,15 +251,7 @@ class Services:
 
     def stop(self) -> list[int]:
         """Stop everything (SIGTERM for processes); returns the exit codes."""
-        codes: list[int] = []
-        for proc in reversed(self.procs):
-            proc.send_signal(signal.SIGTERM)
-        for proc in reversed(self.procs):
-            try:
-                codes.append(proc.wait(timeout=20))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                codes.append(-9)
+        codes = stop_processes(list(reversed(self.procs)), timeout_s=20.0)
         for runner in reversed(self.runners):
             runner.stop()
         for thread in reversed(self.threads):
@@ -279,7 +265,7 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
     import importlib
 
     from protocol.session import make_config, options_from_args
-    from smartedge.plugins import register_simulation
+    from smartedge.sim.plugins import register_simulation
 
     register_simulation()
     command, rest = argv[0], argv[1:]
@@ -287,8 +273,8 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
         "backend": "backend_service.service",
         "robot-bridge": "robot_bridge.service",
         "edge-agent": "edge_agent.service",
-        "robot-camera": "smartedge.robot_camera",
-        "mapper": "backend_service.map_service",
+        "robot-camera": "smartedge.sim.robot_camera",
+        "mapper": "mapper.service",
         "viewer": "smartedge.viewer",
     }[command]
     svc = importlib.import_module(module)
@@ -404,7 +390,7 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     )
     live = LiveSimulation(spec, scenario)
     duration_s = args.duration if args.duration else live.duration_s + 1.0
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     mode = "separate processes" if args.processes else "threads of one process"
     print(
         f"smartedge demo: site {scenario.site.name!r}, {len(scenario.site.cameras)} cameras, "
@@ -413,7 +399,7 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         f"feedback {'off' if args.no_feedback else 'on'}"
     )
     if not args.no_clouds:
-        from smartedge.mapping_experiment import write_prior_model
+        from smartedge.experiments.mapping import write_prior_model
 
         (out_dir / MAP_FILE).unlink(missing_ok=True)  # a fresh map every demo
         write_prior_model(scenario, out_dir / PRIOR_MODEL_FILE)
@@ -468,12 +454,13 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
 def summarize_map(scenario: Any, out_dir: Path, out: Any = sys.stdout) -> dict[str, float]:
     """Print the semantic map's coverage and label accuracy against the simulation's ground
     truth (the map the mapper saved when it stopped); the figures by name."""
-    from backend_service.semantic_map import MapError, SemanticVoxelMap
-    from smartedge.mapping_experiment import ground_truth, map_scores
+    from mapper.map_io import load_map_npz
+    from mapper.semantic_map import MapError
+    from smartedge.experiments.mapping import ground_truth, map_scores
 
     path = out_dir / MAP_FILE
     try:
-        m = SemanticVoxelMap.load_npz(path)
+        m = load_map_npz(path)
     except MapError as exc:
         print(f"\nsemantic map: none ({exc})", file=out)
         return {}

@@ -10,9 +10,10 @@
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
-metres); ``paper`` runs the simulated experiments of Sec. IV and writes Table I / Table II
-(Markdown) and Fig. 6-like plots (PNG) into DIR (detections from the noise model, or with
-``--detections cnn`` from rendered images through the edge's ONNX models), then experiment 2
+metres); ``paper`` runs the simulated experiments of Sec. IV (:mod:`smartedge.experiments`)
+and writes Table I / Table II (Markdown) and Fig. 6-like plots (PNG) into DIR (detections from
+the noise model, or with ``--detections cnn`` from rendered images through the edge's ONNX
+models), then experiment 2
 (correction feedback on 3x Traj. 3, Fig. 7), experiment 3 (robustness, Table III), experiment 4
 (collaborative semantic mapping: coverage from the static cameras alone and after the robot's
 route, label accuracy, consistency with and without feedback, a top-down map), and
@@ -105,11 +106,8 @@ def _paper(args: argparse.Namespace) -> int:
     except (ValueError, OSError, SmartedgeError) as exc:
         print(f"smartedge evaluate paper: {exc}", file=sys.stderr)
         return 1
-    for text in (report.table1_markdown, report.table2_markdown, report.nees_markdown,
-                 report.feedback_markdown, report.robustness_markdown,
-                 report.mapping_markdown):
-        if text:
-            print(text)
+    for text in report.markdown_sections():
+        print(text)
     print(f"wrote {args.out}")
     return 0
 

@@ -20,9 +20,9 @@ from protocol.semantic_classes import SEMANTIC_CLASSES
 
 
 def _load(path: str):
-    from backend_service.semantic_map import SemanticVoxelMap
+    from mapper.map_io import load_map_npz
 
-    return SemanticVoxelMap.load_npz(path)
+    return load_map_npz(path)
 
 
 def info(path: str) -> int:
@@ -49,13 +49,15 @@ def export(path: str, out: str, positions: str, semantic_only: bool) -> int:
     m = _load(path)
     if semantic_only:
         m = m.subset(m.has_semantics())
-    m.to_ply(out, positions=positions)
+    from mapper.map_io import write_map_ply
+
+    write_map_ply(m, out, positions=positions)
     print(f"wrote {out}: {len(m)} voxels")
     return 0
 
 
 def main(argv: Sequence[str]) -> int:
-    from backend_service.semantic_map import MapError
+    from mapper.semantic_map import MapError
 
     parser = argparse.ArgumentParser(prog="smartedge map", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -82,7 +82,7 @@ def main(argv: Sequence[str]) -> int:
         try:
             from edge_agent.training.data import Geometry, SetSpec
             from edge_agent.training.train import TrainConfig, train
-            from smartedge.training_views import SimulationViews
+            from smartedge.sim.training_views import SimulationViews
         except ModuleNotFoundError as exc:
             raise SmartedgeError(f"missing {exc.name!r}: smartedge train needs the train extra "
                                  "(pip install 'smartedge[train]')") from None

@@ -1,35 +1,20 @@
-"""Shared fixtures: repository paths, the example site, loopback Zenoh sessions."""
+"""Shared fixtures: repository paths, the example site, loopback Zenoh sessions.
+
+The process helpers (:func:`free_port`, :func:`stop_process`) are the project's own, from
+:mod:`smartedge.processes`, re-exported here for the tests."""
 
 from __future__ import annotations
 
-import signal
-import socket
-import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
+from smartedge.processes import free_port, stop_process  # noqa: F401 (re-exported)
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_SITE = REPO_ROOT / "deploy" / "site.example.yaml"
-
-
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def stop_process(proc: subprocess.Popen, timeout_s: float = 30.0) -> int:
-    """SIGTERM, then SIGKILL after ``timeout_s``; the exit code."""
-    proc.send_signal(signal.SIGTERM)
-    try:
-        return proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        return proc.wait()
 
 
 def wait_until(predicate: Callable[[], bool], timeout_s: float = 5.0, step_s: float = 0.02) -> bool:
@@ -60,7 +45,7 @@ def zenoh_pair() -> Iterator[tuple[object, object, str]]:
     zenoh = pytest.importorskip("zenoh")
     from protocol.session import loopback_config
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     a = zenoh.open(loopback_config(listen=[endpoint]))
     b = zenoh.open(loopback_config(connect=[endpoint]))
     try:

@@ -61,7 +61,7 @@ def test_simulation_plugin_registers_twice_harmlessly() -> None:
     from edge_agent import sources
     from robot_bridge import service as bridge_service
     from robot_bridge.adapters import registry
-    from smartedge import plugins
+    from smartedge.sim import plugins
 
     plugins.register_simulation()
     plugins.register_simulation()

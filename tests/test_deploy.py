@@ -21,7 +21,7 @@ import pytest
 
 from protocol.runtime import EXIT_CONFIG
 from smartedge.cli import COMMANDS
-from tests.conftest import EXAMPLE_SITE, REPO_ROOT, free_tcp_port, wait_until
+from tests.conftest import EXAMPLE_SITE, REPO_ROOT, free_port, wait_until
 
 DEPLOY = REPO_ROOT / "deploy"
 ZENOH_DIR = DEPLOY / "zenoh"
@@ -122,7 +122,7 @@ def _on_port(name: str, tmp_path: Path, port: int, **subst: str):
 
 def test_plain_router_and_client_configs_carry_traffic(tmp_path: Path) -> None:
     zenoh = pytest.importorskip("zenoh")
-    port = free_tcp_port()
+    port = free_port()
     assert _pub_sub_works(
         zenoh,
         _on_port("router.json5", tmp_path, port),
@@ -176,12 +176,12 @@ def test_tls_configs_handshake_with_mtls_and_refuse_foreign_certificates(tmp_pat
     )
     _make_pki(pki / "rogue", "rogueca", {"client": "extendedKeyUsage=clientAuth\n"})
     tls = {"/etc/smartedge/tls/": f"{pki}/"}
-    port = free_tcp_port()
+    port = free_port()
     router = _on_port("router-tls.json5", tmp_path, port, **tls)
     assert _pub_sub_works(zenoh, router, _on_port("client-tls.json5", tmp_path, port, **tls))
 
     # mTLS: a certificate from another CA is refused.
-    port = free_tcp_port()
+    port = free_port()
     rogue = {
         "/etc/smartedge/tls/ca.crt": f"{pki}/ca.crt",
         "/etc/smartedge/tls/client.": f"{pki}/rogue/client.",
@@ -547,7 +547,7 @@ def test_viewer_rerun_serve_runs_with_write_xor_execute() -> None:
     gRPC server and web viewer server); saving a recording is covered above."""
     pytest.importorskip("rerun")
     proc = subprocess.run(
-        [sys.executable, "-c", MDWE_VIEWER_WORKLOAD, str(free_tcp_port()), str(free_tcp_port())],
+        [sys.executable, "-c", MDWE_VIEWER_WORKLOAD, str(free_port()), str(free_port())],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     if proc.stdout.strip() == "no-mdwe":
@@ -1050,7 +1050,7 @@ def test_unit_command_line_notifies_ready_watchdog_and_stops_cleanly(
     smartedge = Path(sys.executable).with_name("smartedge")
     if not smartedge.exists():
         pytest.skip("no smartedge executable next to the interpreter")
-    port = free_tcp_port()
+    port = free_port()
     client_conf = _render("client.json5", tmp_path, **{"127.0.0.1:7447": f"127.0.0.1:{port}"})
     env = {**_example_env(), **_env_defaults(unit), **settings}
     env.update(
@@ -1102,7 +1102,7 @@ def test_router_unit_command_line_notifies_carries_traffic_and_stops_cleanly(
     smartedge = Path(sys.executable).with_name("smartedge")
     if not smartedge.exists():
         pytest.skip("no smartedge executable next to the interpreter")
-    port = free_tcp_port()
+    port = free_port()
     router_conf = _render("router.json5", tmp_path, **{"0.0.0.0:7447": f"127.0.0.1:{port}"})
     env = {**_example_env(), **_env_defaults(unit), "SMARTEDGE_ROUTER_CONFIG": str(router_conf)}
     argv = expand_exec_start(_one(unit, "Service", "ExecStart"), env, "")

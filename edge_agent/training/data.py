@@ -1,5 +1,5 @@
 """Training data: labelled renders from a :class:`ViewSource` (the simulation's renderer,
-provided by the top floor: :class:`smartedge.training_views.SimulationViews`; this package
+provided by the top floor: :class:`smartedge.sim.training_views.SimulationViews`; this package
 never imports the simulation), turned into the networks' inputs with the deployed
 pre-processing (:mod:`edge_agent.crop`).
 

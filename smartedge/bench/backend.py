@@ -15,8 +15,6 @@ import contextlib
 import math
 import os
 import platform
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,12 +28,7 @@ from protocol import decode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
 from smartedge.bench.ring_site import detection_payloads, robot_pose, write_ring_site
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+from smartedge.processes import free_port, stop_process
 
 
 def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
@@ -44,7 +37,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
 
     site_path = workdir / f"ring_{n_cameras}.yaml"
     site = write_ring_site(site_path, n_cameras)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     backend = subprocess.Popen(
         [sys.executable, "-m", "smartedge", "--log-level", "WARNING", "backend", "--site",
          str(site_path), "--connect", endpoint, "--listen",
@@ -109,11 +102,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
             "backend_shed": float(last.counters.get("shed", 0)) if last else math.nan,
         }
     finally:
-        backend.send_signal(signal.SIGTERM)
-        try:
-            backend.wait(20)
-        except subprocess.TimeoutExpired:
-            backend.kill()
+        stop_process(backend, timeout_s=20.0)
 
 
 def _busy_loop() -> None:

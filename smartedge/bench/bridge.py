@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import argparse
-import socket
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -20,6 +19,7 @@ import numpy as np
 
 from protocol import codec
 from protocol.messages import PoseEstimate
+from smartedge.processes import free_port
 
 S = 1_000_000_000
 
@@ -40,7 +40,7 @@ def _per_call_us(fn: Callable[[], object], n: int) -> float:
 
 def encoding(n: int) -> dict[str, float]:
     """µs per encoded pose output, per flavour."""
-    from robot_bridge.adapters import rmw_zenoh, ros2
+    from robot_bridge.adapters import rmw_zenoh_wire, ros2
 
     est = _estimate()
     gid = bytes(range(16))
@@ -52,14 +52,8 @@ def encoding(n: int) -> dict[str, float]:
             lambda: ros2.serialize_pose_estimate(est, ros1=True), n),
         "rmw_zenoh CDR + attachment": _per_call_us(
             lambda: (ros2.serialize_pose_estimate(est),
-                     rmw_zenoh.encode_attachment(1, time.time_ns(), gid)), n),
+                     rmw_zenoh_wire.encode_attachment(1, time.time_ns(), gid)), n),
     }
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def latency(adapter_name: str, n: int, rate_hz: float) -> tuple[float, float, int]:
@@ -67,15 +61,16 @@ def latency(adapter_name: str, n: int, rate_hz: float) -> tuple[float, float, in
     import zenoh
 
     from protocol.session import loopback_config
-    from robot_bridge.adapters import rmw_zenoh, ros2
+    from robot_bridge.adapters import rmw_zenoh, rmw_zenoh_wire, ros2
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     bridge_side = zenoh.open(loopback_config(listen=[endpoint]))
     robot_side = zenoh.open(loopback_config(connect=[endpoint]))
     topics = ros2.RosTopics.nav2()
     if adapter_name == "rmw_zenoh":
         adapter: ros2.RobotAdapter = rmw_zenoh.RmwZenohAdapter(bridge_side, topics)
-        key = rmw_zenoh.topic_key(0, topics.pose_topic, ros2.POSE_WITH_COVARIANCE_STAMPED_TYPE)
+        key = rmw_zenoh_wire.topic_key(
+            0, topics.pose_topic, ros2.POSE_WITH_COVARIANCE_STAMPED_TYPE)
     else:
         adapter = ros2.RosZenohAdapter(bridge_side, topics)
         key = ros2.ros2dds_key(topics.pose_topic)

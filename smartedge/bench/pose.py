@@ -29,27 +29,13 @@ from backend_service.pose_solver import (
     numeric_jacobian,
     weighted_residuals,
 )
-from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, wrap_angle_array
-from protocol.site import load_site, look_at_T_world_cam
+from protocol.geometry import wrap_angle_array
+from protocol.site import load_site
+from simulation.camera_ring import ring_cameras
 
 SITE_FILE: Final = Path(__file__).resolve().parents[2] / "deploy" / "site.example.yaml"
 CAMERA_COUNTS: Final = (1, 2, 4, 16)
 METHODS: Final = ("ipopt", "sqpmethod", "lm", "gauss_newton", "pyceres", "scipy")
-
-
-def ring_cameras(template: CameraModel, count: int, radius_m: float = 4.0,
-                 height_m: float = 2.5) -> list[CameraModel]:
-    """``count`` copies of ``template`` on a ring around the origin, looking at it."""
-    cams = []
-    for i in range(count):
-        a = 2 * math.pi * i / count + 0.3
-        pos = np.array([radius_m * math.cos(a), radius_m * math.sin(a), height_m])
-        T_world_cam = look_at_T_world_cam(pos, np.array([0.0, 0.0, 0.3]))
-        cams.append(CameraModel(f"ring{i:02d}", template.width, template.height,
-                                template.K.copy(), template.dist.copy(),
-                                invert_transform(T_world_cam)))
-    return cams
 
 
 def _pyceres_solver(st: StackedCameras, kp: np.ndarray, n_res: int) -> Callable[..., np.ndarray]:

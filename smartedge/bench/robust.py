@@ -25,7 +25,8 @@ from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
 from protocol.geometry import wrap_angle
 from protocol.site import load_site
-from smartedge.bench.pose import SITE_FILE, ring_cameras
+from simulation.camera_ring import ring_cameras
+from smartedge.bench.pose import SITE_FILE
 from smartedge.evaluation.cramer_rao import fisher_information
 
 LOSSES: Final = ("none", "huber", "cauchy")

@@ -51,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             rep = run_paper(PaperConfig(runs_per_direction=args.runs), tmp,
                             progress=lambda _line: None, scenario=scenario)
-        total = sum(r.simulated_s for r in rep.results)
+        total = sum(r.simulated_s for r in rep.accuracy_runs)
         print(f"paper pipeline: {total:.0f} simulated s in {rep.wall_s:.2f} wall s = "
               f"{total / rep.wall_s:.1f}x real time (fusion "
               f"{'on' if rep.fusion_available else 'off'})")

@@ -32,7 +32,8 @@ from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
 from protocol.camera import CameraModel
 from protocol.geometry import invert_transform, rotation_from_rotvec, wrap_angle
 from protocol.site import Site, load_site
-from smartedge.bench.pose import SITE_FILE, ring_cameras
+from simulation.camera_ring import ring_cameras
+from smartedge.bench.pose import SITE_FILE
 
 #: the error model the frame-sets are drawn with (and the solver is told)
 MODEL: Final = ErrorModel(detection_shift_sigma_px=0.5, detection_scale_sigma=0.02,

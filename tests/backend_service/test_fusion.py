@@ -10,7 +10,7 @@ import pytest
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
 from protocol.messages import Odometry, PoseEstimate
-from smartedge.bench.fusion import make_synthetic_run, replay
+from simulation.synthetic_run import make_synthetic_run, replay
 
 ROBOT = "hsr1"
 T0 = 1_700_000_000_000_000_000

@@ -12,11 +12,12 @@ import numpy as np
 from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
 from protocol.site import load_site
-from smartedge.bench.pose import SITE_FILE, ring_cameras
+from simulation.camera_ring import ring_cameras
+from tests.conftest import EXAMPLE_SITE
 
 
 def test_single_camera_from_a_poor_prior_never_lands_on_a_far_minimum() -> None:
-    base = load_site(SITE_FILE)
+    base = load_site(EXAMPLE_SITE)
     model = base.robot_model()
     kp = model.keypoints_base_m
     cams = ring_cameras(next(iter(base.cameras.values())), 1, radius_m=4.0)

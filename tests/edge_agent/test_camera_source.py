@@ -38,7 +38,7 @@ from protocol import codec, keys  # noqa: E402
 from protocol.errors import UnknownIdError, UsageError  # noqa: E402
 from protocol.messages import RobotDetections, ServiceStatus  # noqa: E402
 from protocol.runtime import Outgoing  # noqa: E402
-from tests.conftest import REPO_ROOT, free_tcp_port, wait_until  # noqa: E402
+from tests.conftest import REPO_ROOT, free_port, wait_until  # noqa: E402
 
 SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
 SITE_NAME, CAMERA, WIDTH, HEIGHT, K = "paper_lab", "cam1", 848, 480, 12
@@ -425,7 +425,7 @@ def test_edge_agent_cli_publishes_detections_over_zenoh(tiny_models: Path, image
     zenoh = pytest.importorskip("zenoh")
     from protocol.session import loopback_config
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     received: list[RobotDetections] = []
     statuses: list[ServiceStatus] = []
     lock = threading.Lock()

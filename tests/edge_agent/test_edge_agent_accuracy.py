@@ -19,7 +19,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from protocol import codec, keys  # noqa: E402
 from protocol.messages import RobotDetections  # noqa: E402
-from tests.conftest import REPO_ROOT, free_tcp_port, wait_until  # noqa: E402
+from tests.conftest import REPO_ROOT, free_port, wait_until  # noqa: E402
 
 SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
 VIEWS = 6
@@ -51,7 +51,7 @@ def test_edge_agent_on_rendered_images_publishes_keypoints_near_the_labels(
         labels.append((r.keypoints_px, r.in_image))
     assert len(labels) == VIEWS
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     received: dict[int, RobotDetections] = {}
     lock = threading.Lock()
 

@@ -303,7 +303,7 @@ def test_render_cache_refuses_another_robot(tiny_models: Path, tmp_path: Path) -
 
     from protocol.errors import UsageError
     from simulation.scenario import load_scenario
-    from smartedge.training_views import SimulationViews
+    from smartedge.sim.training_views import SimulationViews
 
     cache = tmp_path / "cache"
     shutil.copytree(tiny_models / "cache", cache)

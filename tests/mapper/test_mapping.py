@@ -16,6 +16,7 @@ from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap
 from mapper.service import MapperNode, load_or_start_map
 from protocol import encode, keys
 from protocol.geometry import rotation_z
+from protocol.history import StampedHistory
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.runtime import ScriptedRunner
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
@@ -269,7 +270,9 @@ def test_only_fused_poses_of_known_robots_are_used(site, room) -> None:
 
 
 def test_interpolate_pose() -> None:
-    poses = [fused(0.0, 0.0, math.pi - 0.1, T0), fused(1.0, 2.0, -math.pi + 0.1, T0 + 100)]
+    poses: StampedHistory[PoseEstimate] = StampedHistory(out_of_order="insert")
+    for p in (fused(0.0, 0.0, math.pi - 0.1, T0), fused(1.0, 2.0, -math.pi + 0.1, T0 + 100)):
+        poses.insert(p.stamp_ns, p)
     x, y, th = interpolate_pose(poses, T0 + 50, max_gap_ns=200)
     assert (x, y) == pytest.approx((0.5, 1.0))
     assert abs(abs(th) - math.pi) < 1e-9  # along the shorter arc, through +-pi
@@ -277,7 +280,7 @@ def test_interpolate_pose() -> None:
     assert interpolate_pose(poses, T0 - 20, max_gap_ns=50) == pytest.approx(
         (0.0, 0.0, math.pi - 0.1))
     assert interpolate_pose(poses, T0 - 40, max_gap_ns=50) is None
-    assert interpolate_pose([], T0, max_gap_ns=50) is None
+    assert interpolate_pose(StampedHistory(), T0, max_gap_ns=50) is None
 
 
 # -- configuration ------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ import pytest
 
 from protocol import Odometry, PoseEstimate, ServiceStatus, decode, encode, keys
 from protocol.runtime import Outgoing, ScriptedRunner, ServiceNode, Subscription, ZenohRunner
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 SITE = "rt"
@@ -56,7 +56,7 @@ def test_scripted_runner_counts_invalid_and_handler_errors() -> None:
 def test_zenoh_runner_survives_garbage_and_publishes_status() -> None:
     from protocol.session import loopback_config
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     node = EchoNode(SITE, "main")
     runner = ZenohRunner(node, loopback_config(listen=[endpoint]))
     thread = threading.Thread(target=runner.run, daemon=True)

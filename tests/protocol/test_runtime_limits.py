@@ -19,7 +19,7 @@ from protocol.runtime import (
     ZenohRunner,
     _Channel,
 )
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 SITE = "rtl"
 
@@ -101,7 +101,7 @@ def test_zenoh_runner_refuses_oversized_samples_in_the_callback() -> None:
     zenoh = pytest.importorskip("zenoh")
     from protocol.session import loopback_config
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     node = EchoNode(SITE, "main")
     runner = ZenohRunner(node, loopback_config(listen=[endpoint]))
     thread = threading.Thread(target=runner.run, daemon=True)

@@ -247,3 +247,82 @@ def test_calibration_files_get_the_inline_checks_and_no_fisheye(
     rational.write_text(ROS_CALIB.replace("plumb_bob", "rational_polynomial").replace(
         "cols: 5, data: [0.1, -0.2, 0, 0, 0]", "cols: 8, data: [0.1, -0.2, 0, 0, 0, 0, 0, 0]"))
     assert load_camera_calibration(rational).dist.size == 8
+
+
+# --------------------------------------------------------------------------------------------
+# the one clock policy
+# --------------------------------------------------------------------------------------------
+
+
+def test_clock_section_and_its_defaults(tmp_path: Path, example_site) -> None:
+    from protocol.site import ClockPolicy
+
+    assert example_site.clock == ClockPolicy() == ClockPolicy(100.0, 1000.0)
+    policy = ClockPolicy(max_future_ms=50.0, max_age_ms=500.0)
+    assert (policy.max_future_ns, policy.max_age_ns) == (50_000_000, 500_000_000)
+    assert not policy.too_far_ahead(1_050_000_000, 1_000_000_000)
+    assert policy.too_far_ahead(1_050_000_001, 1_000_000_000)
+    assert not policy.too_old(500_000_000, 1_000_000_000)
+    assert policy.too_old(499_999_999, 1_000_000_000)
+    doc = _doc()
+    doc["clock"] = {"max_future_ms": 20, "max_age_ms": 250.5}
+    assert load_site(_write(tmp_path, doc)).clock == ClockPolicy(20.0, 250.5)
+    doc.pop("clock")
+    assert load_site(_write(tmp_path, doc)).clock == ClockPolicy()
+
+
+@pytest.mark.parametrize(("clock", "key", "reason"), [
+    ({"max_futur_ms": 1.0}, "clock.max_futur_ms", "unknown key"),
+    ({"max_future_ms": -1.0}, "clock.max_future_ms", "outside"),
+    ({"max_age_ms": "1 s"}, "clock.max_age_ms", "expected a number"),
+    ({"max_age_ms": 0}, "clock", "max_age_ms must be"),
+    ([100.0], "clock", "expected a mapping"),
+])
+def test_clock_mistakes_name_key_and_file(tmp_path: Path, clock: object, key: str,
+                                          reason: str) -> None:
+    doc = _doc()
+    doc["clock"] = clock
+    path = _write(tmp_path, doc)
+    with pytest.raises(SiteConfigError) as info:
+        load_site(path)
+    assert info.value.key == key and reason in str(info.value) and str(path) in str(info.value)
+
+
+def test_old_thresholds_max_future_ms_is_read_as_the_clock_key_with_a_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    doc = _doc()
+    doc.pop("clock", None)
+    doc["thresholds"]["max_future_ms"] = 40.0
+    path = _write(tmp_path, doc)
+    with caplog.at_level("WARNING", logger="protocol.site"):
+        site = load_site(path)
+    assert site.clock.max_future_ms == 40.0 and site.clock.max_age_ms == 1000.0
+    assert "thresholds.max_future_ms is deprecated" in caplog.text
+    assert "clock.max_future_ms" in caplog.text and str(path) in caplog.text
+    doc["clock"] = {"max_future_ms": 30.0}  # both: which one is meant?
+    with pytest.raises(SiteConfigError) as info:
+        load_site(_write(tmp_path, doc))
+    assert info.value.key == "thresholds.max_future_ms" and "clock.max_future_ms" in str(info.value)
+    doc.pop("clock")
+    doc["thresholds"]["max_future_ms"] = -5
+    with pytest.raises(SiteConfigError, match=r"thresholds\.max_future_ms"):
+        load_site(_write(tmp_path, doc))
+
+
+@pytest.mark.parametrize(("section", "key", "new"), [
+    ("bridge", "clock_tolerance_ms", "clock.max_future_ms"),
+    ("map", "max_future_s", "clock.max_future_ms"),
+    ("fusion", "max_future_s", "clock.max_age_ms"),
+    ("map", "max_age_s", "clock.max_age_ms"),
+    ("pose", "prior_max_age_s", "clock.max_age_ms"),
+    ("pose", "publish_max_age_s", "clock.max_age_ms"),
+    ("pose_output", "max_age_s", "clock.max_age_ms"),
+])
+def test_per_service_clock_settings_are_gone_and_name_the_clock_key(
+        tmp_path: Path, section: str, key: str, new: str) -> None:
+    doc = _doc()
+    doc.setdefault(section, {})[key] = 0.5
+    path = _write(tmp_path, doc)
+    with pytest.raises(SiteConfigError) as info:
+        load_site(path)
+    assert info.value.key == f"{section}.{key}" and new in str(info.value)

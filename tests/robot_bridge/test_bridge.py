@@ -513,21 +513,23 @@ def test_bridge_section_holds_what_the_bridge_trusts(example_site_path) -> None:
     default = config()
     # the example's cameras stand at x 7..13, y 3..9
     assert default.trust.floor_area == pytest.approx((-3.0, -7.0, 23.0, 19.0))
-    c = config(clock_tolerance_ms=20.0, init_agreement_count=5, floor_area=[-1, -2.5, 20, 12],
-               backend_timeout_s=4.0)
-    assert c.trust.clock_tolerance_ms == 20.0 and c.trust.init_agreement_count == 5
+    c = config(init_agreement_count=5, floor_area=[-1, -2.5, 20, 12], backend_timeout_s=4.0)
+    assert c.trust.init_agreement_count == 5
     assert c.trust.floor_area == (-1.0, -2.5, 20.0, 12.0) and c.backend_timeout_s == 4.0
     assert config(floor_margin_m=1.0).trust.floor_area == pytest.approx((6.0, 2.0, 14.0, 10.0))
     for bridge, key in (({"floor_area": [0, 0, 1]}, "bridge.floor_area"),
                         ({"floor_area": [5, 0, 1, 1]}, "bridge.floor_area"),
                         ({"init_agreement_count": 0}, "bridge.init_agreement_count"),
-                        ({"clock_tolerance_ms": -1}, "bridge.clock_tolerance_ms"),
+                        # the bridge's own tolerance gave way to the site's clock policy
+                        ({"clock_tolerance_ms": 20.0}, "bridge.clock_tolerance_ms"),
                         ({"clock_tolerance": 1}, "bridge.clock_tolerance")):
         with pytest.raises(SiteConfigError, match=key.replace(".", r"\.")) as err:
             config(**bridge)
         assert "site.yaml" in str(err.value)
-    # the bridge uses the tighter of its clock tolerance and thresholds.max_future_ms
-    bridge = RobotBridge(c)
+    # the bridge refuses what is stamped further ahead than the site's clock.max_future_ms
+    site = parse_site({**doc, "clock": {"max_future_ms": 20.0}}, "site.yaml",
+                      example_site_path.parent)
+    bridge = RobotBridge(BridgeConfig.from_site(site, "hsr"))
     assert not bridge.on_robot_odometry(OdometrySample(T0 + 21_000_000, 0.0, 0.0, 0.0), T0)
     assert bridge.on_robot_odometry(OdometrySample(T0 + 19_000_000, 0.0, 0.0, 0.0), T0)
     assert bridge.counters["future_stamp_odometry"] == 1

@@ -362,8 +362,9 @@ def test_refusals_appear_in_the_status_message(rig) -> None:
 def test_fakes_holding_the_newest_stamp_do_not_block_genuine_corrections(rig) -> None:
     """Probe ``forged_pose_stamped_now`` of docs/reliability.md: a peer posts a fused pose 1.5 m
     off, stamped *now* (inside the clock tolerance), at 50 Hz, so it always holds the newest stamp
-    and the genuine estimates arrive 'late'. The fakes are refused as a jump too large; the bridge then falls
-    back to the genuine estimates of the stop, and the robot is corrected at every stop."""
+    and the genuine estimates arrive 'late'. The fakes are refused as a jump too large; the
+    bridge then falls back to the genuine estimates of the stop, and the robot is corrected at
+    every stop."""
     r = rig(DriftingRobot(scale=1.04, yaw_bias_rad_per_m=0.01))
     _three_stops_under_fakes(r, 1.5, ahead_ns=0)
     c = r.counters

@@ -3,7 +3,6 @@ pose corrections it receives (only while the robot is static)."""
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 
@@ -19,18 +18,13 @@ from protocol.session import loopback_config  # noqa: E402
 from simulation.publisher import publish_run  # noqa: E402
 from simulation.runner import SimulationRun  # noqa: E402
 from simulation.scenario import load_scenario  # noqa: E402
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from smartedge.processes import free_port  # noqa: E402
 
 
 def test_publish_over_zenoh_and_apply_correction() -> None:
     sc = load_scenario()
     run = SimulationRun(sc, "traj3", seed=3)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     site, robot = sc.site.name, sc.robot_id
     with zenoh.open(loopback_config(listen=[endpoint])) as sim_session, \
             zenoh.open(loopback_config(connect=[endpoint])) as backend:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import signal
 import subprocess
 import sys
 import time
@@ -14,13 +13,13 @@ import pytest
 
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
 from smartedge.introspect import echo_main, format_table, status_main, status_rows, summarize
-from tests.conftest import free_tcp_port
+from tests.conftest import free_port, stop_process
 
 
 @pytest.fixture(scope="module")
 def agent(tmp_path_factory: pytest.TempPathFactory):
     """An edge agent (simulated camera, noise model) listening on a free loopback port."""
-    port = free_tcp_port()
+    port = free_port()
     log = tmp_path_factory.mktemp("agent") / "agent.log"
     proc = subprocess.Popen(
         [sys.executable, "-m", "smartedge", "edge-agent", "--camera", "cam1", "--source", "sim",
@@ -29,12 +28,7 @@ def agent(tmp_path_factory: pytest.TempPathFactory):
         stdout=log.open("w"), stderr=subprocess.STDOUT)
     time.sleep(3.0)  # session open, simulation epoch 2 s ahead
     yield port
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-    assert proc.returncode == 0, Path(log).read_text()[-2000:]
+    assert stop_process(proc, timeout_s=20.0) == 0, Path(log).read_text()[-2000:]
 
 
 def _session_args(port: int) -> list[str]:
@@ -52,7 +46,7 @@ def test_status_once_shows_the_live_agent(agent: int) -> None:
 
 
 def test_status_once_without_anybody_exits_1() -> None:
-    port = free_tcp_port()
+    port = free_port()
     out = io.StringIO()
     assert status_main(["--once", "--wait", "0.5", "--listen", f"tcp/127.0.0.1:{port}",
                         "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"],

@@ -29,7 +29,7 @@ from simulation.publisher import publish_run
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario
 from smartedge.record import Recorder, RecordingError, read_recording, replay_main
-from tests.conftest import free_tcp_port
+from tests.conftest import free_port
 
 SITE_FILE = Path(__file__).resolve().parents[2] / "simulation" / "sites" / "paper_lab.yaml"
 SIM_S = 14.0
@@ -55,7 +55,7 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import zenoh
 
     tmp = tmp_path_factory.mktemp("record")
-    port = free_tcp_port()
+    port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     zargs = ["--mode", "client", "--connect", endpoint, "--no-multicast-scouting"]
     hub = zenoh.open(loopback_config(listen=[endpoint]))
@@ -130,7 +130,7 @@ def test_replay_publishes_the_recording_back(tmp_path: Path) -> None:
         sent.append(payload)
         rec.write(keys.odom_key(site, robot), payload, 5_000_000_000 + k * 1_000_000)
     rec.close()
-    port = free_tcp_port()
+    port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     got: list[bytes] = []
     with zenoh.open(loopback_config(listen=[endpoint])) as listener:

@@ -1,4 +1,4 @@
-"""The closed loop through images: :class:`smartedge.rendered_detections.RenderedDetections`
+"""The closed loop through images: :class:`smartedge.sim.rendered_detections.RenderedDetections`
 renders each simulated camera frame (true camera pose, robot at its true pose, per-frame sensor
 noise) and runs the shipped ONNX models on it, in place of the detection noise model.
 
@@ -35,7 +35,7 @@ def scenario():
 
 @pytest.fixture(scope="module")
 def det(scenario):
-    from smartedge.rendered_detections import RenderedDetections
+    from smartedge.sim.rendered_detections import RenderedDetections
 
     d = RenderedDetections(scenario, world=None, threads=1)
     yield d

@@ -20,7 +20,7 @@ import pytest
 
 from protocol.runtime import EXIT_CONFIG
 from smartedge.router import one_line
-from tests.conftest import REPO_ROOT, free_tcp_port, wait_until
+from tests.conftest import REPO_ROOT, free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -45,7 +45,7 @@ def _client(endpoint: str):
 def router(tmp_path: Path) -> Iterator[tuple[subprocess.Popen, str]]:
     """``smartedge router`` on the shipped router config, listening on a free loopback port
     (``--listen`` overrides the config's ``tcp/0.0.0.0:7447``), started and logging."""
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(
         _router_argv("--config", str(ROUTER_CONFIG), "--listen", endpoint,
                      "--status-period", "0.5"),

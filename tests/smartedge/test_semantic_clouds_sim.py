@@ -28,7 +28,7 @@ from protocol import decode, keys
 from protocol.geometry import se3_from_planar
 from protocol.messages import RobotDetections, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 with contextlib.suppress(ImportError):  # the tiny trained segmentation model (session-scoped)
     from tests.edge_agent.conftest import tiny_segmentation  # noqa: F401
@@ -179,7 +179,7 @@ def test_edge_agent_publishes_a_decodable_cloud_over_zenoh_loopback() -> None:
     from protocol.runtime import ZenohRunner
     from protocol.session import loopback_config
     from simulation.live import RenderedCameraFeed
-    from smartedge.plugins import RenderedCameraSource
+    from smartedge.sim.plugins import RenderedCameraSource
 
     live = _live(start_in_s=-5.0)
     feed = RenderedCameraFeed(live, "cam1", rate_hz=5.0)
@@ -189,7 +189,7 @@ def test_edge_agent_publishes_a_decodable_cloud_over_zenoh_loopback() -> None:
                                frame_id=live.site.world_frame,
                                T_frame_sensor=camera.T_world_cam, rate_hz=2.0)
     node = EdgeAgentNode(live.site, "cam1", source, clouds=maker)
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     received: list[tuple[str, bytes]] = []
     sub_session = zenoh.open(loopback_config(listen=[endpoint]))
     sub = sub_session.declare_subscriber(
@@ -221,7 +221,7 @@ def test_edge_agent_publishes_a_decodable_cloud_over_zenoh_loopback() -> None:
 
 def test_robot_camera_service_publishes_clouds_in_base_link() -> None:
     from simulation.live import LiveSimSpec
-    from smartedge.robot_camera import build_node, build_parser
+    from smartedge.sim.robot_camera import build_node, build_parser
 
     epoch = time.time_ns() - 3 * 10**9
     argv = ["--cloud-rate", "2", *LiveSimSpec(epoch_ns=epoch).to_argv()]
@@ -264,7 +264,7 @@ def test_robot_camera_without_a_model_or_a_head_camera(tmp_path, caplog) -> None
 
     from protocol.errors import UsageError
     from simulation.scenario import PAPER_SCENARIO
-    from smartedge.robot_camera import build_node, build_parser
+    from smartedge.sim.robot_camera import build_node, build_parser
 
     caplog.set_level(logging.ERROR)
     args = build_parser().parse_args(["--segmentation-model", str(tmp_path / "none.onnx")])
@@ -286,7 +286,7 @@ def test_robot_camera_without_a_model_or_a_head_camera(tmp_path, caplog) -> None
 
 def test_edge_agent_source_without_depth_logs_once_and_runs_without_clouds(caplog) -> None:
     from edge_agent.service import build_node, build_parser
-    from smartedge.plugins import register_sim_source
+    from smartedge.sim.plugins import register_sim_source
 
     register_sim_source()
     caplog.set_level(logging.INFO)

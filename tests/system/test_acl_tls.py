@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from protocol import keys
-from tests.conftest import EXAMPLE_SITE, free_tcp_port, wait_until
+from tests.conftest import EXAMPLE_SITE, free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
@@ -42,7 +42,7 @@ class Bus:
 
     def __init__(self, pki: Path) -> None:
         self.pki = pki
-        self.port = free_tcp_port()
+        self.port = free_port()
         conf = zenoh.Config.from_file(str(pki / "router-acl.json5"))
         conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{self.port}"]))
         self.router = zenoh.open(conf)

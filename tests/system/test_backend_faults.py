@@ -11,8 +11,8 @@ are published in real time (stamps on the wall clock, like
   (``sync.camera.<cam>.future``), none of the others' frames late, the status degraded naming
   the camera, and a camera pose for (nearly) every frame time of the others.
 
-``smartedge bench reliability --probes e,f`` measures the same faults with every service
-running (docs/reliability.md).
+``smartedge bench reliability --probes poisoned_odometry,camera_clock_ahead`` measures the same
+faults with every service running (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import pytest
 from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.session import loopback_config
-from tests.conftest import REPO_ROOT, free_tcp_port, stop_process, wait_until
+from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("gtsam")
@@ -68,7 +68,7 @@ class Backend:
 
 @pytest.fixture
 def backend(tmp_path: Path) -> Iterator[Backend]:
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     hub = zenoh.open(loopback_config(listen=[endpoint]))
     log = tmp_path / "backend.log"
     proc = subprocess.Popen(

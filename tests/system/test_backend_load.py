@@ -24,7 +24,7 @@ from protocol.runtime import ZenohRunner
 from protocol.session import loopback_config
 from protocol.site import load_site
 from tests.backend_service.pose_synth import ROBOT, SITE_PATH, project_pose
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -59,7 +59,7 @@ def test_an_overloaded_backend_sheds_oldest_first_and_stays_fresh(tmp_path) -> N
     site = _fast_site(tmp_path)
     config = PipelineConfig.from_site(site, max_input_delay_s=MAX_INPUT_DELAY_S)
     node = BackendNode(site, config=config)
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     runner = ZenohRunner(node, loopback_config(listen=[endpoint]), status=False)
     thread = threading.Thread(target=runner.run, daemon=True)
     thread.start()

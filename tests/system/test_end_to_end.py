@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from smartedge.demo import Monitor, Services, run_demo
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -126,7 +126,7 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
         trajectory="traj3", epoch_ns=time.time_ns() + 8_000_000_000, stop_s=4.0, max_speed_mps=0.4
     )
     live = LiveSimulation(spec, scenario)
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     args = argparse.Namespace(no_feedback=False, kidnapped=False, processes=True)
     services = Services(
         args,

@@ -15,7 +15,7 @@ from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from protocol.runtime import ZenohRunner
 from protocol.session import loopback_config
-from tests.conftest import free_tcp_port, wait_until
+from tests.conftest import free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -55,7 +55,7 @@ def _concrete(key_expr: str) -> str:
 
 
 def _run(node) -> tuple[ZenohRunner, threading.Thread, str]:
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     runner = ZenohRunner(node, loopback_config(listen=[endpoint]))
     thread = threading.Thread(target=runner.run, daemon=True)
     thread.start()
@@ -130,7 +130,7 @@ def test_backend_survives_garbage_on_every_key(tmp_path) -> None:
 
 def test_robot_bridge_survives_garbage_on_every_key() -> None:
     from robot_bridge.service import build_node, build_parser
-    from smartedge.plugins import register_simulation
+    from smartedge.sim.plugins import register_simulation
 
     register_simulation()
     args = build_parser().parse_args(["--adapter", "sim", "--sim-epoch-ns", str(time.time_ns())])

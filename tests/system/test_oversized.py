@@ -30,8 +30,9 @@ import pytest
 from protocol import decode, encode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
-from smartedge.reliability import RssSampler, hostile_payloads, rss_mib
-from tests.conftest import REPO_ROOT, free_tcp_port, stop_process, wait_until
+from simulation.hostile import hostile_payloads
+from smartedge.processes import RssSampler, rss_mib
+from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("gtsam")
@@ -60,7 +61,7 @@ def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
     wp = scenario.waypoints["WP2"]
     truth = np.array([wp.x, wp.y, wp.theta])
     cameras = sorted(site.cameras)
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     log_path = tmp_path / "backend.log"
     statuses: list[tuple[float, ServiceStatus]] = []
     poses: list[PoseEstimate] = []

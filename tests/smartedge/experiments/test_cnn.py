@@ -37,12 +37,12 @@ def test_cnn_mode_renders_and_infers_every_frame(cnn_report) -> None:
 
 def test_cnn_keypoints_localize_the_robot_at_multi_camera_waypoints(cnn_report) -> None:
     report = cnn_report[0]
-    err = source_errors(report.results, "one_frame")
+    err = source_errors(report.accuracy_runs, "one_frame")
     multi = err.num_cameras >= 2
     assert multi.sum() >= 6
     assert err.translation_m[multi].mean() < 0.05
     assert np.rad2deg(err.heading_rad[multi]).mean() < 6.0
-    robot = source_errors(report.results, "robot")
+    robot = source_errors(report.accuracy_runs, "robot")
     assert err.translation_m[multi].mean() < robot.translation_m.mean()
 
 

@@ -1,5 +1,6 @@
-"""End-to-end accuracy on the simulated paper site with the real pose solver: the internal
-localization drifts, camera estimates at waypoints seen by >= 2 cameras stay below 3 cm."""
+"""Experiment 1's runs (:func:`run_once`) end to end on the simulated paper site with the real
+pose solver: the internal localization drifts, camera estimates at waypoints seen by >= 2
+cameras stay below 3 cm."""
 
 from __future__ import annotations
 

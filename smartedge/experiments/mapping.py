@@ -4,14 +4,14 @@ IV-C, Fig. 7-8 of the paper) on the simulated site.
 1. **Static sensors alone**: every site camera renders a few RGB-D frames (its true pose, so the
    calibration error is in them) that go through the edge's segmentation network and cloud
    builder (the deployed code: :class:`edge_agent.models.SemanticSegmenter`,
-   :func:`edge_agent.semantic_cloud.build_semantic_cloud`) into the backend's
-   :class:`backend_service.mapping.SemanticMapping`, which starts from the prior model of the
-   empty room (floor and walls, no semantics).
+   :func:`edge_agent.semantic_cloud.build_semantic_cloud`) into the mapper's
+   :class:`mapper.mapping.SemanticMapping`, which starts from the prior model of the empty room
+   (floor and walls, no semantics).
 2. **After the robot's exploration route**: the robot drives ``route`` with correction feedback
-   (:func:`smartedge.experiments.run_feedback`, the backend pipeline and the robot bridge as in
-   experiment 2); its head RGB-D camera, rendered at the robot's true pose, gives a cloud at
-   ``robot_cloud_rate_hz`` in the base frame, placed with the fused pose, aligned by ICP and
-   fused.
+   (:func:`smartedge.experiments.feedback.run_feedback`, the backend pipeline and the robot
+   bridge as in experiment 2); its head RGB-D camera, rendered at the robot's true pose, gives a
+   cloud at ``robot_cloud_rate_hz`` in the base frame, placed with the fused pose, aligned by ICP
+   and fused.
 3. **Scores** against the renderer's ground truth (every static surface sampled with its class,
    less what nobody can see: bottoms and the floor under furniture): coverage (share of the
    surface voxels with semantic information), label accuracy of the covered ones, per class.
@@ -36,9 +36,11 @@ from typing import Any, Final
 
 import numpy as np
 
-from backend_service.cloud_alignment import align_to_map, consistency
-from backend_service.mapping import PLACEMENTS, MappingConfig, SemanticMapping, interpolate_pose
-from backend_service.semantic_map import SemanticMapConfig, SemanticVoxelMap, pack_voxel_keys
+from backend_service.pipeline import FusionFactory
+from mapper.alignment import align_to_map, consistency
+from mapper.map_io import save_map_npz, write_map_ply
+from mapper.mapping import PLACEMENTS, MappingConfig, SemanticMapping, interpolate_pose
+from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap, pack_voxel_keys
 from protocol.geometry import se3_from_planar, wrap_angle_array
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.semantic_classes import (
@@ -47,11 +49,16 @@ from protocol.semantic_classes import (
     SEMANTIC_CLASS_ID,
     SEMANTIC_CLASSES,
 )
+from simulation.detections import DetectionSimulator
+from simulation.runner import run_seed
+from simulation.scenario import Scenario
+from simulation.world import World
+from smartedge.experiments.comparison import PAPER_COVERAGE
+from smartedge.experiments.config import PaperConfig, paper_pipeline_config
+from smartedge.experiments.feedback import FeedbackRun, run_feedback
 
 log = logging.getLogger(__name__)
 
-#: the paper's figures (Sec. IV-C): static sensors alone ~50 %, with the robot > 90 %
-PAPER_COVERAGE: Final = {"static": 0.50, "with_robot": 0.90}
 #: ground-truth surface sampling: points per (spacing)^2 (several per 5 cm voxel)
 GT_SPACING_M: Final = 0.02
 #: what counts as agreeing with the map in the consistency measure (as placed, no ICP)
@@ -68,7 +75,7 @@ class MappingExperimentConfig:
     run used for the consistency comparison; ``threads``: onnxruntime threads;
     ``model``: another segmentation model (ONNX); ``max_route_s``: stop the route early
     (``None``: the whole route); ``compare_placements``: also fuse the robot's clouds with the
-    other placement rule (:data:`backend_service.mapping.PLACEMENTS`) for the comparison."""
+    other placement rule (:data:`mapper.mapping.PLACEMENTS`) for the comparison."""
 
     route: str = "robustness_route"
     seed: int = 0
@@ -146,7 +153,7 @@ def write_prior_model(scenario: Any, path: Path, voxel_size_m: float = 0.05) -> 
     room = SemanticVoxelMap.from_prior_points(points, SemanticMapConfig(voxel_size_m=voxel_size_m),
                                               normals)
     path.parent.mkdir(parents=True, exist_ok=True)
-    room.to_ply(path)
+    write_map_ply(room, path)
     return path
 
 
@@ -283,7 +290,7 @@ def _pose_at(stamps_ns: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndar
                      float(wrap_angle_array(np.interp(t, s, theta)))])
 
 
-def _cloud_stamps(run: Any, rate_hz: float, max_s: float | None) -> list[int]:
+def _cloud_stamps(run: FeedbackRun, rate_hz: float, max_s: float | None) -> list[int]:
     start, end = int(run.stamps_ns[0]), int(run.stamps_ns[-1])
     if max_s is not None:
         end = min(end, start + round(max_s * 1e9))
@@ -297,11 +304,11 @@ def _placed(cloud: SemanticCloud, pose: np.ndarray) -> np.ndarray:
 
 
 def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | Path, *,
-                runs: tuple[Any, Any] | None = None,
-                run_route: Callable[[bool], Any] | None = None,
+                runs: tuple[FeedbackRun, FeedbackRun] | None = None,
+                run_route: Callable[[bool], FeedbackRun] | None = None,
                 say: Callable[[str], None] | None = None) -> MappingReport:
     """Run experiment 4 (module docstring). ``runs``: the route's (without, with feedback)
-    :class:`~smartedge.experiments.FeedbackRun` if already simulated, else ``run_route``
+    :class:`~smartedge.experiments.feedback.FeedbackRun` if already simulated, else ``run_route``
     (feedback → run) simulates them."""
     say = say or (lambda line: log.info("%s", line))
     wall0 = time.perf_counter()
@@ -440,6 +447,37 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
         source.release()
 
 
+def run_experiment4(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+                    world: World, detector: DetectionSimulator, out: Path,
+                    say: Callable[[str], None]) -> tuple[str, list[Path]]:
+    """Experiment 4 as ``smartedge evaluate paper`` runs it: the static cameras' clouds, then
+    the robot's exploration route (``config.mapping_route``, the same seed without and with
+    feedback, :func:`~smartedge.experiments.feedback.run_feedback`) with its head camera's
+    clouds, into the mapper's semantic map (:func:`run_mapping`). Returns the Markdown and the
+    files written into ``out``."""
+    route = config.mapping_route
+    seed = run_seed(sc, route, False, 0, config.seed)
+    say(f"paper experiment 4: semantic mapping, the static cameras then {route} (without and "
+        f"with feedback for the consistency comparison)")
+
+    def run_route(feedback: bool) -> FeedbackRun:
+        r = run_feedback(sc, route, feedback, seed,
+                         name=f"{route}_map_{'fb' if feedback else 'nofb'}",
+                         fusion_factory=factory, world=world, detector=detector,
+                         pipeline_config=paper_pipeline_config(
+                             sc.site, scenario=sc, detections=config.detections),
+                         fused_trajectory_step=config.fused_trajectory_step)
+        say(f"[exp4] {r.name}: robot RMS {r.robot_rms_m() * 100:.1f} cm, fused "
+            f"{r.fused_rms_m() * 100:.1f} cm, {r.simulated_s:.0f} s simulated in "
+            f"{r.wall_s:.1f} s")
+        return r
+
+    mcfg = MappingExperimentConfig(route=route, seed=config.seed, threads=config.threads,
+                                   robot_cloud_rate_hz=config.mapping_cloud_rate_hz)
+    report = run_mapping(sc, mcfg, out, run_route=run_route, say=say)
+    return mapping_markdown(report), report.files
+
+
 def _mean(values: Sequence[float]) -> float:
     finite = [v for v in values if math.isfinite(v)]
     return float(np.mean(finite)) if finite else math.nan
@@ -549,8 +587,8 @@ def write_mapping_outputs(out: Path, report: MappingReport, final: SemanticVoxel
                          f"{report.with_robot.coverage:.0%}"),
              topdown_png(static, scenario, out / "semantic_map_static_topdown.png",
                          f"static sensors alone: coverage {report.static.coverage:.0%}")]
-    final.save_npz(out / "semantic_map.npz", compress=True)
-    final.to_ply(out / "semantic_map.ply")
+    save_map_npz(final, out / "semantic_map.npz", compress=True)
+    write_map_ply(final, out / "semantic_map.ply")
     files += [out / "semantic_map.npz", out / "semantic_map.ply"]
     (out / "mapping.md").write_text(mapping_markdown(report), encoding="utf-8")
     files.append(out / "mapping.md")

@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend_service.semantic_map import SemanticMapConfig, SemanticVoxelMap, read_ply_points
+from mapper.map_io import load_map_npz, read_ply_points
+from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
 from simulation.scenario import load_scenario
-from smartedge.mapping_experiment import (
+from smartedge.experiments.mapping import (
     MappingExperimentConfig,
     ground_truth,
     map_scores,
@@ -119,7 +120,7 @@ def test_consistency_rows_and_outputs(report) -> None:
         assert row.clouds >= 3 and 0.0 < row.fitness <= 1.0, row
     for png in ("semantic_map_topdown.png", "semantic_map_static_topdown.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    saved = SemanticVoxelMap.load_npz(out / "semantic_map.npz")
+    saved = load_map_npz(out / "semantic_map.npz")
     assert int(saved.has_semantics().sum()) == rep.with_robot.labelled_voxels
     text = (out / "mapping.md").read_text()
     assert "static sensors alone" in text and "true pose (reference)" in text

@@ -1,0 +1,108 @@
+"""The paper's experiments (Sec. IV of the ICRA 2023 paper) on the simulated lab, as
+``smartedge evaluate paper`` runs them. Every experiment drives the backend's one pipeline
+(:class:`backend_service.pipeline.BackendPipeline`), the object the backend service runs.
+
+=================================================  ==========================================
+paper                                              module
+=================================================  ==========================================
+settings, the pipeline set up for the paper's      :mod:`smartedge.experiments.config`
+protocol, the detection source (noise or CNN)
+experiment 1: accuracy of the pose estimates       :mod:`smartedge.experiments.accuracy`
+(Sec. IV-B, Table I/II, Fig. 6)
+experiment 2: correction feedback (Sec. IV-B,      :mod:`smartedge.experiments.feedback`
+Fig. 7); experiment 3: robustness (Sec. IV-D,
+Table III)
+experiment 4: collaborative semantic mapping       :mod:`smartedge.experiments.mapping`
+(Sec. III-C, IV-C, Fig. 7-8)
+the paper's reference figures; finished runs       :mod:`smartedge.experiments.comparison`
+side by side (``smartedge evaluate compare``)
+all of them in order, ``report.md``                :mod:`smartedge.experiments.paper`
+=================================================  ==========================================
+
+The names below are importable from the package. Experiment 4's names are not: they come from
+:mod:`smartedge.experiments.mapping`, which imports Open3D (the mapper's ICP), so that
+experiments 1-3 and ``evaluate compare`` do not load it.
+"""
+
+from __future__ import annotations
+
+from smartedge.experiments.accuracy import (
+    CAMERA_GROUPS,
+    SOURCES,
+    AccuracyTables,
+    RunResult,
+    SourceErrors,
+    StopSample,
+    accuracy_tables,
+    nees_table,
+    run_experiment1,
+    run_once,
+    source_errors,
+    table1,
+    table2,
+)
+from smartedge.experiments.comparison import PAPER_FIGURES, compare_markdown, compare_rows
+from smartedge.experiments.config import (
+    CNN_RATE_HZ,
+    DETECTION_MODES,
+    LOCALIZATION_RATE_HZ,
+    PaperConfig,
+    default_fusion_factory,
+    make_detector,
+    paper_pipeline_config,
+)
+from smartedge.experiments.feedback import (
+    EMERGENCY_STOP,
+    SUCCESS,
+    WP_NOT_REACHED,
+    AppliedCorrection,
+    FailureModel,
+    FeedbackRun,
+    failure_model,
+    feedback_table,
+    robustness_table,
+    run_experiment2,
+    run_experiment3,
+    run_feedback,
+)
+from smartedge.experiments.paper import PaperReport, run_paper
+
+__all__ = [
+    "CAMERA_GROUPS",
+    "CNN_RATE_HZ",
+    "DETECTION_MODES",
+    "EMERGENCY_STOP",
+    "LOCALIZATION_RATE_HZ",
+    "PAPER_FIGURES",
+    "SOURCES",
+    "SUCCESS",
+    "WP_NOT_REACHED",
+    "AccuracyTables",
+    "AppliedCorrection",
+    "FailureModel",
+    "FeedbackRun",
+    "PaperConfig",
+    "PaperReport",
+    "RunResult",
+    "SourceErrors",
+    "StopSample",
+    "accuracy_tables",
+    "compare_markdown",
+    "compare_rows",
+    "default_fusion_factory",
+    "failure_model",
+    "feedback_table",
+    "make_detector",
+    "nees_table",
+    "paper_pipeline_config",
+    "robustness_table",
+    "run_experiment1",
+    "run_experiment2",
+    "run_experiment3",
+    "run_feedback",
+    "run_once",
+    "run_paper",
+    "source_errors",
+    "table1",
+    "table2",
+]
