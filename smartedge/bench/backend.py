@@ -27,7 +27,7 @@ import numpy as np
 from protocol import decode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
-from smartedge.bench.ring_site import detection_payloads, robot_pose, write_ring_site
+from simulation.camera_ring import detection_payloads, robot_pose, write_ring_site
 from smartedge.processes import free_port, stop_process
 
 

@@ -32,7 +32,7 @@ import protocol
 from backend_service import covariance, estimate, fusion, multi_frame, pipeline, sync
 from protocol.camera import CameraModel
 from protocol.geometry import invert_transform, rotation_from_rotvec
-from smartedge.bench.ring_site import detection_payloads, robot_pose, write_ring_site
+from simulation.camera_ring import detection_payloads, robot_pose, write_ring_site
 
 #: the stages, in the order a frame-set goes through them
 STAGES: Final = ("decode", "sync", "solve", "covariance", "averaging", "fusion", "publish")
