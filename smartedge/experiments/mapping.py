@@ -42,6 +42,7 @@ from mapper.map_io import save_map_npz, write_map_ply
 from mapper.mapping import PLACEMENTS, MappingConfig, SemanticMapping, interpolate_pose
 from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap, pack_voxel_keys
 from protocol.geometry import se3_from_planar, wrap_angle_array
+from protocol.history import StampedHistory
 from protocol.messages import PoseEstimate, SemanticCloud
 from protocol.semantic_classes import (
     NO_SEMANTICS_COLOR,
@@ -395,8 +396,10 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
         occupied = mapping.map.occupied()
         final_points, final_normals = final_points[occupied], final_normals[occupied]
         rows = []
-        fused_poses = [PoseEstimate(scenario.robot_id, int(t), 0, float(x), float(y), float(th),
-                                    np.eye(3), "fused") for t, x, y, th in published]
+        fused_poses: StampedHistory[PoseEstimate] = StampedHistory(out_of_order="insert")
+        for t, x, y, th in published:
+            fused_poses.insert(int(t), PoseEstimate(scenario.robot_id, int(t), 0, float(x),
+                                                    float(y), float(th), np.eye(3), "fused"))
         sources = (("robot localization, without feedback", run_nofb, "robot"),
                    ("robot localization, with feedback", run_fb, "robot"),
                    ("fused pose (smartedge)", run_fb, "fused"),
