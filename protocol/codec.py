@@ -17,6 +17,17 @@ entry counts of lists and maps (read from their headers, so 10 000 nested detect
 before the 64-entry limit refuses them), the msgpack string, array and map sizes and the nesting;
 then it whitelists array dtypes, checks shapes against byte counts before touching the data, and
 finally runs the message's own validation.
+
+Two paths give that guarantee. The native one (:func:`native_limits`) hands the whole payload to
+msgpack's C unpacker with limits derived from the expected message type: no string, binary, list
+or map longer than the largest valid message of that type holds anywhere, each refused from its
+header, and no more containers than such a message has (counted by hooks as they are
+finished); then the per-field entry counts and the unknown-key rule are checked on what was
+built, before any message object is. It declines (returns nothing) on any limit, on unknown
+keys and on anything unusual, and the careful path, which locates every key and value in the
+raw bytes and builds nothing before its limit is checked, decides and names the limit. Both
+give the same message or the same error; ``tests/protocol/test_codec_paths.py`` checks this on
+fuzzed payloads.
 """
 
 from __future__ import annotations
@@ -25,6 +36,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any, Final, TypeVar
 
 import msgpack
@@ -38,6 +50,7 @@ from protocol.limits import (
     MAX_STR_BYTES,
     MAX_UNKNOWN_KEYS,
     MAX_UNKNOWN_VALUE_BYTES,
+    PAYLOAD_CAPS,
     LimitError,
     check_payload_size,
 )
@@ -49,6 +62,7 @@ _ALLOWED_DTYPES: Final = frozenset(
 )
 _NESTED: Final[dict[tuple[str, str], type]] = {("RobotDetections", "detections"): Detection}
 _REGISTRY: Final[dict[str, type[Message]]] = {cls.SCHEMA: cls for cls in MESSAGE_TYPES}
+_ARRAY_KEYS: Final = frozenset({"dtype", "shape", "data"})
 
 M = TypeVar("M", bound=Message)
 
@@ -103,7 +117,7 @@ def encode(msg: Message) -> bytes:
 
 
 def _array_from_wire(path: str, obj: Any) -> np.ndarray:
-    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+    if not isinstance(obj, dict) or len(obj) != 3 or not _ARRAY_KEYS.issuperset(obj):
         raise DecodeError(f"{path}: expected an array map with keys dtype, shape, data")
     dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
     if not isinstance(dtype, str) or dtype not in _ALLOWED_DTYPES:
@@ -214,6 +228,47 @@ def _decode(payload: Any, expected: type[M] | None) -> M:
     buf = payload if isinstance(payload, bytes) else bytes(payload)
     if len(buf) == 0:
         raise DecodeError("empty payload")
+    fast = _decode_native(buf, expected)
+    if fast is not None:
+        return fast
+    return _decode_checked(buf, expected)
+
+
+def decode_checked(payload: bytes | bytearray | memoryview,
+                   expected: type[M] | None = None) -> M:
+    """:func:`decode` by the careful path alone (no native fast path): the reference the fast
+    path is tested against, and the previous release's decode for ``smartedge bench codec``."""
+    try:
+        if not isinstance(payload, (bytes, bytearray, memoryview)):
+            raise DecodeError(f"payload must be bytes, got {type(payload).__name__}")
+        size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
+        check_payload_size(size, None if expected is None else expected.SCHEMA)
+        buf = payload if isinstance(payload, bytes) else bytes(payload)
+        if len(buf) == 0:
+            raise DecodeError("empty payload")
+        return _decode_checked(buf, expected)
+    except DecodeError:
+        raise
+    except Exception as exc:
+        raise DecodeError(f"malformed payload: {type(exc).__name__}: {exc}"[:500]) from None
+
+
+def message_from_wire(obj: Mapping[str, Any]) -> Message:
+    """The message of an already unpacked payload (a dict as ``msgpack.unpackb`` returns it),
+    with the message's own validation but none of the codec's limits: for payloads from a
+    trusted source, and the unbounded peer of ``smartedge bench codec``. Raises
+    :class:`DecodeError`."""
+    if not isinstance(obj, dict):
+        raise DecodeError(f"expected a map, got {type(obj).__name__}")
+    cls = _REGISTRY.get(obj.get("schema"))  # type: ignore[arg-type]
+    if cls is None:
+        raise DecodeError(f"unknown schema {str(obj.get('schema'))[:64]!r}")
+    return _record_from_wire("", cls, obj, cls.SCHEMA)
+
+
+def _decode_checked(buf: bytes, expected: type[M] | None) -> M:
+    """The careful path: the raw structure located and checked before anything is built (every
+    payload the native path declines, and the reference it is tested against)."""
     data = memoryview(buf)
     kind, _ = _container_header(data, 0)
     if kind != "map":
@@ -248,6 +303,144 @@ def _decode(payload: Any, expected: type[M] | None) -> M:
     _check_unknown_keys(spans, _known_keys(cls) | _ENVELOPE, "")
     return _record_from_wire(
         "", cls, _build_known(data, spans, cls, schema, "", (0, len(buf))), schema)
+
+
+# --------------------------------------------------------------------------------------------
+# the native path: msgpack's own limits, derived per message type
+# --------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class NativeLimits:
+    """What the largest valid message of a type holds, as msgpack's C unpacker enforces it while
+    it reads headers: no string, binary, list or map longer than the type allows anywhere
+    (``unpack``), and no more containers than its largest valid message has
+    (``max_containers``, counted by the hooks as each container is finished)."""
+
+    unpack: Mapping[str, int]
+    max_containers: int
+
+
+def _record_shape(cls: type, schema: str) -> tuple[int, int, int]:
+    """(longest list, largest map, containers) of the largest valid record of ``cls``: array
+    maps with their shape lists, list and map fields at their entry limits, nested records at
+    their count limit, and every record map with room for its unknown keys."""
+    longest_list, largest_map = MAX_ARRAY_NDIM, 3  # an array map: dtype, shape, data
+    containers = 1
+    for name, kind, _required, nested in _field_specs(cls, schema):
+        limit = MAX_ENTRIES.get((schema, name))
+        if nested is not None:
+            count = MAX_ARRAY_ENTRIES if limit is None else limit
+            n_list, n_map, n_containers = _record_shape(nested, nested.__name__)
+            longest_list = max(longest_list, count, n_list)
+            largest_map = max(largest_map, n_map)
+            containers += 1 + count * n_containers
+        elif kind == "array":
+            containers += 2
+        elif kind == "tuple":
+            longest_list = max(longest_list, MAX_ARRAY_ENTRIES if limit is None else limit)
+            containers += 1
+        elif kind == "map":
+            largest_map = max(largest_map, MAX_MAP_ENTRIES if limit is None else limit)
+            containers += 1
+    fields = len(_field_specs(cls, schema)) + len(_ENVELOPE) + MAX_UNKNOWN_KEYS
+    return longest_list, max(largest_map, fields), containers
+
+
+@functools.cache
+def native_limits(cls: type[Message] | None) -> NativeLimits:
+    """The native limits of one message type (``None``: of the loosest type, for a payload whose
+    type is not known before it is read). Never looser than the structural limits of
+    :mod:`protocol.limits`."""
+    if cls is None:
+        each = [native_limits(c) for c in MESSAGE_TYPES]
+        unpack = {k: max(n.unpack[k] for n in each) for k in each[0].unpack}
+        return NativeLimits(MappingProxyType(unpack), max(n.max_containers for n in each))
+    longest_list, largest_map, containers = _record_shape(cls, cls.SCHEMA)
+    unpack = {
+        "max_str_len": MAX_STR_BYTES,
+        "max_bin_len": min(MAX_PAYLOAD_BYTES, PAYLOAD_CAPS.get(cls.SCHEMA, MAX_PAYLOAD_BYTES)),
+        "max_array_len": min(MAX_ARRAY_ENTRIES, longest_list),
+        "max_map_len": min(MAX_MAP_ENTRIES, largest_map),
+        "max_ext_len": 0,
+    }
+    return NativeLimits(MappingProxyType(unpack), containers)
+
+
+class _TooManyContainers(Exception):
+    pass
+
+
+def _decode_native(buf: bytes, expected: type[M] | None) -> M | None:
+    """The common case in one native pass: ``msgpack.unpackb`` under :func:`native_limits`, then
+    the exact per-field counts on what was built, then the message's own validation. ``None``
+    whenever the payload is anything but a plain valid message of a known type with only known
+    keys (any limit hit, unknown keys, a wrong envelope, trailing bytes): the careful path then
+    decides, and names the exact limit or field. A :class:`DecodeError` from the message's own
+    validation is final: the careful path would build the same values and get the same one."""
+    limits = native_limits(expected)
+    left = [limits.max_containers]
+
+    def on_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+        left[0] -= 1
+        if left[0] < 0:
+            raise _TooManyContainers
+        return dict(pairs)
+
+    def on_list(items: list[Any]) -> list[Any]:
+        left[0] -= 1
+        if left[0] < 0:
+            raise _TooManyContainers
+        return items
+
+    try:
+        obj = msgpack.unpackb(buf, raw=False, use_list=True, strict_map_key=True,
+                              object_pairs_hook=on_map, list_hook=on_list, **limits.unpack)
+    except Exception:
+        return None
+    if not isinstance(obj, dict):
+        return None
+    schema = obj.get("schema")
+    cls = _REGISTRY.get(schema) if isinstance(schema, str) else None
+    version = obj.get("schema_version")
+    if (cls is None or (expected is not None and cls is not expected)
+            or type(version) is not int or version != cls.VERSION
+            or len(buf) > PAYLOAD_CAPS.get(schema, MAX_PAYLOAD_BYTES)
+            or not _only_known(obj, cls, schema)):
+        return None
+    return _record_from_wire("", cls, obj, schema)
+
+
+@functools.cache
+def _entry_rules(cls: type, schema: str, top: bool) -> tuple[frozenset[str],
+                                                             tuple[tuple[str, int], ...],
+                                                             tuple[tuple[str, type], ...]]:
+    """(known keys, with the envelope for a top-level record; (field, entry limit) pairs;
+    (field, nested type) pairs)."""
+    specs = _field_specs(cls, schema)
+    limits = tuple((name, MAX_ENTRIES[(schema, name)]) for name, *_ in specs
+                   if (schema, name) in MAX_ENTRIES)
+    nested = tuple((name, n) for name, _k, _r, n in specs if n is not None)
+    return _known_keys(cls) | (_ENVELOPE if top else frozenset()), limits, nested
+
+
+def _only_known(obj: Mapping[Any, Any], cls: type, schema: str, top: bool = True) -> bool:
+    """No unknown key in the record (nor in its nested records, where the envelope keys are
+    unknown too) and every list and map field within its entry limit."""
+    known, limits, nested = _entry_rules(cls, schema, top)
+    if not known.issuperset(obj):
+        return False
+    for name, limit in limits:
+        value = obj.get(name)
+        if isinstance(value, (list, dict)) and len(value) > limit:
+            return False
+    for name, ncls in nested:
+        value = obj.get(name)
+        if isinstance(value, list):
+            for item in value:
+                if isinstance(item, dict) and not _only_known(item, ncls, ncls.__name__, False):
+                    return False
+    return True
 
 
 # --------------------------------------------------------------------------------------------
