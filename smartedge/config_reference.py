@@ -83,7 +83,7 @@ def sections() -> list[Section]:
                 "`map.max_age_s`, `pose.prior_max_age_s`, `pose.publish_max_age_s`, "
                 "`pose_output.max_age_s`) are errors naming the `clock` key."),
         Section("pose", "backend_service (pipeline + solver)",
-                ((PipelineConfig, frozenset({"prior", "fuse_while_moving"})),
+                ((PipelineConfig, frozenset({"prior", "fuse_while_moving", "max_input_delay_s"})),
                  (SolverConfig, None)),
                 "`smartedge backend --robust-loss/--solver` override the file."),
         Section("multi_frame", "backend_service", ((MultiFrameConfig, None),),
