@@ -27,13 +27,13 @@ Pure numpy, no I/O.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Sequence
 from typing import Final
 
 import numpy as np
 
+from backend_service.projection import stacked_cameras
 from protocol.camera import CameraModel
 from protocol.geometry import distort_normalized, distort_normalized_jacobian, wrap_angle
 
@@ -82,31 +82,6 @@ class CovarianceParts:
         return CovarianceParts(self.frame[ix], self.systematic[ix])
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class _CameraStack:
-    """The cameras of one frame-set as stacked arrays (C leading), for vectorized projection."""
-
-    R_cam_world: np.ndarray  # (C, 3, 3)
-    t_cam_world: np.ndarray  # (C, 3)
-    focal: np.ndarray  # (C, 2, 2) K[:2, :2]
-    principal: np.ndarray  # (C, 2)
-    dist: np.ndarray  # (C, 8) zero-padded OpenCV coefficients
-    centre_world: np.ndarray  # (C, 3) optical centres, metres
-
-
-@functools.lru_cache(maxsize=64)
-def _camera_stack(cameras: tuple[CameraModel, ...]) -> _CameraStack:
-    # CameraModel compares by identity (eq=False): the site's cameras are the cache's keys
-    T = np.stack([cam.T_cam_world for cam in cameras])
-    dist = np.zeros((len(cameras), 8))
-    for c, cam in enumerate(cameras):
-        dist[c, :cam.dist.size] = cam.dist
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    return _CameraStack(R, t, np.stack([cam.K[:2, :2] for cam in cameras]),
-                        np.stack([cam.K[:2, 2] for cam in cameras]), dist,
-                        -np.einsum("cji,cj->ci", R, t))
-
-
 def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world: np.ndarray
                                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of ``points_world`` (M, 3) in every camera and their derivative with respect to
@@ -119,9 +94,10 @@ def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world
     R^T [a]x dw - R^T dc; the chain rule through the perspective division, the lens distortion
     (:func:`protocol.geometry.distort_normalized_jacobian`) and the focal lengths gives G.
     """
-    stack = _camera_stack(tuple(cameras))
+    stack = stacked_cameras(tuple(cameras))
     P = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-    R, t = stack.R_cam_world, stack.t_cam_world
+    R, t = stack.R_cw, stack.t_cw
+    focal, principal = stack.K[:, :2, :2], stack.K[:, :2, 2]
     p_cam = np.einsum("cij,mj->cmi", R, P) + t[:, None, :]  # (C, M, 3)
     z = p_cam[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -129,13 +105,13 @@ def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world
     xy = p_cam[..., :2] * inv_z[..., None]
     dist = stack.dist[:, None, :]
     xy_d = distort_normalized(xy, dist)
-    uv = np.einsum("cij,cmj->cmi", stack.focal, xy_d) + stack.principal[:, None, :]
+    uv = np.einsum("cij,cmj->cmi", focal, xy_d) + principal[:, None, :]
     # d(x, y)/d(p_cam): [[1/z, 0, -x/z], [0, 1/z, -y/z]]
     d_xy = np.zeros((*z.shape, 2, 3))
     d_xy[..., 0, 0] = inv_z
     d_xy[..., 1, 1] = inv_z
     d_xy[..., :, 2] = -xy * inv_z[..., None]
-    d_uv = np.einsum("cij,cmjk,cmkl->cmil", stack.focal,
+    d_uv = np.einsum("cij,cmjk,cmkl->cmil", focal,
                      distort_normalized_jacobian(xy, dist), d_xy)  # (C, M, 2, 3)
     d_uv_a = np.einsum("cmij,cjk->cmik", d_uv, R)  # d(u, v)/d(a), a = p - c in world axes
     a = P[None, :, :] - stack.centre_world[:, None, :]  # (C, M, 3)

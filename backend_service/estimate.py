@@ -43,14 +43,8 @@ from backend_service.covariance import (
 )
 from backend_service.frame_set import FrameSet, PlanarPose, frame_set_from_detections
 from backend_service.pose_init import View, init_from_prior, init_without_prior
-from backend_service.pose_solver import (
-    PoseProblem,
-    SolverConfig,
-    StackedCameras,
-    get_problem,
-    robust_weights,
-    weighted_residuals,
-)
+from backend_service.pose_solver import PoseProblem, SolverConfig, get_problem, robust_weights
+from backend_service.projection import stacked_cameras, weighted_residuals
 from backend_service.single_camera import apply_single_camera_heuristic
 from protocol.camera import CameraModel
 from protocol.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
@@ -309,7 +303,7 @@ def _estimate(frame_set: FrameSet, site: Site, prior: PlanarPose | None,
 
     if len(views) == 1:
         flags.append("single_camera")
-        stacked = StackedCameras.from_cameras(cameras)
+        stacked = stacked_cameras(tuple(cameras))
 
         def residual_fn(qb: np.ndarray) -> np.ndarray:
             return weighted_residuals(stacked, kp_base, qb, uv, w)

@@ -57,7 +57,6 @@ import numpy as np
 
 from backend_service.covariance import ErrorModel
 from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized
 
 log = logging.getLogger(__name__)
 
@@ -801,86 +800,3 @@ def cache_size() -> int:
     """Number of cached formulations (for tests and status)."""
     with PROBLEM_CACHE_LOCK:
         return len(_CACHE)
-
-
-# --------------------------------------------------------------------------------------------
-# the same residuals in plain numpy (batched over poses): for solver-independent evaluation
-# (single-camera refinement, the benchmark's pyceres/scipy peers, tests)
-# --------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class StackedCameras:
-    """N cameras' calibration stacked for vectorized projection: ``R_cw`` (N, 3, 3), ``t_cw``
-    (N, 3), ``K`` (N, 3, 3), ``dist`` (N, 8) (zero-padded OpenCV coefficients)."""
-
-    R_cw: np.ndarray
-    t_cw: np.ndarray
-    K: np.ndarray
-    dist: np.ndarray
-
-    @classmethod
-    def from_cameras(cls, cameras: Sequence[CameraModel]) -> StackedCameras:
-        dist = np.zeros((len(cameras), 8))
-        for i, cam in enumerate(cameras):
-            dist[i, : cam.dist.size] = cam.dist
-        return cls(
-            np.stack([c.T_cam_world[:3, :3] for c in cameras]),
-            np.stack([c.T_cam_world[:3, 3] for c in cameras]),
-            np.stack([c.K for c in cameras]),
-            dist,
-        )
-
-
-def project_planar(cams: StackedCameras, keypoints_base_m: np.ndarray,
-                   q_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project the robot keypoints for B planar poses.
-
-    ``keypoints_base_m`` (M, 3) base frame; ``q_batch`` (B, 3) of (x, y, theta) in the world
-    frame. Returns pixels (B, N, M, 2) and depths (B, N, M) in metres (the depth is clamped
-    like the CasADi formulation only for the division, so points behind give finite pixels).
-    """
-    q = np.asarray(q_batch, dtype=np.float64).reshape(-1, 3)
-    c, s = np.cos(q[:, 2]), np.sin(q[:, 2])
-    kp = np.asarray(keypoints_base_m, dtype=np.float64)
-    # world points (B, M, 3)
-    xw = c[:, None] * kp[None, :, 0] - s[:, None] * kp[None, :, 1] + q[:, 0, None]
-    yw = s[:, None] * kp[None, :, 0] + c[:, None] * kp[None, :, 1] + q[:, 1, None]
-    zw = np.broadcast_to(kp[None, :, 2], xw.shape)
-    pw = np.stack([xw, yw, zw], axis=-1)
-    pc = np.einsum("nij,bmj->bnmi", cams.R_cw, pw) + cams.t_cw[None, :, None, :]
-    z = pc[..., 2]
-    zs = np.maximum(z, 1e-3)
-    xy = pc[..., :2] / zs[..., None]
-    xyd = distort_normalized(xy, cams.dist[None, :, None, :])
-    xd, yd = xyd[..., 0], xyd[..., 1]
-    K = cams.K[None, :, None]
-    u = K[..., 0, 0] * xd + K[..., 0, 1] * yd + K[..., 0, 2]
-    v = K[..., 1, 1] * yd + K[..., 1, 2]
-    return np.stack([u, v], axis=-1), z
-
-
-def weighted_residuals(cams: StackedCameras, keypoints_base_m: np.ndarray, q_batch: np.ndarray,
-                       keypoints_px: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(B, 2*N*M) residuals sqrt(w_ij) * (Pi_i(.) - k_ij), ordered camera, keypoint, (u, v):
-    the layout of the CasADi formulation. ``keypoints_px`` (N, M, 2) must be finite where
-    ``weights`` (N, M) is non-zero."""
-    uv_hat, _ = project_planar(cams, keypoints_base_m, q_batch)
-    obs = np.where(np.isfinite(keypoints_px), keypoints_px, 0.0)
-    err = (uv_hat - obs[None]) * np.sqrt(weights)[None, :, :, None]
-    return err.reshape(err.shape[0], -1)
-
-
-def numeric_jacobian(cams: StackedCameras, keypoints_base_m: np.ndarray, q: np.ndarray,
-                     keypoints_px: np.ndarray, weights: np.ndarray,
-                     step: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (2NM,) and their central-difference Jacobian (2NM, 3) at pose ``q`` (3,),
-    evaluated in one batched call."""
-    q = np.asarray(q, dtype=np.float64)
-    batch = np.repeat(q[None], 7, axis=0)
-    for k in range(3):
-        batch[1 + 2 * k, k] += step
-        batch[2 + 2 * k, k] -= step
-    r = weighted_residuals(cams, keypoints_base_m, batch, keypoints_px, weights)
-    J = np.stack([(r[1 + 2 * k] - r[2 + 2 * k]) / (2 * step) for k in range(3)], axis=1)
-    return r[0], J

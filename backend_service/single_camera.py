@@ -24,7 +24,7 @@ from backend_service.frame_set import PlanarPose
 from protocol.camera import CameraModel
 from protocol.geometry import angle_diff, wrap_angle
 
-#: (B, 3) poses -> (B, K) weighted residuals in px (e.g. pose_solver.weighted_residuals).
+#: (B, 3) poses -> (B, K) weighted residuals in px (e.g. projection.weighted_residuals).
 ResidualFn = Callable[[np.ndarray], np.ndarray]
 
 

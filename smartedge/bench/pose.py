@@ -22,13 +22,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.frame_set import PlanarPose
-from backend_service.pose_solver import (
-    DEFAULT_METHOD,
-    StackedCameras,
-    get_problem,
-    numeric_jacobian,
-    weighted_residuals,
-)
+from backend_service.pose_solver import DEFAULT_METHOD, get_problem
+from backend_service.projection import StackedCameras, numeric_jacobian, weighted_residuals
 from protocol.geometry import wrap_angle_array
 from protocol.site import load_site
 from simulation.camera_ring import ring_cameras

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from backend_service.frame_set import PlanarPose
-from backend_service.pose_solver import StackedCameras, numeric_jacobian
+from backend_service.projection import StackedCameras, numeric_jacobian
 from smartedge.evaluation.cramer_rao import (
     cramer_rao_bound,
     greedy_camera_selection,
