@@ -25,13 +25,16 @@ Modes:
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import dataclasses
+import functools
+import itertools
 import json
 import logging
 import multiprocessing
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -139,8 +142,9 @@ def scaled_camera(camera: CameraModel, width: int, height: int) -> CameraModel:
 
 def augment(image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Colour jitter (contrast, brightness, white balance, saturation), blur, sensor noise and
-    JPEG compression; labels are unaffected. uint8 OpenCV operations throughout (a few ms at
-    848x480)."""
+    JPEG compression of an (H, W, 3) uint8 RGB image; labels are unaffected. uint8 OpenCV
+    operations on contiguous images throughout (3-5 ms at 848x480, most of it the Gaussian noise
+    draw); the same ``rng`` state gives the same image."""
     import cv2
 
     gain = rng.uniform(0.6, 1.4) * rng.uniform(0.85, 1.15, 3)  # contrast x white balance
@@ -158,13 +162,30 @@ def augment(image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         noise = np.empty(img.shape, np.int16)
         cv2.setRNGSeed(int(rng.integers(2**31)))  # OpenCV's generator, seeded from ours
         cv2.randn(noise, 0, sigma)
-        img = np.clip(img.astype(np.int16) + noise, 0, 255).astype(np.uint8)
+        img = cv2.add(img, noise, dtype=cv2.CV_8U)  # saturating: clip(img + noise, 0, 255)
     if rng.uniform() < 0.6:
-        ok, buf = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY,
-                                                         int(rng.integers(40, 96))])
+        # colour conversions instead of [..., ::-1] views: the codec would copy a strided
+        # image pixel by pixel
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                               [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 96))])
         if ok:
-            img = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+            img = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     return np.ascontiguousarray(img)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class View:
+    """A sample before rendering: its ``index``, the random generator ``rng`` after building
+    the scene (the augmentation draws from it next), the ``scene``, the ``camera``,
+    ``robot_pose`` (3,) as in :class:`Sample` and ``robot_pose_labelled`` (3,): the robot whose
+    keypoints are labelled (``None``: none, robot mode without another robot)."""
+
+    index: int
+    rng: np.random.Generator
+    scene: Any
+    camera: CameraModel
+    robot_pose: np.ndarray
+    robot_pose_labelled: np.ndarray | None
 
 
 class SampleGenerator:
@@ -209,39 +230,105 @@ class SampleGenerator:
         self._world = World(scenario) if in_site else None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._environments: tuple[Any, ...] | None = None
+        self._times: Any = None
+        self._preloaded: set[tuple[int, int]] = set()
 
     def _renderer(self, width: int, height: int) -> Any:
         key = (width, height)
         if key not in self._renderers:
             from simulation.render_gl import Renderer
 
-            self._renderers[key] = Renderer(width, height)
+            renderer = self._renderers[key] = Renderer(width, height)
+            renderer.times = self._times
         return self._renderers[key]
 
     def rng(self, index: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, int(index), 7919]))
 
+    @property
+    def times(self) -> Any:
+        """A :class:`simulation.render_gl.StageTimes` that every sample adds its stages to
+        (scene, lens map, upload, draw, read-back, remap, labels, augmentation), or ``None``
+        (the default: no timing, no GL synchronization for it)."""
+        return self._times
+
+    @times.setter
+    def times(self, value: Any) -> None:
+        self._times = value
+        for renderer in self._renderers.values():
+            renderer.times = value
+
     def __call__(self, index: int) -> Sample:
+        return self.samples([index])[0]
+
+    def view(self, index: int) -> View:
+        """The scene and camera of sample ``index``, built but not rendered (what
+        :meth:`samples` draws; benchmarks replay them)."""
         rng = self.rng(index)
+        labelled: np.ndarray | None
         if self.mode == "robot":
-            scene, camera, pose, other = self._robot_view(rng)
-            out = self._renderer(camera.width, camera.height).render(scene, camera)
-            robots = () if other is None else (self._label(out, camera, other),)
-            return Sample(index, self.seed, self.mode, camera, out.color_rgb, out.depth_m,
-                          out.class_id, out.instance_id, robots, pose)
-        if self.mode == "site":
+            scene, camera, pose, labelled = self._robot_view(rng)
+        elif self.mode == "site":
             scene, camera, pose = self._site_view(rng)
+            labelled = pose
         else:
             w, h = self.width or 848, self.height or 480
-            if self._environments is None:
-                self._environments = random_environments(self.seed, self.randomization)
             scene, camera, pose = randomized_view(rng, self.robot_mesh, self.model, w, h,
-                                                  self.randomization, self._environments)
-        out = self._renderer(camera.width, camera.height).render(scene, camera)
-        label = self._label(out, camera, pose)
-        image = augment(out.color_rgb, rng) if self.mode == "randomized" else out.color_rgb
-        return Sample(index, self.seed, self.mode, camera, image, out.depth_m, out.class_id,
-                      out.instance_id, (label,), pose)
+                                                  self.randomization, self.environments())
+            labelled = pose
+        return View(index, rng, scene, camera, pose, labelled)
+
+    def environments(self) -> tuple[Any, ...]:
+        """The floor/wall looks of randomized views (built on first use)."""
+        if self._environments is None:
+            self._environments = random_environments(self.seed, self.randomization)
+        return self._environments
+
+    def renderer(self, width: int, height: int) -> Any:
+        """The :class:`simulation.render_gl.Renderer` for ``width`` x ``height`` images (made on
+        first use, in this process; a randomized generator uploads its floor and wall textures
+        to it at once: uploaded in the middle of a frame, building a texture's mipmaps stalls
+        llvmpipe's pipeline, ~5 ms each)."""
+        renderer = self._renderer(width, height)
+        if self.mode == "randomized" and (width, height) not in self._preloaded:
+            renderer.upload(m for env in self.environments()
+                            for m in (env.floor.mesh, env.walls.mesh))
+            self._preloaded.add((width, height))
+        return renderer
+
+    def samples(self, indices: Sequence[int]) -> list[Sample]:
+        """Samples ``indices`` in one batch: their scenes are built first, then drawn with one
+        :meth:`simulation.render_gl.Renderer.render_many` per image size (shared context switch
+        and mesh uploads), then labelled and augmented. Each sample is exactly ``self(index)``.
+        """
+        from simulation.render_gl import StageClock
+
+        clock = StageClock(self._times)
+        views = [self.view(index) for index in indices]
+        clock.lap("scene")
+        outs: dict[int, Any] = {}
+        by_size: dict[tuple[int, int], list[int]] = {}
+        for k, v in enumerate(views):
+            by_size.setdefault((v.camera.width, v.camera.height), []).append(k)
+        for (w, h), ks in by_size.items():
+            rendered = self.renderer(w, h).render_many([(views[k].scene, views[k].camera)
+                                                        for k in ks])
+            outs.update(zip(ks, rendered, strict=True))
+        clock.restart()
+        result = []
+        for k, v in enumerate(views):
+            out = outs[k]
+            # robot mode: the other robot instance, if there is one, is the labelled robot
+            robots = () if v.robot_pose_labelled is None else (
+                self._label(out, v.camera, v.robot_pose_labelled),)
+            clock.lap("labels")
+            image = out.color_rgb
+            if self.mode == "randomized":
+                image = augment(image, v.rng)
+                clock.lap("augment")
+            result.append(Sample(v.index, self.seed, self.mode, v.camera, image, out.depth_m,
+                                 out.class_id, out.instance_id, robots, v.robot_pose))
+        return result
 
     def stream(self, start: int = 0) -> Iterator[Sample]:
         """Samples ``start``, ``start + 1``, ... (for a training loop)."""
@@ -346,6 +433,10 @@ class SampleGenerator:
 # --------------------------------------------------------------------------------------------
 
 
+def _write_sample_to(out: str, sample: Sample) -> dict[str, Any]:
+    return _write_sample(sample, Path(out))
+
+
 def _write_sample(sample: Sample, out: Path) -> dict[str, Any]:
     import cv2
 
@@ -362,10 +453,31 @@ def _write_sample(sample: Sample, out: Path) -> dict[str, Any]:
     return doc
 
 
+def sample_summary(sample: Sample) -> tuple[int, tuple[dict[str, Any], ...]]:
+    """(index, robot labels as JSON): what a benchmark keeps of a sample (a few hundred
+    bytes instead of megabytes of images through the pipe)."""
+    return sample.index, tuple(r.to_json() for r in sample.robots)
+
+
+def _identity(sample: Sample) -> Sample:
+    return sample
+
+
+#: environment variable that sets llvmpipe's rasterizer threads (read when a context is made)
+GL_THREADS_ENV: Final = "LP_NUM_THREADS"
+
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(kwargs: dict[str, Any]) -> None:
+def _pool_init(kwargs: dict[str, Any], gl_threads: int | None, cv_threads: int | None) -> None:
+    import os
+
+    if gl_threads is not None:
+        os.environ[GL_THREADS_ENV] = str(gl_threads)
+    if cv_threads is not None:
+        import cv2
+
+        cv2.setNumThreads(cv_threads)
     from simulation.scenario import load_scenario
 
     kw = dict(kwargs)
@@ -373,15 +485,93 @@ def _worker_init(kwargs: dict[str, Any]) -> None:
     _WORKER["gen"] = SampleGenerator(scenario, **kw)
 
 
-def _worker_render(index: int, out: str) -> dict[str, Any]:
-    return _write_sample(_WORKER["gen"](index), Path(out))
+def _pool_run(fn: Callable[[Sample], Any], indices: list[int]) -> tuple[float, list[Any]]:
+    """(CPU seconds this worker spent, all its threads, on the chunk; ``fn`` of each sample)."""
+    cpu0 = time.process_time()
+    results = [fn(sample) for sample in _WORKER["gen"].samples(indices)]
+    return time.process_time() - cpu0, results
+
+
+class SamplePool:
+    """Worker processes rendering samples of one :class:`SampleGenerator`, each with its own GL
+    context: the way to keep every core busy (one renderer is one thread of Python plus
+    llvmpipe's rasterizer threads, and much of a sample's time is single-threaded numpy and
+    OpenCV work).
+
+    ``workers`` processes (``spawn``ed: EGL contexts do not survive a fork) each rebuild the
+    generator from its scenario file and render ``chunk`` consecutive indices per task with
+    :meth:`SampleGenerator.samples`. ``gl_threads``: llvmpipe rasterizer threads per worker
+    (``LP_NUM_THREADS``; default 1: with one worker per core, more threads only contend;
+    ``None`` leaves the environment alone); ``cv_threads``: OpenCV threads per worker (default
+    1, for the same reason). Results come back in index order and are the same as the serial
+    generator's for the same seed, whatever ``workers``, ``chunk`` or thread counts are.
+    Use as a context manager (or call :meth:`close`).
+    """
+
+    def __init__(self, generator: SampleGenerator, workers: int = 2, *, chunk: int = 4,
+                 gl_threads: int | None = 1, cv_threads: int | None = 1) -> None:
+        if workers < 1 or chunk < 1:
+            raise DatasetError(f"sample pool: need workers >= 1 and chunk >= 1, got {workers}, "
+                               f"{chunk}")
+        source = getattr(generator.scenario, "source_path", None)
+        if not source:
+            raise DatasetError("sample pool: the generator's scenario has no source file to "
+                               "rebuild it from in the workers")
+        self.workers, self.chunk = int(workers), int(chunk)
+        #: CPU seconds the workers spent on the chunks returned so far (all their threads)
+        self.cpu_seconds = 0.0
+        kwargs = {"scenario_path": source, "mode": generator.mode,
+                  "seed": generator.seed, "width": generator.width, "height": generator.height,
+                  "robot_mesh": generator.robot_mesh, "robot_model": generator.model,
+                  "randomization": generator.randomization}
+        self._pool = concurrent.futures.ProcessPoolExecutor(
+            self.workers, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_pool_init, initargs=(kwargs, gl_threads, cv_threads))
+
+    def map(self, fn: Callable[[Sample], Any], indices: Sequence[int]) -> Iterator[Any]:
+        """``fn(sample)`` for every index, run in the workers (``fn`` must pickle: a
+        module-level function or a :func:`functools.partial` of one), yielded in index
+        order. At most two chunks per worker are in flight, so a slow consumer holds back
+        the workers instead of filling memory."""
+        chunks = [list(indices[i:i + self.chunk]) for i in range(0, len(indices), self.chunk)]
+        pending: collections.deque[concurrent.futures.Future[tuple[float, list[Any]]]] = (
+            collections.deque())
+        ahead = 2 * self.workers
+        it = iter(chunks)
+        for chunk in itertools.islice(it, ahead):
+            pending.append(self._pool.submit(_pool_run, fn, chunk))
+        while pending:
+            cpu_s, results = pending.popleft().result()
+            self.cpu_seconds += cpu_s
+            nxt = next(it, None)
+            if nxt is not None:
+                pending.append(self._pool.submit(_pool_run, fn, nxt))
+            yield from results
+
+    def samples(self, indices: Sequence[int]) -> Iterator[Sample]:
+        """The samples themselves (each several MB through a pipe at 848x480: prefer
+        :meth:`map` with a function that reduces a sample in the worker)."""
+        return self.map(_identity, indices)
+
+    def warm_up(self) -> None:
+        """Start every worker and its GL context (blocks until they are ready)."""
+        list(self.map(sample_summary, list(range(self.workers * self.chunk))))
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> SamplePool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def write_dataset(generator: SampleGenerator, out_dir: str | Path, count: int, *,
                   workers: int = 1, progress: Callable[[str], None] | None = None) -> Path:
     """Render samples ``0 .. count-1`` of ``generator`` into ``out_dir`` (see the module
-    docstring); ``workers`` processes share the work (each with its own GL context); the
-    result does not depend on ``workers``. Returns the labels file."""
+    docstring); ``workers`` processes share the work (a :class:`SamplePool`, each with its own
+    GL context); the result does not depend on ``workers``. Returns the labels file."""
     if count < 1:
         raise DatasetError(f"count {count}: at least 1")
     out = Path(out_dir)
@@ -405,17 +595,10 @@ def write_dataset(generator: SampleGenerator, out_dir: str | Path, count: int, *
             docs[i] = _write_sample(generator(i), out)
             report(i + 1)
     else:
-        kwargs = {"scenario_path": generator.scenario.source_path, "mode": generator.mode,
-                  "seed": generator.seed, "width": generator.width, "height": generator.height,
-                  "robot_mesh": generator.robot_mesh, "robot_model": generator.model,
-                  "randomization": generator.randomization}
-        ctx = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(workers, mp_context=ctx,
-                                                    initializer=_worker_init,
-                                                    initargs=(kwargs,)) as pool:
-            futures = {pool.submit(_worker_render, i, str(out)): i for i in range(count)}
-            for done, fut in enumerate(concurrent.futures.as_completed(futures), start=1):
-                docs[futures[fut]] = fut.result()
+        with SamplePool(generator, workers) as pool:
+            write = functools.partial(_write_sample_to, str(out))
+            for done, doc in enumerate(pool.map(write, range(count)), start=1):
+                docs[done - 1] = doc
                 report(done)
     labels = out / "labels.jsonl"
     with labels.open("w", encoding="utf-8") as fh:

@@ -136,9 +136,21 @@ class SceneObject:
 @dataclasses.dataclass(frozen=True, eq=False)
 class Scene:
     """What one render draws. ``light_dir_world`` (3,): direction the light comes *from*;
-    ``ambient`` in [0, 1]; ``background_rgb`` (3,) in [0, 1] where nothing is drawn."""
+    ``ambient`` in [0, 1]; ``background_rgb`` (3,) in [0, 1] where nothing is drawn.
+
+    ``static_objects``: the first that many ``objects`` are the same :class:`SceneObject`
+    instances from frame to frame (the site's floor, walls and furniture): a renderer may keep
+    their render per camera and draw only the remaining objects on top of it, which gives the
+    same image (they are drawn first either way). 0: nothing is kept.
+    """
 
     objects: tuple[SceneObject, ...]
     light_dir_world: tuple[float, float, float] = (0.3, 0.2, 1.0)
     ambient: float = 0.45
     background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    static_objects: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.static_objects <= len(self.objects):
+            raise ValueError(f"scene: static_objects {self.static_objects} not in "
+                             f"0..{len(self.objects)}")

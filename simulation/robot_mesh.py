@@ -128,8 +128,10 @@ def lathe(profile_rz: np.ndarray, colors: Color | np.ndarray, segments: int = 48
     faces: list[np.ndarray] = []
     j = np.arange(segments)
     j1 = (j + 1) % n_ang
+    # np.allclose(prof[k], prof[k + 1]) for every k at once (finite profiles)
+    repeated = np.all(np.abs(prof[:-1] - prof[1:]) <= 1e-8 + 1e-5 * np.abs(prof[1:]), axis=1)
     for k in range(K - 1):
-        if np.allclose(prof[k], prof[k + 1]):
+        if repeated[k]:
             continue  # sharp edge / colour change: no triangles between the copies
         a, b = k * n_ang + j, k * n_ang + j1
         c, d = (k + 1) * n_ang + j1, (k + 1) * n_ang + j
@@ -189,26 +191,38 @@ def box(size_m: Sequence[float], center_m: Sequence[float] = (0.0, 0.0, 0.0),
     unknown = set(face_colors) - {"+x", "-x", "+y", "-y", "+z", "-z"}
     if unknown:
         raise ValueError(f"box: unknown faces {sorted(unknown)}")
-    verts, cols, norms = [], [], []
+    if face_colors:
+        cols = np.repeat(np.stack([_rgb(face_colors.get(name, color))
+                                   for name in _BOX_FACE_NAMES]), 4, axis=0)
+    else:
+        cols = np.tile(_rgb(color), (24, 1))
+    return Mesh(_BOX_CORNER_SIGNS * h + c, _BOX_FACES, cols, _BOX_NORMALS)
+
+
+def _box_pattern() -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """Corner signs (24, 3), faces (12, 3), normals (24, 3) and face names of :func:`box`: per
+    axis and sign one quad, corners counter-clockwise seen from outside."""
+    signs, normals, names = [], [], []
     for axis in range(3):
         u, v = (axis + 1) % 3, (axis + 2) % 3
         for sign in (1.0, -1.0):
             n = np.zeros(3)
             n[axis] = sign
             quad = np.zeros((4, 3))
-            quad[:, axis] = sign * h[axis]
-            # corners counter-clockwise seen from outside: (u, v) = (-,-), (+,-), (+,+), (-,+)
-            su = np.array([-1.0, 1.0, 1.0, -1.0]) * sign
-            sv = np.array([-1.0, -1.0, 1.0, 1.0])
-            quad[:, u] = su * h[u]
-            quad[:, v] = sv * h[v]
-            verts.append(quad + c)
-            name = ("+" if sign > 0 else "-") + "xyz"[axis]
-            cols.append(np.tile(_rgb(face_colors.get(name, color)), (4, 1)))
-            norms.append(np.tile(n, (4, 1)))
+            quad[:, axis] = sign
+            # (u, v) = (-,-), (+,-), (+,+), (-,+)
+            quad[:, u] = np.array([-1.0, 1.0, 1.0, -1.0]) * sign
+            quad[:, v] = np.array([-1.0, -1.0, 1.0, 1.0])
+            signs.append(quad)
+            normals.append(np.tile(n, (4, 1)))
+            names.append(("+" if sign > 0 else "-") + "xyz"[axis])
     faces = np.array([[q * 4, q * 4 + 1, q * 4 + 2] for q in range(6)]
                      + [[q * 4, q * 4 + 2, q * 4 + 3] for q in range(6)])
-    return Mesh(np.vstack(verts), faces, np.vstack(cols), np.vstack(norms))
+    return np.vstack(signs), faces, np.vstack(normals), tuple(names)
+
+
+# the ±1 signs are exact, so sign * half-size + centre is what a per-face loop computes
+_BOX_CORNER_SIGNS, _BOX_FACES, _BOX_NORMALS, _BOX_FACE_NAMES = _box_pattern()
 
 
 def sphere(radius_m: float, center_m: Sequence[float] = (0.0, 0.0, 0.0),

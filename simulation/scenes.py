@@ -224,7 +224,10 @@ def site_scene(geometry: SiteGeometry, robot_mesh: Mesh, robot_pose: Sequence[fl
     x, y, theta = (float(v) for v in robot_pose)
     robot = SceneObject(robot_mesh, se3_from_planar(x, y, theta), ROBOT_INSTANCE,
                         CLASS_ID["robot"])
-    return Scene((*geometry.objects, robot, *occluders), light_dir_world=light_dir_world)
+    # the site's own objects are the same instances every frame: renderers keep their render
+    # per camera and draw the robot and occluders on top
+    return Scene((*geometry.objects, robot, *occluders), light_dir_world=light_dir_world,
+                 static_objects=len(geometry.objects))
 
 
 def robot_keypoints_world(model: RobotModel, robot_pose: Sequence[float]) -> np.ndarray:
