@@ -67,7 +67,7 @@ def finite_difference_extrinsic_jacobian(cameras: Sequence[CameraModel],
     return np.stack(uvs), np.stack(Gs)
 
 
-class StageClock:
+class NestedStageTimer:
     """Thread-CPU seconds per stage; nested stages are subtracted from their parent."""
 
     def __init__(self) -> None:
@@ -97,7 +97,7 @@ class StageClock:
 
 
 @contextlib.contextmanager
-def _patched(clock: StageClock, previous_release: bool) -> Iterator[None]:
+def _patched(clock: NestedStageTimer, previous_release: bool) -> Iterator[None]:
     """Wrap the deployed functions with the stage timers (and swap in the peer's Jacobian)."""
     targets: list[tuple[Any, str, str]] = [
         (sync.FrameSetSynchronizer, "push", "sync"),
@@ -147,7 +147,7 @@ def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool =
     start_ns = 1_000_000_000
     payloads = [detection_payloads(site, robot_pose(k / rate_hz), start_ns + k * period_ns, k,
                                    rng) for k in range(frames)]
-    clock = StageClock()
+    clock = NestedStageTimer()
     solved = 0
     with _patched(clock, previous_release):
         pipe = pipeline.BackendPipeline(site)
