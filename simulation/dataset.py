@@ -43,6 +43,7 @@ import numpy as np
 from protocol.camera import CameraModel
 from protocol.errors import SmartedgeError
 from simulation.mesh import CLASS_ID, CLASSES, Mesh, SceneObject
+from simulation.render_stages import StageClock
 from simulation.scenes import (
     FIRST_OTHER_INSTANCE,
     ROBOT_INSTANCE,
@@ -247,7 +248,7 @@ class SampleGenerator:
 
     @property
     def times(self) -> Any:
-        """A :class:`simulation.render_gl.StageTimes` that every sample adds its stages to
+        """A :class:`simulation.render_stages.StageTimes` that every sample adds its stages to
         (scene, lens map, upload, draw, read-back, remap, labels, augmentation), or ``None``
         (the default: no timing, no GL synchronization for it)."""
         return self._times
@@ -301,8 +302,6 @@ class SampleGenerator:
         :meth:`simulation.render_gl.Renderer.render_many` per image size (shared context switch
         and mesh uploads), then labelled and augmented. Each sample is exactly ``self(index)``.
         """
-        from simulation.render_gl import StageClock
-
         clock = StageClock(self._times)
         views = [self.view(index) for index in indices]
         clock.lap("scene")

@@ -3,7 +3,8 @@
 A :class:`Mesh` lives in its own frame (metres, z up); a :class:`SceneObject` places it in the
 world (``T_world_object``) with an instance id (0: no instance; robots and other counted things
 get 1, 2, ...) and a semantic class (:data:`CLASSES`). A :class:`Scene` is what one render pass
-draws: objects, a light and a background colour.
+draws: objects, a light and a background colour. :func:`closed_outward_faces` finds the closed,
+outward-oriented parts of a mesh (the renderer culls their back faces).
 """
 
 from __future__ import annotations
@@ -110,6 +111,94 @@ def concatenate(meshes: Sequence[Mesh]) -> Mesh:
         np.vstack([m.colors for m in meshes]),
         np.vstack([m.normals for m in meshes]),  # type: ignore[misc]
     )
+
+
+def closed_outward_faces(mesh: Mesh, weld_m: float = 1e-6) -> np.ndarray:
+    """(M,) bool: the faces of ``mesh`` that belong to a closed surface whose faces are all
+    counter-clockwise seen from outside.
+
+    Vertices closer than ``weld_m`` are merged first (flat-shaded meshes repeat them per face)
+    and faces that collapse are left out (False). Per connected part, every directed edge must
+    occur exactly once and its reverse exactly once, and the enclosed signed volume must be
+    positive. Seen from outside its bounding box, such a part shows only front faces, so its
+    back faces may be culled without changing the image; open parts (single-sided panels) and
+    inside-out parts are drawn two-sided.
+    """
+    return closed_outward_faces_many([mesh], weld_m)[0]
+
+
+def closed_outward_faces_many(meshes: Sequence[Mesh], weld_m: float = 1e-6
+                              ) -> list[np.ndarray]:
+    """:func:`closed_outward_faces` of each mesh, computed in one pass over all of them (the
+    small meshes of a randomized scene cost numpy call overhead, not arithmetic). Vertices of
+    different meshes are never welded together, so each result is the single-mesh one."""
+    results = [np.zeros(len(m.faces), bool) for m in meshes]
+    todo = [k for k, m in enumerate(meshes) if len(m.faces) >= 4]
+    if not todo:
+        return results
+    verts = [meshes[k].vertices.astype(np.float64) for k in todo]
+    counts = np.array([len(v) for v in verts])
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    face_counts = np.array([len(meshes[k].faces) for k in todo])
+    v = np.concatenate(verts)
+    faces = np.concatenate([meshes[k].faces.astype(np.int64) + o
+                            for k, o in zip(todo, offsets, strict=True)])
+    face_mesh = np.repeat(np.arange(len(todo)), face_counts)
+    # weld within each mesh only: the mesh index is part of the key
+    keys = np.empty((len(v), 4), np.int64)
+    keys[:, :3] = np.round(v / weld_m)
+    keys[:, 3] = np.repeat(np.arange(len(todo)), counts)
+    _, welded = np.unique(keys, axis=0, return_inverse=True)
+    f = welded.reshape(-1)[faces]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    # a mesh with fewer than 4 faces left cannot enclose anything (and was all-open before)
+    kept_per_mesh = np.bincount(face_mesh[keep], minlength=len(todo))
+    keep &= kept_per_mesh[face_mesh] >= 4
+    keep = np.flatnonzero(keep)
+    if len(keep) == 0:
+        return results
+    f = f[keep]
+    n = int(f.max()) + 1
+    a, b = f.ravel(), f[:, [1, 2, 0]].ravel()  # directed edges, three per face in face order
+
+    # Connected parts: hook each root onto the smallest root it shares an edge with, then
+    # compress paths fully; a few rounds suffice.
+    parent = np.arange(n)
+    while True:
+        ra, rb = parent[a], parent[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        np.minimum.at(parent, np.maximum(ra, rb)[differ], np.minimum(ra, rb)[differ])
+        while True:
+            jumped = parent[parent]
+            if np.array_equal(jumped, parent):
+                break
+            parent = jumped
+    _, part = np.unique(parent[f[:, 0]], return_inverse=True)
+
+    # An edge is paired when it occurs once and its reverse occurs exactly once.
+    directed = a * n + b
+    order = np.argsort(directed)
+    ds = directed[order]
+    same_next = ds[1:] == ds[:-1]
+    repeated = np.zeros(len(ds), bool)
+    repeated[1:] |= same_next
+    repeated[:-1] |= same_next
+    pos = np.minimum(np.searchsorted(ds, b * n + a), len(ds) - 1)
+    paired = (ds[pos] == b * n + a) & ~repeated[pos]
+    paired[order] &= ~repeated
+    open_faces = ~paired.reshape(-1, 3).all(axis=1)
+    num_parts = int(part.max()) + 1
+    part_open = np.bincount(part, weights=open_faces, minlength=num_parts) > 0
+    fv = faces[keep]
+    volume6 = np.einsum("ij,ij->i", v[fv[:, 0]], np.cross(v[fv[:, 1]], v[fv[:, 2]]))
+    part_volume = np.bincount(part, weights=volume6, minlength=num_parts)
+    closed = np.zeros(len(faces), bool)
+    closed[keep] = (~part_open & (part_volume > 0.0))[part]
+    for k, piece in zip(todo, np.split(closed, np.cumsum(face_counts)[:-1]), strict=True):
+        results[k] = piece
+    return results
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

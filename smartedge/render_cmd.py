@@ -66,12 +66,8 @@ def load_user_robot(robot: str | None, keypoints: str | None) -> tuple[object, o
         return None, None
     if robot is None or keypoints is None:
         raise SmartedgeError("--robot and --keypoints go together")
-    from simulation.robot_mesh import (
-        load_keypoint_file,
-        load_robot_mesh,
-        load_urdf,
-        robot_model_from_mesh,
-    )
+    from simulation.robot_files import load_keypoint_file, load_robot_mesh, load_urdf
+    from simulation.robot_mesh import robot_model_from_mesh
 
     if Path(robot).suffix.lower() == ".urdf":
         mesh, links = load_urdf(robot)

@@ -91,7 +91,7 @@ def main(argv: Sequence[str]) -> int:
 
 def _case(gen: Any, w: int, h: int, args: argparse.Namespace) -> None:
     from simulation.dataset import SamplePool, sample_summary
-    from simulation.render_gl import StageTimes
+    from simulation.render_stages import StageTimes
 
     warm = list(range(2 * args.batch))
     gen.samples(warm)  # GL context, shaders, static meshes, textures, lens maps

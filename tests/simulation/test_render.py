@@ -18,14 +18,15 @@ from protocol.errors import SmartedgeError
 from protocol.geometry import invert_transform, rotation_from_rpy
 from protocol.site import look_at_T_world_cam
 from simulation.labels import instance_bbox, keypoint_labels
-from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject, concatenate
-from simulation.render_gl import (
-    Renderer,
-    RendererUnavailable,
-    RenderOutput,
+from simulation.mesh import (
+    CLASS_ID,
+    Mesh,
+    Scene,
+    SceneObject,
     closed_outward_faces,
-    create_context,
+    concatenate,
 )
+from simulation.render_gl import Renderer, RendererUnavailable, RenderOutput, create_context
 
 pytest.importorskip("moderngl")
 

@@ -16,15 +16,15 @@ pytest.importorskip("moderngl")
 
 from simulation.dataset import SampleGenerator, SamplePool, augment, sample_summary
 from simulation.labels import instance_bbox, keypoint_labels
-from simulation.mesh import Mesh, Scene, SceneObject
-from simulation.render_gl import (
-    STAGES,
-    Renderer,
-    RenderOutput,
-    StageTimes,
+from simulation.mesh import (
+    Mesh,
+    Scene,
+    SceneObject,
     closed_outward_faces,
     closed_outward_faces_many,
 )
+from simulation.render_gl import Renderer, RenderOutput
+from simulation.render_stages import STAGES, StageTimes
 from simulation.robot_mesh import box, cylinder
 from simulation.scenario import load_scenario
 from simulation.scenes import ROBOT_INSTANCE, robot_keypoints_world

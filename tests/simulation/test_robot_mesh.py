@@ -14,8 +14,8 @@ import pytest
 from protocol.errors import SmartedgeError
 from protocol.site import RobotModel, load_site
 from simulation.mesh import Mesh
+from simulation.robot_files import RobotMeshError, load_keypoint_file, load_robot_mesh, load_urdf
 from simulation.robot_mesh import (
-    RobotMeshError,
     box,
     capsule,
     cylinder,
@@ -23,9 +23,6 @@ from simulation.robot_mesh import (
     hsr_like_mesh,
     hsr_like_parts,
     lathe,
-    load_keypoint_file,
-    load_robot_mesh,
-    load_urdf,
     robot_model_from_mesh,
     sphere,
     surface_distance,
@@ -126,8 +123,9 @@ def test_surface_distance_regions() -> None:
     np.testing.assert_allclose(surface_distance(tri, pts), expected, atol=1e-12)
 
 
-def test_module_imports_no_trimesh() -> None:
-    code = "import sys, simulation.robot_mesh; assert 'trimesh' not in sys.modules"
+def test_modules_import_no_trimesh() -> None:
+    code = ("import sys, simulation.robot_mesh, simulation.robot_files; "
+            "assert 'trimesh' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True)
 
 
