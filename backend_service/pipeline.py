@@ -436,13 +436,13 @@ class BackendPipeline:
         return [] if fused is None else [self._stamp_fused(track, fused)]
 
     def _stamp_camera(self, track: RobotTrack, est: PoseEstimate) -> PoseEstimate:
-        est = dataclasses.replace(est, seq=track.seq_camera, frame_id=track.world_frame)
+        est = est.numbered(track.seq_camera, track.world_frame)
         track.seq_camera += 1
         track.last_camera = est
         return est
 
     def _stamp_fused(self, track: RobotTrack, fused: PoseEstimate) -> PoseEstimate:
-        fused = dataclasses.replace(fused, seq=track.seq_fused, frame_id=track.world_frame)
+        fused = fused.numbered(track.seq_fused, track.world_frame)
         track.seq_fused += 1
         return fused
 

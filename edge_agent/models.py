@@ -396,15 +396,26 @@ class Detector:
     def detect(self, image_rgb: np.ndarray, min_score: float = 0.3,
                max_detections: int = 8) -> np.ndarray:
         """(n, 5) ``x0, y0, x1, y1, score`` in the frame's pixels, best first."""
+        return self.detect_many([image_rgb], min_score, max_detections)[0]
+
+    def detect_many(self, images_rgb: Sequence[np.ndarray], min_score: float = 0.3,
+                    max_detections: int = 8) -> list[np.ndarray]:
+        """:meth:`detect` of several frames (any sizes) in one network run (a batch)."""
         c = self.card
-        h, w = image_rgb.shape[:2]
-        x = to_nchw(resize_for_detector(image_rgb, c.input_w, c.input_h))
+        if not images_rgb:
+            return []
+        x = to_nchw(np.stack([resize_for_detector(im, c.input_w, c.input_h)
+                              for im in images_rgb]))
         peaks, size, offset = self.session.run(None, {"image": x})
-        boxes = decode_detections(peaks[0], size[0], offset[0], c.stride, min_score,
-                                  max_detections)
-        s = np.array([w / c.input_w, h / c.input_h] * 2)
-        boxes[:, :4] = (boxes[:, :4] + 0.5) * s - 0.5
-        return boxes
+        out = []
+        for i, image_rgb in enumerate(images_rgb):
+            h, w = image_rgb.shape[:2]
+            boxes = decode_detections(peaks[i], size[i], offset[i], c.stride, min_score,
+                                      max_detections)
+            s = np.array([w / c.input_w, h / c.input_h] * 2)
+            boxes[:, :4] = (boxes[:, :4] + 0.5) * s - 0.5
+            out.append(boxes)
+        return out
 
 
 class KeypointEstimator:
@@ -439,23 +450,40 @@ class KeypointEstimator:
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """As :meth:`estimate`, plus (n, K) 1-sigma keypoint errors in frame pixels from the
         card's calibration (``None`` when the card has none)."""
+        return self.estimate_many([image_rgb], [boxes_xyxy])[0]
+
+    def estimate_many(self, images_rgb: Sequence[np.ndarray], boxes_xyxy: Sequence[np.ndarray]
+                      ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+        """:meth:`estimate_with_sigma` of several frames, each with its (n_i, 4) boxes: the
+        crops of all frames in one network run (a batch)."""
         c = self.card
-        n = len(boxes_xyxy)
-        if n == 0:
-            k = self.num_keypoints
-            return (np.zeros((0, k, 2)), np.zeros((0, k)),
-                    np.zeros((0, k)) if self.calibrated else None)
-        tfs = [crop_transform(b[:4], c.input_w, c.input_h, padding=c.crop_padding)
-               for b in boxes_xyxy]
-        crops = np.stack([extract_crop(image_rgb, tf, c.input_w, c.input_h) for tf in tfs])
-        kp, conf = self.session.run(None, {"crop": to_nchw(crops)})
-        kp_img = np.stack([tf.to_image(k) for tf, k in zip(tfs, kp, strict=True)])
-        conf = conf.astype(np.float64)
-        sigma_crop = sigma_from_confidence(conf, c.sigma_calibration)
-        if sigma_crop is None:
-            return kp_img, conf, None
-        scales = np.array([tf.scale for tf in tfs])[:, None]  # crop px per image px
-        return kp_img, conf, sigma_crop / scales
+        k = self.num_keypoints
+        tfs = [[crop_transform(b[:4], c.input_w, c.input_h, padding=c.crop_padding)
+                for b in boxes] for boxes in boxes_xyxy]
+        crops = [extract_crop(image_rgb, tf, c.input_w, c.input_h)
+                 for image_rgb, frame_tfs in zip(images_rgb, tfs, strict=True)
+                 for tf in frame_tfs]
+        if crops:
+            kp_all, conf_all = self.session.run(None, {"crop": to_nchw(np.stack(crops))})
+        out: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        start = 0
+        for frame_tfs in tfs:
+            n = len(frame_tfs)
+            if n == 0:
+                out.append((np.zeros((0, k, 2)), np.zeros((0, k)),
+                            np.zeros((0, k)) if self.calibrated else None))
+                continue
+            kp, conf = kp_all[start:start + n], conf_all[start:start + n]
+            start += n
+            kp_img = np.stack([tf.to_image(p) for tf, p in zip(frame_tfs, kp, strict=True)])
+            conf = conf.astype(np.float64)
+            sigma_crop = sigma_from_confidence(conf, c.sigma_calibration)
+            if sigma_crop is None:
+                out.append((kp_img, conf, None))
+                continue
+            scales = np.array([tf.scale for tf in frame_tfs])[:, None]  # crop px per image px
+            out.append((kp_img, conf, sigma_crop / scales))
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -535,18 +563,27 @@ class RobotKeypointPipeline:
 
     def __call__(self, image_rgb: np.ndarray, *, min_score: float = 0.3,
                  max_robots: int = 4) -> list[RobotObservation]:
-        if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
-            raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {image_rgb.shape} "
-                             f"{image_rgb.dtype}")
+        return self.run_many([image_rgb], min_score=min_score, max_robots=max_robots)[0]
+
+    def run_many(self, images_rgb: Sequence[np.ndarray], *, min_score: float = 0.3,
+                 max_robots: int = 4) -> list[list[RobotObservation]]:
+        """The robots of several frames (e.g. the cameras of one capture), each network run
+        once for all of them (a batch); what each frame gets is what it gets alone.
+        :attr:`times` holds the whole call's stage times."""
+        for image_rgb in images_rgb:
+            if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
+                raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got "
+                                 f"{image_rgb.shape} {image_rgb.dtype}")
         t0 = time.perf_counter()
-        boxes = self.detector.detect(image_rgb, min_score, max_robots)
+        boxes = self.detector.detect_many(images_rgb, min_score, max_robots)
         t1 = time.perf_counter()
-        kp, conf, sigma = self.keypoints.estimate_with_sigma(image_rgb, boxes)
+        keypoints = self.keypoints.estimate_many(images_rgb, boxes)
         t2 = time.perf_counter()
         self.times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3)
-        return [RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
-                                 None if sigma is None else sigma[i])
-                for i, b in enumerate(boxes)]
+        return [[RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
+                                  None if sigma is None else sigma[i])
+                 for i, b in enumerate(frame_boxes)]
+                for frame_boxes, (kp, conf, sigma) in zip(boxes, keypoints, strict=True)]
 
 
 # --------------------------------------------------------------------------------------------

@@ -10,11 +10,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
 from edge_agent.frames import Frame
-from edge_agent.models import RobotKeypointPipeline
+from edge_agent.models import RobotKeypointPipeline, RobotObservation
 from protocol.messages import Detection, RobotDetections
 
 log = logging.getLogger(__name__)
@@ -58,15 +59,25 @@ class EdgePipeline:
         return self.models.model_id
 
     def process(self, frame: Frame) -> tuple[RobotDetections, StageLatency]:
-        image = frame.image_rgb
-        h, w = image.shape[:2]
+        self._check_size(frame)
+        found = self.models(frame.image_rgb, min_score=self.min_score,
+                            max_robots=self.max_robots)
+        return self._finish(frame, found, self.models.times.detector_ms * 1e-3,
+                            self.models.times.keypoints_ms * 1e-3)
+
+    def _check_size(self, frame: Frame) -> None:
+        h, w = frame.image_rgb.shape[:2]
         if self.expected_size and (w, h) != tuple(self.expected_size) and not self._warned_size:
             log.warning("%s: frames are %dx%d, the site's calibration is %dx%d: keypoints are "
                         "sent in frame pixels with the frame's size", self.camera_id, w, h,
                         *self.expected_size)
             self._warned_size = True
-        found = self.models(image, min_score=self.min_score, max_robots=self.max_robots)
+
+    def _finish(self, frame: Frame, found: list[RobotObservation], detector_s: float,
+                keypoints_s: float) -> tuple[RobotDetections, StageLatency]:
+        """The message of ``frame`` from the robots the networks found in it."""
         t1 = time.perf_counter()
+        h, w = frame.image_rgb.shape[:2]
         detections = []
         for obs in found:
             box = np.asarray(obs.bbox_xyxy, np.float64).copy()
@@ -90,7 +101,29 @@ class EdgePipeline:
                                         self.robot_id, sigma))
         msg = RobotDetections(self.camera_id, frame.stamp_ns, frame.seq, w, h, self.model_id,
                               tuple(detections))
-        t2 = time.perf_counter()
-        times = self.models.times
-        return msg, StageLatency(times.detector_ms * 1e-3, times.keypoints_ms * 1e-3,
-                                 (t2 - t1))
+        return msg, StageLatency(detector_s, keypoints_s, time.perf_counter() - t1)
+
+
+def process_batch(items: Sequence[tuple[EdgePipeline, Frame]]
+                  ) -> list[tuple[RobotDetections, StageLatency]]:
+    """The frames of several cameras (each with its own :class:`EdgePipeline`, all on the same
+    :class:`RobotKeypointPipeline`), the networks run once for all of them
+    (:meth:`RobotKeypointPipeline.run_many`); each message is what
+    :meth:`EdgePipeline.process` makes of its frame. The stage latencies are the batch's,
+    shared equally between its frames."""
+    if not items:
+        return []
+    models = items[0][0].models
+    settings = {(p.min_score, p.max_robots) for p, _ in items}
+    if any(p.models is not models for p, _ in items) or len(settings) > 1:
+        raise ValueError("process_batch: the pipelines must share models, min_score and "
+                         "max_robots")
+    for pipeline, frame in items:
+        pipeline._check_size(frame)
+    first = items[0][0]
+    found = models.run_many([frame.image_rgb for _, frame in items],
+                            min_score=first.min_score, max_robots=first.max_robots)
+    n = len(items)
+    det_s, kp_s = models.times.detector_ms * 1e-3 / n, models.times.keypoints_ms * 1e-3 / n
+    return [pipeline._finish(frame, obs, det_s, kp_s)
+            for (pipeline, frame), obs in zip(items, found, strict=True)]

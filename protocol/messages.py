@@ -349,6 +349,16 @@ class PoseEstimate(Message):
         _freeze(self, "flags", check_str_tuple("flags", self.flags, max_items=MAX_FLAGS))
         _freeze(self, "frame_id", check_id("frame_id", self.frame_id))
 
+    def numbered(self, seq: int, frame_id: str) -> PoseEstimate:
+        """This estimate as its publisher numbers it: ``seq`` and ``frame_id`` replaced. Only
+        those two are checked; every other field was checked when this instance was built and
+        is shared (read-only), where ``dataclasses.replace`` would validate it all again."""
+        out = object.__new__(PoseEstimate)
+        out.__dict__.update(self.__dict__)
+        _freeze(out, "seq", check_int("seq", seq))
+        _freeze(out, "frame_id", check_id("frame_id", frame_id))
+        return out
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class PoseCorrection(Message):

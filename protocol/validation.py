@@ -140,8 +140,11 @@ def check_covariance(field: str, value: Any, dim: int = 3) -> np.ndarray:
     """A ``dim x dim`` float64 covariance: finite, symmetric, non-negative diagonal."""
     cov = check_array(field, value, dtypes=("float64", "float32"), shape=(dim, dim))
     cov = cov.astype(np.float64)
-    scale = max(1.0, float(np.max(np.abs(cov))))
-    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-9 * scale):
+    magnitude = np.abs(cov)
+    scale = max(1.0, float(magnitude.max()))
+    # np.allclose(cov, cov.T, rtol=1e-6, atol=1e-9 * scale) written out (cov is finite here):
+    # every pose and odometry message passes this, and allclose's generality costs 4x as much
+    if not (np.abs(cov - cov.T) <= 1e-9 * scale + 1e-6 * magnitude.T).all():
         raise ValidationError(field, "covariance is not symmetric")
     if np.any(np.diag(cov) < 0.0):
         raise ValidationError(field, "covariance has a negative variance on its diagonal")

@@ -6,13 +6,20 @@ for visibility (image bounds, range, obstacles, the robot's own body) and corrup
 detector error model of :class:`simulation.scenario.NoiseConfig`. Stamps carry each camera's
 clock error; arrival times add latency and jitter. Everything random comes from seeded numpy
 Generators, so a seed reproduces a run exactly.
+
+The geometry of a frame (projections, visibility tests, the robot's projected hull) depends only
+on the camera and the robot's pose, so :class:`DetectionSimulator` keeps it per camera, keyed by
+the pose: :meth:`DetectionSimulator.prepare_frames` computes it for all frames of a run at once
+(vectorized over frames and keypoints) and a static robot's frames share one entry. Neither
+changes a number: the batched arithmetic is the per-frame arithmetic, element by element.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import ClassVar
 
 import numpy as np
 
@@ -23,6 +30,11 @@ from simulation.scenario import Scenario
 from simulation.world import World
 
 MODEL_ID = "sim-noise-v1"
+#: frames per camera whose geometry :meth:`DetectionSimulator.prepare_frames` keeps (about
+#: 1 kB each; 18 min at 15 Hz); later frames are computed when they come
+MAX_PREPARED_FRAMES = 16_384
+#: frames computed together (bounds the temporaries of a vectorized computation)
+GEOMETRY_CHUNK = 1024
 
 
 def true_cameras(scenario: Scenario) -> dict[str, CameraModel]:
@@ -59,8 +71,45 @@ class Visibility:
     detectable: bool
 
 
+@dataclasses.dataclass(frozen=True)
+class FrameRequest:
+    """One camera frame to detect in (:meth:`DetectionSimulator.detect_many`): the camera, its
+    true capture time (common clock, ns), the robot's true planar pose (x, y, theta; world
+    frame, metres, radians), the frame's sequence number and the camera's random generator."""
+
+    camera_id: str
+    true_capture_ns: int
+    pose: np.ndarray
+    seq: int
+    rng: np.random.Generator
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameGeometry:
+    """Everything about one frame that depends only on the camera and the robot's pose:
+    ``visibility`` and ``hull_uv`` (H, 2), the pixels of the robot's bounding hull points in
+    front of the camera (the detection's box). Arrays are read-only (shared between frames)."""
+
+    visibility: Visibility
+    hull_uv: np.ndarray
+
+
+def _pose_key(pose: np.ndarray) -> bytes:
+    """Cache key of a planar pose: its three float64 values, bit for bit."""
+    return np.asarray(pose, dtype=np.float64).reshape(-1)[:3].tobytes()
+
+
+def _readonly(*arrays: np.ndarray) -> None:
+    for a in arrays:
+        a.setflags(write=False)
+
+
 class DetectionSimulator:
     """Produces :class:`protocol.RobotDetections` for the cameras of a scenario."""
+
+    #: whether :meth:`detect_many` costs less than one :meth:`detect` per frame, so that a
+    #: runner should hand it the cameras' frames of one capture together (not here)
+    batches_frames: ClassVar[bool] = False
 
     def __init__(self, scenario: Scenario, world: World | None = None) -> None:
         self.scenario = scenario
@@ -83,30 +132,92 @@ class DetectionSimulator:
         self.clock_residual_ns: Mapping[str, int] = {
             c: round(clk.normal(0.0, cfg.clock_residual_ms) * 1e6) for c in self.cameras
         }
+        #: (3,) optical centre of each true camera, world frame, metres
+        self._camera_position = {c: cam.position_world for c, cam in self.cameras.items()}
+        #: per camera: pose key → the geometry of a frame of the run being prepared
+        self._prepared: dict[str, dict[bytes, FrameGeometry]] = {c: {} for c in self.cameras}
+        #: per camera: the last frame computed on demand (a static robot repeats it)
+        self._last: dict[str, tuple[bytes, FrameGeometry]] = {}
 
     # -- geometry ------------------------------------------------------------------------------
 
     def visibility(self, camera_id: str, pose: np.ndarray) -> Visibility:
         """Geometric visibility of the robot at planar ``pose`` from ``camera_id``."""
+        return self.frame_geometry(camera_id, pose).visibility
+
+    def frame_geometry(self, camera_id: str, pose: np.ndarray) -> FrameGeometry:
+        """The geometry of a frame of ``camera_id`` with the robot at planar ``pose`` (x, y,
+        theta; world frame, metres, radians): prepared (:meth:`prepare_frames`), the last one
+        computed for this camera when the pose is the same (a static robot), else computed
+        now."""
+        key = _pose_key(pose)
+        geometry = self._prepared[camera_id].get(key)
+        if geometry is not None:
+            return geometry
+        last = self._last.get(camera_id)
+        if last is not None and last[0] == key:
+            return last[1]
+        geometry = self._compute_geometry(camera_id, np.asarray(pose, np.float64)[None, :3])[0]
+        self._last[camera_id] = (key, geometry)
+        return geometry
+
+    def prepare_frames(self, camera_id: str, poses: np.ndarray) -> None:
+        """Compute the geometry of the frames ``camera_id`` will capture with the robot at
+        ``poses`` (N, 3) at once (vectorized over frames and keypoints; at most
+        :data:`MAX_PREPARED_FRAMES` distinct poses); :meth:`detect` then looks it up. Replaces
+        what was prepared for the camera before (one run at a time)."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        first: dict[bytes, int] = {}  # distinct poses (a static robot repeats its pose)
+        for i, p in enumerate(poses):
+            first.setdefault(_pose_key(p), i)
+            if len(first) >= MAX_PREPARED_FRAMES:
+                break
+        keys, rows = list(first), list(first.values())
+        prepared: dict[bytes, FrameGeometry] = {}
+        for k in range(0, len(rows), GEOMETRY_CHUNK):
+            chunk = rows[k:k + GEOMETRY_CHUNK]
+            prepared.update(zip(keys[k:k + GEOMETRY_CHUNK],
+                                self._compute_geometry(camera_id, poses[chunk]), strict=True))
+        self._prepared[camera_id] = prepared
+
+    def _compute_geometry(self, camera_id: str, poses: np.ndarray) -> list[FrameGeometry]:
+        """:class:`FrameGeometry` of (N, 3) ``poses``: each frame's numbers are those of a
+        one-frame call (the same operations per element; matrix products row by row)."""
         cam = self.cameras[camera_id]
         cfg = self.scenario.cameras
-        T = se3_from_planar(*pose)
-        kps_w = (self._kps_h @ T.T)[:, :3]
-        uv, depth = cam.project(kps_w)
-        cam_pos = cam.position_world
-        dist = float(np.hypot(pose[0] - cam_pos[0], pose[1] - cam_pos[1]))
-        in_view = cam.in_image(uv) & (depth > 0.1) & (dist <= cfg.max_range_m)
-        occluded = self.world.segments_blocked(cam_pos, kps_w)
-        to_cam = cam_pos[:2] - kps_w[:, :2]
-        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-9)
-        R2 = T[:2, :2]
-        normals_w = self._normals @ R2.T
-        self_occ = np.sum(normals_w * to_cam, axis=1) < -0.05
+        n, m = len(poses), len(self._kps_h)
+        # (N, 4, 4) T_world_robot per frame
+        T = np.stack([se3_from_planar(*p) for p in poses])
+        kps_w = (self._kps_h @ T.transpose(0, 2, 1))[:, :, :3]  # (N, M, 3)
+        hull_w = (self._hull_h @ T.transpose(0, 2, 1))[:, :, :3]  # (N, H, 3)
+        uv, depth = cam.project(kps_w.reshape(-1, 3))
+        uv, depth = uv.reshape(n, m, 2), depth.reshape(n, m)
+        cam_pos = self._camera_position[camera_id]
+        dist = np.hypot(poses[:, 0] - cam_pos[0], poses[:, 1] - cam_pos[1])
+        in_view = (cam.in_image(uv.reshape(-1, 2)).reshape(n, m) & (depth > 0.1)
+                   & (dist <= cfg.max_range_m)[:, None])
+        occluded = self.world.segments_blocked(cam_pos, kps_w.reshape(-1, 3)).reshape(n, m)
+        to_cam = cam_pos[:2] - kps_w[:, :, :2]
+        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=2, keepdims=True), 1e-9)
+        normals_w = self._normals @ T[:, :2, :2].transpose(0, 2, 1)  # (N, M, 2)
+        self_occ = np.sum(normals_w * to_cam, axis=2) < -0.05
         # Self-occluded keypoints still count: the detector sees the robot's body and infers
         # them from context (paper Sec. III-A); obstacles hide the robot itself.
         good = in_view & ~occluded
-        detectable = bool(np.count_nonzero(good) >= cfg.min_visible_keypoints)
-        return Visibility(uv, in_view, occluded, self_occ, dist, detectable)
+        detectable = np.count_nonzero(good, axis=1) >= cfg.min_visible_keypoints
+        huv, hdepth = cam.project(hull_w.reshape(-1, 3))
+        h = hull_w.shape[1]
+        huv, hdepth = huv.reshape(n, h, 2), hdepth.reshape(n, h)
+        hull_ok = np.all(np.isfinite(huv), axis=2) & (hdepth > 0.1)
+        _readonly(uv, in_view, occluded, self_occ)
+        out = []
+        for i in range(n):
+            hull_uv = huv[i][hull_ok[i]]
+            _readonly(hull_uv)
+            vis = Visibility(uv[i], in_view[i], occluded[i], self_occ[i], float(dist[i]),
+                             bool(detectable[i]))
+            out.append(FrameGeometry(vis, hull_uv))
+        return out
 
     def cameras_seeing(self, pose: np.ndarray) -> tuple[str, ...]:
         """Ids of the cameras that can detect the robot at ``pose`` (geometry only)."""
@@ -133,17 +244,24 @@ class DetectionSimulator:
         cam = self.cameras[camera_id]
         stamp = self.capture_stamp_ns(camera_id, true_capture_ns)
         dets: tuple[Detection, ...] = ()
-        vis = self.visibility(camera_id, pose)
-        if vis.detectable and rng.random() >= self.scenario.cameras.miss_probability:
-            dets = (self._noisy_detection(cam, vis, pose, rng),)
+        geometry = self.frame_geometry(camera_id, pose)
+        if (geometry.visibility.detectable
+                and rng.random() >= self.scenario.cameras.miss_probability):
+            dets = (self._noisy_detection(cam, geometry, rng),)
         return RobotDetections(
             camera_id=camera_id, stamp_ns=max(stamp, 0), seq=seq, image_width=cam.width,
             image_height=cam.height, model_id=MODEL_ID, detections=dets,
         )
 
-    def _noisy_detection(self, cam: CameraModel, vis: Visibility, pose: np.ndarray,
+    def detect_many(self, frames: Sequence[FrameRequest]) -> list[RobotDetections]:
+        """:meth:`detect` of each frame, in order (each frame draws from its own ``rng``)."""
+        return [self.detect(f.camera_id, f.true_capture_ns, f.pose, f.seq, f.rng)
+                for f in frames]
+
+    def _noisy_detection(self, cam: CameraModel, geometry: FrameGeometry,
                          rng: np.random.Generator) -> Detection:
         nz = self.scenario.noise
+        vis = geometry.visibility
         m = len(vis.uv)
         uv = vis.uv.copy()
         valid = vis.in_view & np.all(np.isfinite(uv), axis=1)
@@ -165,17 +283,15 @@ class DetectionSimulator:
         scores = np.where(drop, 0.0, scores)
         # Dropped keypoints keep finite coordinates (the wire requires them); clamp to the image.
         uv = np.where(np.isfinite(uv), uv, centroid)
-        uv[:, 0] = np.clip(uv[:, 0], 0.0, cam.width - 1.0)
-        uv[:, 1] = np.clip(uv[:, 1], 0.0, cam.height - 1.0)
-        hull_w = (self._hull_h @ se3_from_planar(*pose).T)[:, :3]
-        huv, hdepth = cam.project(hull_w)
-        huv = huv[np.all(np.isfinite(huv), axis=1) & (hdepth > 0.1)]
+        max_px = np.array([cam.width - 1.0, cam.height - 1.0])
+        uv = np.minimum(np.maximum(uv, 0.0), max_px)
+        huv = geometry.hull_uv
         box_pts = np.vstack([huv, uv[scores > 0]]) if len(huv) else uv[scores > 0]
-        lo = np.clip(box_pts.min(axis=0) - 4.0, 0.0, [cam.width - 1.0, cam.height - 1.0])
-        hi = np.clip(box_pts.max(axis=0) + 4.0, 0.0, [cam.width - 1.0, cam.height - 1.0])
+        lo = np.minimum(np.maximum(box_pts.min(axis=0) - 4.0, 0.0), max_px)
+        hi = np.minimum(np.maximum(box_pts.max(axis=0) + 4.0, 0.0), max_px)
         return Detection(
             bbox_xyxy=np.array([lo[0], lo[1], hi[0], hi[1]]),
-            score=float(np.clip(rng.normal(0.9, 0.03), 0.0, 1.0)),
+            score=min(max(float(rng.normal(0.9, 0.03)), 0.0), 1.0),
             keypoints_px=uv.astype(np.float64),
             keypoint_scores=scores.astype(np.float64),
             robot_id="",

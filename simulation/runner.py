@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
-from simulation.detections import DetectionSimulator
+from simulation.detections import DetectionSimulator, FrameRequest
 from simulation.robot import MotionPlan, SimulatedRobot, WaypointStop
 from simulation.scenario import Scenario
 from simulation.world import World
@@ -144,9 +144,16 @@ class SimulationRun:
         for i, c in enumerate(self.camera_ids):
             heapq.heappush(events, (self.camera_phase_s[c], i + 1, c, 0))
         heapq.heappush(events, (odom_period_s, 0, "", 1))
+        # every frame's capture time and true pose are known in advance (the plan does not
+        # depend on the messages), so the detector can prepare its geometry for all at once
+        frame_poses = {c: self._frame_poses(c, end_s) for c in self.camera_ids}
+        for c, poses in frame_poses.items():
+            self.detector.prepare_frames(c, poses)
         pending: list[tuple[int, int, Message]] = []
         counter = 0
         seq = dict.fromkeys(self.camera_ids, 0)
+        #: detections of frames made ahead of their event, (camera, frame index) → message
+        ready: dict[tuple[str, int], Message] = {}
         loc_every = 0
         if localization_rate_hz:
             loc_every = max(1, round(self.scenario.odometry.rate_hz / localization_rate_hz))
@@ -161,14 +168,19 @@ class SimulationRun:
                 arr, _, msg = heapq.heappop(pending)
                 yield TimedMessage(arr, msg)
             if cam:
-                pose = self.plan.state_at(t_s)[0]
                 rng = self._cam_rng[cam]
-                msg: Message = self.detector.detect(cam, now_ns, pose, seq[cam], rng)
+                frame_msg = ready.pop((cam, k), None)
+                if frame_msg is None:
+                    frames = self._capture(cam, k, now_ns, frame_poses, seq, ready, end_s)
+                    detected = self.detector.detect_many(frames)
+                    for f, m in zip(frames[1:], detected[1:], strict=True):
+                        ready[(f.camera_id, f.seq)] = m
+                    frame_msg = detected[0]
                 seq[cam] += 1
                 arrival = now_ns + self.detector.arrival_delay_ns(rng)
                 heapq.heappush(events, (self.camera_phase_s[cam] + (k + 1) * period_s, order,
                                         cam, k + 1))
-                heapq.heappush(pending, (arrival, counter, msg))
+                heapq.heappush(pending, (arrival, counter, frame_msg))
                 counter += 1
             else:
                 for odom in self.robot.step_to(t_s):
@@ -187,6 +199,52 @@ class SimulationRun:
         while pending:
             arr, _, msg = heapq.heappop(pending)
             yield TimedMessage(arr, msg)
+
+    def _capture(self, camera_id: str, k: int, now_ns: int,
+                 frame_poses: dict[str, np.ndarray], seq: dict[str, int],
+                 ready: dict[tuple[str, int], Message], end_s: float) -> list[FrameRequest]:
+        """The frame ``k`` of ``camera_id`` (captured now) and, when the detector batches
+        frames (``batches_frames``), frame ``k`` of every other camera whose frame ``k - 1``
+        is done: the cameras capture within one frame period of each other, and a frame's
+        detections depend only on the camera, its capture time, the plan's pose then and the
+        camera's own generator, which no other event draws from in between (a camera's
+        arrival delay is drawn after its detections, as before)."""
+        frames = [FrameRequest(camera_id, now_ns, self._frame_pose(camera_id, k, frame_poses),
+                               k, self._cam_rng[camera_id])]
+        if not self.detector.batches_frames:
+            return frames
+        period_s = 1.0 / self.scenario.cameras.rate_hz
+        for c in self.camera_ids:
+            # the capture time exactly as the event queue computes it
+            t_c = self.camera_phase_s[c] + k * period_s if k else self.camera_phase_s[c]
+            if c == camera_id or seq[c] != k or (c, k) in ready or t_c > end_s + 1e-9:
+                continue
+            frames.append(FrameRequest(c, self.stamp_ns(t_c),
+                                       self._frame_pose(c, k, frame_poses), k,
+                                       self._cam_rng[c]))
+        return frames
+
+    def _frame_pose(self, camera_id: str, k: int, frame_poses: dict[str, np.ndarray]
+                    ) -> np.ndarray:
+        poses = frame_poses[camera_id]
+        if k < len(poses):
+            return poses[k]
+        period_s = 1.0 / self.scenario.cameras.rate_hz
+        return self.plan.state_at(self.camera_phase_s[camera_id] + k * period_s)[0]
+
+    def _frame_poses(self, camera_id: str, end_s: float) -> np.ndarray:
+        """(N, 3) true poses at the capture times of ``camera_id``'s frames up to ``end_s``
+        (the times :meth:`messages` steps through: phase + k / rate, s since the start)."""
+        period_s = 1.0 / self.scenario.cameras.rate_hz
+        phase_s = self.camera_phase_s[camera_id]
+        poses: list[np.ndarray] = []
+        k = 0
+        t_s = phase_s
+        while t_s <= end_s + 1e-9:
+            poses.append(self.plan.state_at(t_s)[0])
+            k += 1
+            t_s = phase_s + k * period_s
+        return np.array(poses).reshape(-1, 3)
 
     def _localization_message(self, stamp_ns: int, seq: int) -> PoseEstimate:
         x, y, theta = (float(v) for v in self.robot.localization_pose())

@@ -5,7 +5,7 @@
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
-                             [--detections noise|cnn] [--camera-rate HZ] [--model DIR]
+                             [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
 
@@ -100,6 +100,7 @@ def _paper(args: argparse.Namespace) -> int:
         threads=args.threads,
         sensor_noise_dn=args.sensor_noise,
         calibration_seeds=calibration_seeds,
+        jobs=args.jobs,
     )
     try:
         report = run_paper(config, args.out, progress=lambda line: print(line, flush=True))
@@ -235,6 +236,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="experiment 1: draw the cameras' calibration error with each seed and pool the "
         "runs (default: the scenario's one draw); the NEES of a covariance with a calibration "
         "term is an expectation over such draws")
+    p_paper.add_argument(
+        "--jobs", type=int, default=None, metavar="N",
+        help="experiments 1-3: worker processes for their independent runs (default: one "
+        "per core; 1: all in this process); the tables do not depend on it")
     p_kp = sub.add_parser("keypoints", help="detector AP and keypoint errors of the ONNX "
                           "models on fresh held-out renders")
     p_kp.add_argument("--model", help="model folder (default: the shipped models)")
@@ -265,9 +270,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.what == "compare":
         return _compare(args)
     if args.runs < 1 or args.feedback_seeds < 1 or (
-            args.robustness_runs is not None and args.robustness_runs < 1):
-        print("smartedge evaluate paper: --runs, --feedback-seeds and --robustness-runs must "
-              "be >= 1", file=sys.stderr)
+            args.robustness_runs is not None and args.robustness_runs < 1) or (
+            args.jobs is not None and args.jobs < 1):
+        print("smartedge evaluate paper: --runs, --feedback-seeds, --robustness-runs and "
+              "--jobs must be >= 1", file=sys.stderr)
         return 2
     return _paper(args)
 

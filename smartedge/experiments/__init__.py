@@ -16,6 +16,7 @@ experiment 4: collaborative semantic mapping       :mod:`smartedge.experiments.m
 (Sec. III-C, IV-C, Fig. 7-8)
 the paper's reference figures; finished runs       :mod:`smartedge.experiments.comparison`
 side by side (``smartedge evaluate compare``)
+independent runs in worker processes (``--jobs``)  :mod:`smartedge.experiments.parallel`
 all of them in order, ``report.md``                :mod:`smartedge.experiments.paper`
 =================================================  ==========================================
 

@@ -37,6 +37,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -63,6 +64,10 @@ from smartedge.experiments.config import (
     paper_pipeline_config,
     pose_array,
 )
+from smartedge.experiments.parallel import map_runs, resolve_jobs
+
+if TYPE_CHECKING:  # the rendering detection source is imported only in CNN mode
+    from smartedge.sim.rendered_detections import RenderedStats
 
 log = logging.getLogger(__name__)
 
@@ -253,36 +258,91 @@ def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class PlannedRun:
+    """One run of experiment 1: the draw of the cameras' calibration error, the trajectory,
+    its direction and the iteration (the run's seed follows from these and the base seed)."""
+
+    calibration_seed: int
+    trajectory: str
+    reverse: bool
+    iteration: int
+
+
+class Experiment1Worker:
+    """What a process needs for experiment 1's runs: the scenario, the settings and the pose
+    graph factory; the world and a detection source per calibration draw are built on first
+    use (``world`` and ``detector``, the scenario's own draw, may be handed in)."""
+
+    def __init__(self, scenario: Scenario, config: PaperConfig,
+                 fusion_factory: FusionFactory | None, world: World | None = None,
+                 detector: DetectionSimulator | None = None) -> None:
+        self.scenario = scenario
+        self.config = config
+        self.fusion_factory = fusion_factory
+        self.world = world or World(scenario)
+        self.detectors: dict[int, DetectionSimulator] = (
+            {} if detector is None else {scenario.seeds.calibration: detector})
+
+    def detector(self, calibration_seed: int) -> DetectionSimulator:
+        """The detection source of one draw of the cameras' calibration error."""
+        det = self.detectors.get(calibration_seed)
+        if det is None:
+            sc = self.scenario
+            if calibration_seed != sc.seeds.calibration:
+                sc = sc.with_overrides(
+                    seeds=dataclasses.replace(sc.seeds, calibration=calibration_seed))
+            det = self.detectors[calibration_seed] = make_detector(sc, self.world, self.config)
+        return det
+
+    def run(self, planned: PlannedRun) -> tuple[RunResult, RenderedStats | None]:
+        """One run (:func:`run_once`) and, for a rendering detection source, the work it did
+        (its ``stats`` counters over this run, which add up with ``+``)."""
+        det = self.detector(planned.calibration_seed)
+        stats: RenderedStats | None = getattr(det, "stats", None)
+        before = dataclasses.replace(stats) if stats is not None else None
+        res = run_once(self.scenario, planned.trajectory, planned.reverse, planned.iteration,
+                       self.config, self.fusion_factory, self.world, det)
+        if self.config.calibration_seeds:
+            res = _with_suffix(res, f"_cal{planned.calibration_seed}")
+        return res, (None if stats is None or before is None else stats - before)
+
+
 def run_experiment1(scenario: Scenario, trajectories: Sequence[str], config: PaperConfig,
                     fusion_factory: FusionFactory | None, world: World,
                     detector: DetectionSimulator, say: Callable[[str], None],
                     ) -> list[RunResult]:
     """Experiment 1: each of ``trajectories`` in both directions, ``config.runs_per_direction``
     times (:func:`run_once`), for each of ``config.calibration_seeds`` (a detector per draw of
-    the cameras' calibration error; without them the scenario's one draw, ``detector``)."""
+    the cameras' calibration error; without them the scenario's one draw, ``detector``).
+
+    The runs are independent: with ``config.jobs`` > 1 they go to that many worker processes
+    (:mod:`smartedge.experiments.parallel`), each building its own world and detection source,
+    and come back in the planned order; the results are those of the serial run."""
     cal_seeds = config.calibration_seeds or (scenario.seeds.calibration,)
-    plan = [(cs, n, rev, it) for cs in cal_seeds for n in trajectories for rev in (False, True)
-            for it in range(config.runs_per_direction)]
+    plan = [PlannedRun(cs, n, rev, it) for cs in cal_seeds for n in trajectories
+            for rev in (False, True) for it in range(config.runs_per_direction)]
+    jobs = resolve_jobs(config.jobs, len(plan), (scenario, config, fusion_factory))
     say(f"paper experiment 1: {len(plan)} runs on {scenario.name} "
         f"({'with' if fusion_factory is not None else 'without'} fusion"
         + (f", calibration seeds {','.join(map(str, cal_seeds))}"
-           if config.calibration_seeds else "") + ")")
-    detectors = {scenario.seeds.calibration: detector}
+           if config.calibration_seeds else "")
+        + (f", {jobs} processes" if jobs > 1 else "") + ")")
+    # workers build their own world and detection source; in this process, the given ones
+    state_args: tuple[object, ...] = (
+        (scenario, config.per_process(jobs), fusion_factory) if jobs > 1
+        else (scenario, config, fusion_factory, world, detector))
     results: list[RunResult] = []
-    for k, (cs, n, rev, it) in enumerate(plan, start=1):
-        if cs not in detectors:
-            sc_cal = scenario.with_overrides(
-                seeds=dataclasses.replace(scenario.seeds, calibration=cs))
-            detectors[cs] = make_detector(sc_cal, world, config)
-        res = run_once(scenario, n, rev, it, config, fusion_factory, world, detectors[cs])
-        if config.calibration_seeds:
-            res = _with_suffix(res, f"_cal{cs}")
+    images: RenderedStats | None = None
+    runs = map_runs(Experiment1Worker.run, plan, jobs, Experiment1Worker, state_args)
+    for k, (res, stats) in enumerate(runs, start=1):
         results.append(res)
         say(f"[{k}/{len(plan)}] {res.name}: {res.simulated_s:.0f} s simulated in "
             f"{res.wall_s:.1f} s ({res.simulated_s / max(res.wall_s, 1e-9):.0f}x), "
             f"{len(res.samples)} stops, {res.counters['frame_sets']} frame-sets")
-        if hasattr(detector, "stats"):
-            say(f"  images so far: {detector.stats.line()}")
+        if stats is not None:
+            images = stats if images is None else images + stats
+            say(f"  images so far: {images.line()}")
     return results
 
 

@@ -99,6 +99,9 @@ class PaperConfig:
     #: runs (None: the scenario's one draw). A covariance with a calibration term is consistent
     #: in expectation over calibration errors; one draw can be lucky or not.
     calibration_seeds: tuple[int, ...] | None = None
+    #: worker processes for the independent runs of experiments 1-3 (None: one per core; 1:
+    #: all in this process); the results do not depend on it
+    jobs: int | None = None
 
     def __post_init__(self) -> None:
         if self.detections not in DETECTION_MODES:
@@ -106,6 +109,16 @@ class PaperConfig:
                              f"{DETECTION_MODES}")
         if self.camera_rate_hz is not None and not self.camera_rate_hz > 0:
             raise ValueError(f"camera_rate_hz must be > 0, got {self.camera_rate_hz}")
+        if self.jobs is not None and self.jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {self.jobs}")
+
+    def per_process(self, jobs: int) -> PaperConfig:
+        """The settings each of ``jobs`` worker processes runs with: the cores are shared, so
+        each gets its share of onnxruntime threads (the networks' outputs do not depend on
+        the thread count)."""
+        if jobs <= 1:
+            return self
+        return dataclasses.replace(self, threads=max(1, self.threads // jobs))
 
     def effective_camera_rate(self, scenario: Scenario) -> float:
         """The camera rate the runs use: ``camera_rate_hz``, else :data:`CNN_RATE_HZ` in CNN

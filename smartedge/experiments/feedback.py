@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -37,9 +37,11 @@ from smartedge.experiments.comparison import (
 from smartedge.experiments.config import (
     LOCALIZATION_RATE_HZ,
     PaperConfig,
+    make_detector,
     paper_pipeline_config,
     pose_array,
 )
+from smartedge.experiments.parallel import map_runs, resolve_jobs
 
 SUCCESS = "success"
 WP_NOT_REACHED = "wp_not_reached"
@@ -342,27 +344,79 @@ def failure_model(scenario: Scenario) -> FailureModel:
 
 
 
+@dataclasses.dataclass(frozen=True)
+class PlannedFeedbackRun:
+    """One run of experiment 2 or 3: the route, with or without feedback, its seed and name,
+    and whether it ends at the first failure (experiment 3)."""
+
+    route: str
+    feedback: bool
+    seed: np.random.SeedSequence
+    name: str
+    stop_at_failure: bool = False
+
+
+class FeedbackWorker:
+    """What a process needs for the runs of experiments 2 and 3: the scenario, the settings
+    and the pose graph factory; the world and the detection source are built on first use
+    (or handed in)."""
+
+    def __init__(self, scenario: Scenario, config: PaperConfig,
+                 fusion_factory: FusionFactory | None, world: World | None = None,
+                 detector: DetectionSimulator | None = None) -> None:
+        self.scenario = scenario
+        self.config = config
+        self.fusion_factory = fusion_factory
+        self.world = world or World(scenario)
+        self._detector = detector
+
+    @property
+    def detector(self) -> DetectionSimulator:
+        if self._detector is None:
+            self._detector = make_detector(self.scenario, self.world, self.config)
+        return self._detector
+
+    def run(self, planned: PlannedFeedbackRun) -> FeedbackRun:
+        """One run (:func:`run_feedback`) set up for the paper's protocol."""
+        sc = self.scenario
+        return run_feedback(
+            sc, planned.route, planned.feedback, planned.seed, name=planned.name,
+            fusion_factory=self.fusion_factory,
+            failure=failure_model(sc) if planned.stop_at_failure else None,
+            world=self.world, detector=self.detector,
+            pipeline_config=paper_pipeline_config(sc.site, scenario=sc,
+                                                  detections=self.config.detections),
+            fused_trajectory_step=self.config.fused_trajectory_step)
+
+
+def _feedback_runs(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+                   world: World, detector: DetectionSimulator,
+                   plan: Sequence[PlannedFeedbackRun]) -> Iterator[FeedbackRun]:
+    """The runs of ``plan`` in order, in ``config.jobs`` worker processes when more than one
+    (:mod:`smartedge.experiments.parallel`; the results do not depend on it)."""
+    jobs = resolve_jobs(config.jobs, len(plan), (sc, config, factory))
+    state_args: tuple[object, ...] = (
+        (sc, config.per_process(jobs), factory) if jobs > 1
+        else (sc, config, factory, world, detector))
+    return map_runs(FeedbackWorker.run, plan, jobs, FeedbackWorker, state_args)
+
+
 def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
                     world: World, detector: DetectionSimulator,
                     say: Callable[[str], None]) -> list[FeedbackRun]:
     """Experiment 2: ``config.long_route`` without and with feedback, per seed (the same seed
     for both, so the two runs differ only by the feedback)."""
+    route = config.long_route
+    plan = [PlannedFeedbackRun(route, fb, run_seed(sc, route, False, k, config.seed),
+                               f"{route}_{'fb' if fb else 'nofb'}_{k + 1}")
+            for k in range(config.feedback_seeds) for fb in (False, True)]
     runs: list[FeedbackRun] = []
-    total = 2 * config.feedback_seeds
-    for k in range(config.feedback_seeds):
-        seed = run_seed(sc, config.long_route, False, k, config.seed)
-        for fb in (False, True):
-            r = run_feedback(sc, config.long_route, fb, seed,
-                             name=f"{config.long_route}_{'fb' if fb else 'nofb'}_{k + 1}",
-                             fusion_factory=factory, world=world, detector=detector,
-                             pipeline_config=paper_pipeline_config(
-                                 sc.site, scenario=sc, detections=config.detections),
-                             fused_trajectory_step=config.fused_trajectory_step)
-            runs.append(r)
-            say(f"[exp2 {len(runs)}/{total}] {r.name}: robot RMS {r.robot_rms_m() * 100:.1f} cm"
-                f", fused {r.fused_rms_m() * 100:.1f} cm, "
-                f"{sum(c.accepted for c in r.corrections)} corrections, "
-                f"{r.simulated_s:.0f} s simulated in {r.wall_s:.1f} s")
+    for r in _feedback_runs(sc, config, factory, world, detector, plan):
+        runs.append(r)
+        say(f"[exp2 {len(runs)}/{len(plan)}] {r.name}: robot RMS "
+            f"{r.robot_rms_m() * 100:.1f} cm, fused {r.fused_rms_m() * 100:.1f} cm, "
+            f"{sum(c.accepted for c in r.corrections)} corrections, "
+            f"{r.simulated_s:.0f} s simulated in {r.wall_s:.1f} s")
     return runs
 
 
@@ -372,18 +426,13 @@ def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
     """Experiment 3: ``robustness.runs`` runs without, then as many with feedback, each with
     its own seed (iterations 0..n-1 without, n..2n-1 with)."""
     n = config.robustness_runs or sc.robustness.runs
-    model = failure_model(sc)
+    route = config.robustness_route
+    plan = [PlannedFeedbackRun(route, k >= n, run_seed(sc, route, False, k, config.seed),
+                               f"{route}_{'fb' if k >= n else 'nofb'}_{k % n + 1}",
+                               stop_at_failure=True)
+            for k in range(2 * n)]
     runs: list[FeedbackRun] = []
-    for k in range(2 * n):
-        fb = k >= n
-        r = run_feedback(sc, config.robustness_route, fb,
-                         run_seed(sc, config.robustness_route, False, k, config.seed),
-                         name=f"{config.robustness_route}_{'fb' if fb else 'nofb'}_{k % n + 1}",
-                         fusion_factory=factory, failure=model, world=world,
-                         detector=detector,
-                         pipeline_config=paper_pipeline_config(
-                             sc.site, scenario=sc, detections=config.detections),
-                         fused_trajectory_step=config.fused_trajectory_step)
+    for k, r in enumerate(_feedback_runs(sc, config, factory, world, detector, plan)):
         runs.append(r)
         where = "" if r.outcome == SUCCESS else (
             f" after {r.failure_distance_m:.1f} m"

@@ -5,7 +5,9 @@ the other, and the report that collects them.
 :class:`~smartedge.experiments.config.PaperConfig`), builds one world and one detection source
 for all runs, runs the experiments ``config.experiments`` names (1: accuracy, 2: correction
 feedback, 3: robustness, 4: semantic mapping), writes each one's files and ``report.md`` into
-the output folder and returns a :class:`PaperReport`.
+the output folder and returns a :class:`PaperReport`. The independent runs of experiments 1-3
+go to ``config.jobs`` worker processes (:mod:`smartedge.experiments.parallel`), each with its
+own world and detection source built the same way; the results do not depend on it.
 """
 
 from __future__ import annotations

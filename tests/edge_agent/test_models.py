@@ -131,6 +131,59 @@ def test_stages_map_back_to_frame_pixels(tiny_models: Path, frame: np.ndarray) -
     assert empty_pts.shape == (0, K, 2) and empty_conf.shape == (0, K)
 
 
+def test_frames_in_one_batch_get_what_they_get_alone(tiny_models: Path,
+                                                     frame: np.ndarray) -> None:
+    """:meth:`RobotKeypointPipeline.run_many` (several frames, e.g. the cameras of one
+    capture, each network run once) returns per frame what a call with that frame alone
+    returns, in order; frames of other sizes and frames without robots take part.
+    (On one machine the numbers are the same; a batch may sum in another order elsewhere,
+    hence the tolerance, as for several boxes of one frame above.)"""
+    import cv2
+
+    pipe = RobotKeypointPipeline.from_folder(tiny_models, threads=1)
+    frames = [frame, frame[:, ::-1].copy(),
+              cv2.resize(frame, (512, 384), interpolation=cv2.INTER_LINEAR), frame]
+    batch = pipe.run_many(frames, min_score=0.0, max_robots=2)
+    alone = [pipe(f, min_score=0.0, max_robots=2) for f in frames]
+    assert [len(b) for b in batch] == [len(a) for a in alone] == [2, 2, 2, 2]
+    for b_obs, a_obs in zip(batch, alone, strict=True):
+        for b, a in zip(b_obs, a_obs, strict=True):
+            np.testing.assert_allclose(b.bbox_xyxy, a.bbox_xyxy, atol=1e-4)
+            assert b.score == pytest.approx(a.score, abs=1e-5)
+            np.testing.assert_allclose(b.keypoints_px, a.keypoints_px, atol=1e-4)
+            np.testing.assert_allclose(b.confidence, a.confidence, atol=1e-5)
+    assert pipe.run_many([]) == []
+    nothing = pipe.run_many([frame, frame], min_score=1.01)
+    assert nothing == [[], []]
+
+
+def test_edge_pipelines_of_several_cameras_share_one_batch(tiny_models: Path,
+                                                          frame: np.ndarray) -> None:
+    """:func:`edge_agent.pipeline.process_batch`: the frames of several cameras (one
+    :class:`EdgePipeline` each, shared models) give each camera's own message, as
+    :meth:`EdgePipeline.process` makes it; pipelines on other models are refused."""
+    from edge_agent.frames import Frame
+    from edge_agent.pipeline import EdgePipeline, process_batch
+
+    pipe = RobotKeypointPipeline.from_folder(tiny_models, threads=1)
+    cams = [EdgePipeline(c, pipe, min_score=0.0, max_robots=2) for c in ("cam1", "cam2")]
+    frames = [Frame(frame, 1_000, 3), Frame(frame[::-1].copy(), 2_000, 4)]
+    batch = process_batch(list(zip(cams, frames, strict=True)))
+    alone = [p.process(f)[0] for p, f in zip(cams, frames, strict=True)]
+    for (msg, latency), ref in zip(batch, alone, strict=True):
+        assert (msg.camera_id, msg.stamp_ns, msg.seq, msg.model_id) == (
+            ref.camera_id, ref.stamp_ns, ref.seq, ref.model_id)
+        assert len(msg.detections) == len(ref.detections) == 2
+        for d, r in zip(msg.detections, ref.detections, strict=True):
+            np.testing.assert_allclose(d.keypoints_px, r.keypoints_px, atol=1e-4)
+            np.testing.assert_allclose(d.bbox_xyxy, r.bbox_xyxy, atol=1e-4)
+        assert latency.detector_s > 0 and latency.keypoints_s > 0
+    assert process_batch([]) == []
+    other = RobotKeypointPipeline.from_folder(tiny_models, threads=1)
+    with pytest.raises(ValueError, match="share"):
+        process_batch([(cams[0], frames[0]), (EdgePipeline("cam3", other), frames[1])])
+
+
 @pytest.mark.parametrize("kind", ["detector", "keypoints"])
 def test_onnxruntime_reproduces_the_stored_reference(tiny_models: Path, kind: str) -> None:
     """onnxruntime on the reference inputs stored by training (uint8 NHWC, through the edge's

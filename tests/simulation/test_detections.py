@@ -93,3 +93,86 @@ def test_noise_has_outliers_and_dropouts_at_configured_rates(scenario) -> None:
     zeros = [np.mean(det.detect("cam1", sc.start_stamp_ns, np.array([wp.x, wp.y, wp.theta]), 0,
                                 rng).detections[0].keypoint_scores == 0) for _ in range(300)]
     assert np.mean(zeros) == pytest.approx(0.2, abs=0.03)
+
+
+def _run_poses(sc, n: int = 400) -> np.ndarray:
+    """(n, 3) poses along traj1 at 15 Hz, stops (repeated poses) included."""
+    from simulation.runner import SimulationRun
+
+    run = SimulationRun(sc, "traj1", False, seed=3)
+    return np.array([run.plan.state_at(k / 15.0)[0] for k in range(n)])
+
+
+def test_frame_geometry_cache_hit_equals_a_recompute(scenario, monkeypatch) -> None:
+    import simulation.detections as detections
+
+    poses = _run_poses(scenario)
+    assert len({p.tobytes() for p in poses}) < len(poses)  # a static robot repeats its pose
+    cached = DetectionSimulator(scenario)
+    monkeypatch.setattr(detections, "GEOMETRY_CHUNK", 97)  # several chunks
+    for cam in ("cam1", "cam3"):
+        cached.prepare_frames(cam, poses)  # all frames at once, vectorized
+        for pose in poses[::7]:
+            hit = cached.frame_geometry(cam, pose)
+            fresh = DetectionSimulator(scenario).frame_geometry(cam, pose)  # one frame alone
+            for name in ("uv", "in_view", "occluded", "self_occluded"):
+                np.testing.assert_array_equal(getattr(hit.visibility, name),
+                                              getattr(fresh.visibility, name))
+            assert hit.visibility.distance_m == fresh.visibility.distance_m
+            assert hit.visibility.detectable == fresh.visibility.detectable
+            np.testing.assert_array_equal(hit.hull_uv, fresh.hull_uv)
+            assert not hit.visibility.uv.flags.writeable and not hit.hull_uv.flags.writeable
+
+
+def test_frame_geometry_is_the_projection_of_the_keypoints(scenario) -> None:
+    det = DetectionSimulator(scenario)
+    model = scenario.site.robot_model("hsr")
+    poses = _run_poses(scenario, 120)
+    det.prepare_frames("cam2", poses)
+    for pose in poses[::11]:
+        T = se3_from_planar(*pose)
+        kps_w = (np.column_stack([model.keypoints_base_m, np.ones(len(model.keypoints_base_m))])
+                 @ T.T)[:, :3]
+        uv, _ = det.cameras["cam2"].project(kps_w)
+        np.testing.assert_array_equal(det.visibility("cam2", pose).uv, uv)
+
+
+def test_a_static_robot_shares_one_geometry_and_the_caches_are_bounded(scenario,
+                                                                      monkeypatch) -> None:
+    import simulation.detections as detections
+
+    det = DetectionSimulator(scenario)
+    wp = scenario.waypoints["WP3"]
+    pose = np.array([wp.x, wp.y, wp.theta])
+    # on demand: the last frame per camera is kept (a static robot repeats its pose)
+    first = det.frame_geometry("cam1", pose)
+    assert det.frame_geometry("cam1", pose.copy()) is first
+    det.frame_geometry("cam1", pose + np.array([0.01, 0.0, 0.0]))
+    again = det.frame_geometry("cam1", pose)
+    assert again is not first
+    np.testing.assert_array_equal(again.visibility.uv, first.visibility.uv)
+    # prepared: at most MAX_PREPARED_FRAMES distinct poses; later ones come on demand
+    monkeypatch.setattr(detections, "MAX_PREPARED_FRAMES", 5)
+    monkeypatch.setattr(detections, "GEOMETRY_CHUNK", 2)
+    poses = pose + np.outer(np.arange(12), [0.01, 0.0, 0.0])
+    det.prepare_frames("cam1", np.repeat(poses, 2, axis=0))
+    held = [det.frame_geometry("cam1", p) for p in poses]
+    for k, p in enumerate(poses):
+        g = det.frame_geometry("cam1", p)
+        assert (g is held[k]) == (k < 5), k
+        np.testing.assert_array_equal(g.visibility.uv,
+                                      DetectionSimulator(scenario).visibility("cam1", p).uv)
+
+
+def test_detect_many_is_detect_per_frame(scenario) -> None:
+    from simulation.detections import FrameRequest
+
+    det = DetectionSimulator(scenario)
+    wp = scenario.waypoints["WP3"]
+    pose = np.array([wp.x, wp.y, wp.theta])
+    frames = [FrameRequest(c, scenario.start_stamp_ns, pose, 4, np.random.default_rng(i))
+              for i, c in enumerate(("cam1", "cam2", "cam3"))]
+    many = det.detect_many(frames)
+    one = [det.detect(c, scenario.start_stamp_ns, pose, 4, np.random.default_rng(i))
+           for i, c in enumerate(("cam1", "cam2", "cam3"))]
+    assert many == one

@@ -202,3 +202,54 @@ def test_short_closed_loop_run_streams_rendered_detections(scenario, det) -> Non
         errors.append(np.linalg.norm(d.keypoints_px - det.visibility(m.camera_id, pose).uv,
                                      axis=1))
     assert float(np.median(np.concatenate(errors))) < 5.0
+
+
+def test_a_batch_of_frames_gives_each_frame_its_own_message(det, seen_pose: np.ndarray) -> None:
+    """The cameras' frames of one capture through the networks together
+    (:meth:`detect_many`, one batch per network) give the messages each frame gives alone."""
+    from simulation.detections import FrameRequest
+
+    cams = list(det.cameras)
+    assert len(det.cameras_seeing(seen_pose)) >= 2
+    poses = [seen_pose, seen_pose + np.array([0.02, -0.01, 0.05]), OUTSIDE_CAM1, seen_pose]
+
+    def requests() -> list[FrameRequest]:
+        return [FrameRequest(c, T0_NS + 7 * i, poses[i % len(poses)], i,
+                             np.random.default_rng(100 + i)) for i, c in enumerate(cams)]
+
+    batch = det.detect_many(requests())
+    alone = [det.detect(r.camera_id, r.true_capture_ns, r.pose, r.seq, r.rng)
+             for r in requests()]
+    assert batch == alone
+    assert sum(bool(m.detections) for m in batch) >= 2  # the batch held frames with the robot
+
+
+def test_the_runner_batches_the_frames_of_one_capture_without_changing_them(
+        scenario, det) -> None:
+    """A run's messages are the same whether the runner hands the detector the cameras'
+    frames of one capture together or one by one."""
+    from simulation.runner import SimulationRun
+
+    sc5 = scenario.with_overrides(cameras=dataclasses.replace(scenario.cameras, rate_hz=5.0))
+    streams = {}
+    calls = {}
+    real_detect_many = det.detect_many
+    for batched in (True, False):
+        sizes: list[int] = []
+
+        def counting(frames, sizes=sizes):  # type: ignore[no-untyped-def]
+            sizes.append(len(frames))
+            return real_detect_many(frames)
+
+        det.detect_many = counting  # type: ignore[method-assign]
+        det.batches_frames = batched  # type: ignore[misc]
+        try:
+            run = SimulationRun(sc5, "traj3", seed=1, world=det.world, detector=det)
+            streams[batched] = [(m.arrival_ns, m.message) for m in run.messages(until_s=2.0)]
+        finally:
+            del det.detect_many, det.batches_frames
+        calls[batched] = sizes
+    assert streams[True] == streams[False]
+    n_cams = len(sc5.site.cameras)
+    assert max(calls[True]) == n_cams and set(calls[False]) == {1}
+    assert sum(calls[True]) == sum(calls[False])
