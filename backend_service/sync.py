@@ -107,6 +107,12 @@ class FrameSetSynchronizer:
         self._emitted_anchor: dict[str, int | None] = dict.fromkeys(self.robot_ids)
         self._last_seen_ns: dict[str, int] = {}  # camera -> arrival time (now_ns)
         self._last_stamp: dict[str, collections.deque[int]] = {}  # camera -> recent stamps
+        self._newest_stamp: dict[str, int] = {}  # camera -> newest accepted stamp
+        # live_cameras' answer, exact for now_ns in [_live_from_ns, _live_until_ns]: a camera
+        # leaves the set only by time passing, joins it only by a push (which clears this)
+        self._live: frozenset[str] | None = None
+        self._live_from_ns = 0
+        self._live_until_ns = 0
         self._size_warned: set[str] = set()
         self.camera_counters: dict[str, dict[str, int]] = {}
         self.max_rate_hz = float(th.max_camera_rate_hz)
@@ -123,9 +129,20 @@ class FrameSetSynchronizer:
 
     # -- input -------------------------------------------------------------------------------
 
-    def live_cameras(self, now_ns: int) -> set[str]:
-        """Cameras that sent anything within ``camera_timeout_s`` of ``now_ns``."""
-        return {c for c, t in self._last_seen_ns.items() if now_ns - t <= self.camera_timeout_ns}
+    def live_cameras(self, now_ns: int) -> frozenset[str]:
+        """Cameras that sent anything within ``camera_timeout_s`` of ``now_ns``. Computed again
+        only when a camera may have joined (a push) or left (time passed its timeout): every
+        message polls, and a site may have many cameras."""
+        if (self._live is not None
+                and self._live_from_ns <= now_ns <= self._live_until_ns):
+            return self._live
+        live = frozenset(c for c, t in self._last_seen_ns.items()
+                         if now_ns - t <= self.camera_timeout_ns)
+        self._live = live
+        self._live_from_ns = now_ns
+        self._live_until_ns = (min(self._last_seen_ns[c] for c in live) + self.camera_timeout_ns
+                               if live else now_ns)
+        return live
 
     def push(self, msg: RobotDetections, now_ns: int) -> list[FrameSet]:
         """Add one camera message (arrived at ``now_ns``); returns frame-sets that closed."""
@@ -134,6 +151,7 @@ class FrameSetSynchronizer:
             # Cold start: every site camera is presumed live until it has been silent for
             # camera_timeout_s, so the first frame-sets wait for all of them.
             self._last_seen_ns = dict.fromkeys(self.site.cameras, now_ns)
+            self._live = None
         cam = self.site.cameras.get(msg.camera_id)
         if cam is None:
             self.counters["unknown_camera"] += 1
@@ -165,9 +183,12 @@ class FrameSetSynchronizer:
             self._count(msg.camera_id, "duplicate", now_ns)
             return self.poll(now_ns)
         recent.append(stamp)
+        self._newest_stamp[msg.camera_id] = max(recent)
         self._ever_seen.add(msg.camera_id)
         self._last_seen_ns[msg.camera_id] = max(now_ns, self._last_seen_ns.get(msg.camera_id,
                                                                               now_ns))
+        if self._live is not None and msg.camera_id not in self._live:
+            self._live = None  # a camera joined
         for robot_id in self.robot_ids:
             self._add(robot_id, msg, stamp, now_ns, scale)
         return self.poll(now_ns)
@@ -282,13 +303,13 @@ class FrameSetSynchronizer:
     # -- output ------------------------------------------------------------------------------
 
     def _moved_on(self, camera_id: str, win: _Window) -> bool:
-        recent = self._last_stamp.get(camera_id)
-        return bool(recent) and max(recent) > win.anchor_ns + self.window_ns  # type: ignore[type-var]
+        newest = self._newest_stamp.get(camera_id)
+        return newest is not None and newest > win.anchor_ns + self.window_ns
 
-    def _ready(self, win: _Window, live: set[str], now_ns: int) -> bool:
+    def _ready(self, win: _Window, live: frozenset[str], now_ns: int) -> bool:
         if now_ns - win.opened_at_ns >= self.max_wait_ns:
             return True
-        return all(c in win.reported or self._moved_on(c, win) for c in live)
+        return all(self._moved_on(c, win) for c in live - win.reported)
 
     def poll(self, now_ns: int) -> list[FrameSet]:
         """Emit every window that is complete or has waited long enough, oldest first."""
