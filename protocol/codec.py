@@ -212,45 +212,14 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
     (:data:`protocol.limits.PAYLOAD_CAPS`) is checked before anything is parsed. A payload over
     a limit raises :class:`~protocol.limits.LimitError`, a :class:`DecodeError` naming the limit.
     """
-    try:
-        return _decode(payload, expected)
-    except DecodeError:
-        raise
-    except Exception as exc:  # hostile bytes must never escape as anything else
-        raise DecodeError(f"malformed payload: {type(exc).__name__}: {exc}"[:500]) from None
-
-
-def _decode(payload: Any, expected: type[M] | None) -> M:
-    if not isinstance(payload, (bytes, bytearray, memoryview)):
-        raise DecodeError(f"payload must be bytes, got {type(payload).__name__}")
-    size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
-    check_payload_size(size, None if expected is None else expected.SCHEMA)
-    buf = payload if isinstance(payload, bytes) else bytes(payload)
-    if len(buf) == 0:
-        raise DecodeError("empty payload")
-    fast = _decode_native(buf, expected)
-    if fast is not None:
-        return fast
-    return _decode_checked(buf, expected)
+    return _decode(payload, expected, native=True)
 
 
 def decode_checked(payload: bytes | bytearray | memoryview,
                    expected: type[M] | None = None) -> M:
     """:func:`decode` by the careful path alone (no native fast path): the reference the fast
     path is tested against, and the previous release's decode for ``smartedge bench codec``."""
-    try:
-        if not isinstance(payload, (bytes, bytearray, memoryview)):
-            raise DecodeError(f"payload must be bytes, got {type(payload).__name__}")
-        size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
-        check_payload_size(size, None if expected is None else expected.SCHEMA)
-        buf = payload if isinstance(payload, bytes) else bytes(payload)
-        if len(buf) == 0:
-            raise DecodeError("empty payload")
-        return _decode_checked(buf, expected)
-    except DecodeError:
-        raise
-    except Exception as exc:
-        raise DecodeError(f"malformed payload: {type(exc).__name__}: {exc}"[:500]) from None
+    return _decode(payload, expected, native=False)
 
 
 def message_from_wire(obj: Mapping[str, Any]) -> Message:
@@ -264,6 +233,28 @@ def message_from_wire(obj: Mapping[str, Any]) -> Message:
     if cls is None:
         raise DecodeError(f"unknown schema {str(obj.get('schema'))[:64]!r}")
     return _record_from_wire("", cls, obj, cls.SCHEMA)
+
+
+def _decode(payload: Any, expected: type[M] | None, native: bool) -> M:
+    """The payload cap, then the native path (if ``native``) and the careful one; any
+    exception but :class:`DecodeError` becomes one (hostile bytes never escape otherwise)."""
+    try:
+        if not isinstance(payload, (bytes, bytearray, memoryview)):
+            raise DecodeError(f"payload must be bytes, got {type(payload).__name__}")
+        size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
+        check_payload_size(size, None if expected is None else expected.SCHEMA)
+        buf = payload if isinstance(payload, bytes) else bytes(payload)
+        if len(buf) == 0:
+            raise DecodeError("empty payload")
+        if native:
+            fast = _decode_native(buf, expected)
+            if fast is not None:
+                return fast
+        return _decode_checked(buf, expected)
+    except DecodeError:
+        raise
+    except Exception as exc:
+        raise DecodeError(f"malformed payload: {type(exc).__name__}: {exc}"[:500]) from None
 
 
 def _decode_checked(buf: bytes, expected: type[M] | None) -> M:

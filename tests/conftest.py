@@ -39,6 +39,25 @@ def example_site():
     return load_site(EXAMPLE_SITE)
 
 
+#: simulated seconds of :func:`traj1_stream`
+TRAJ1_STREAM_S = 40.0
+
+
+@pytest.fixture(scope="session")
+def traj1_stream():
+    """(scenario, messages): the first 40 s of the paper's traj1 (seed 7) in arrival order,
+    the robot's own localization at the rate the robot bridge publishes it; shared by the
+    pipeline tests (frozen messages: nobody changes them)."""
+    from robot_bridge.service import LOCALIZATION_PERIOD_NS
+    from simulation.runner import SimulationRun
+    from simulation.scenario import load_scenario
+
+    scenario = load_scenario()
+    sim = SimulationRun(scenario, "traj1", seed=7)
+    return scenario, list(sim.messages(until_s=TRAJ1_STREAM_S,
+                                       localization_rate_hz=1e9 / LOCALIZATION_PERIOD_NS))
+
+
 @pytest.fixture
 def zenoh_pair() -> Iterator[tuple[object, object, str]]:
     """Two real Zenoh peer sessions on loopback (scouting off): (listener, connector, endpoint)."""

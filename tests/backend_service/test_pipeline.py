@@ -11,20 +11,11 @@ import pytest
 pytest.importorskip("gtsam")
 
 from backend_service.pipeline import BackendPipeline, PipelineConfig
-from simulation.runner import SimulationRun
-from simulation.scenario import load_scenario
-
-SIM_S = 40.0
-#: the rate the robot bridge publishes the robot's own localization at
-#: (``robot_bridge.service.LOCALIZATION_PERIOD_NS``)
-LOCALIZATION_RATE_HZ = 10.0
 
 
-@pytest.fixture(scope="module")
-def stream():
-    sc = load_scenario()
-    sim = SimulationRun(sc, "traj1", seed=7)
-    return sc, list(sim.messages(until_s=SIM_S, localization_rate_hz=LOCALIZATION_RATE_HZ))
+@pytest.fixture
+def stream(traj1_stream):
+    return traj1_stream
 
 
 def test_prior_comes_from_the_configured_source(stream) -> None:

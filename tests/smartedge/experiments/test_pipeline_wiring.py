@@ -15,18 +15,15 @@ from backend_service.service import BackendNode
 from protocol import encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
 from protocol.runtime import ScriptedRunner
-from simulation.runner import SimulationRun
-from simulation.scenario import load_scenario
+from robot_bridge.service import LOCALIZATION_PERIOD_NS
 from smartedge.experiments import LOCALIZATION_RATE_HZ, paper_pipeline_config
 
-SIM_S = 40.0
 
-
-@pytest.fixture(scope="module")
-def stream():
-    sc = load_scenario()
-    sim = SimulationRun(sc, "traj1", seed=7)
-    return sc, list(sim.messages(until_s=SIM_S, localization_rate_hz=LOCALIZATION_RATE_HZ))
+@pytest.fixture
+def stream(traj1_stream):
+    # the shared stream carries the bridge's localization rate: the experiments' must be it
+    assert LOCALIZATION_RATE_HZ == 1e9 / LOCALIZATION_PERIOD_NS
+    return traj1_stream
 
 
 def _key(site: str, msg: object) -> str:
