@@ -180,6 +180,12 @@ def _rejected(reason: str, num_points: int = 0, num_map_points: int = 0) -> Alig
                            num_map_points, False, reason)
 
 
+def _normal_spread(normals: np.ndarray) -> float:
+    """Smallest eigenvalue of the mean n nᵀ of (K, 3) unit normals (see
+    :class:`AlignmentConfig`'s ``min_normal_spread``)."""
+    return float(np.linalg.eigvalsh(normals.T @ normals / len(normals))[0])
+
+
 def align_to_map(
     cloud_world: np.ndarray,
     map_points: np.ndarray,
@@ -271,6 +277,17 @@ def align_to_map(
         target.normals = o3d.utility.Vector3dVector(map_nrm[near])
         # the robust kernel only on the finest level: coarse levels keep least squares and
         # their wide basin (a robust kernel there settles for partial, wrong overlaps)
+        if result is None:
+            # ICP on geometry that cannot hold the cloud in some direction (a floor only) has
+            # a singular system and moves the cloud anywhere: judge that before any step
+            start = _reg.evaluate_registration(down, target, dist, T)
+            start_pairs = np.asarray(start.correspondence_set, dtype=np.int64).reshape(-1, 2)
+            if len(start_pairs) >= cfg.min_points:
+                start_spread = _normal_spread(map_nrm[near][start_pairs[:, 1]])
+                if start_spread < cfg.min_normal_spread:
+                    return _rejected(f"degenerate: normal spread {start_spread:.4f} < "
+                                     f"{cfg.min_normal_spread} where the cloud lies (before "
+                                     "ICP)", n_used, n_map)
         robust = cfg.robust_scale > 0 and (level == last or cfg.robust_levels == "all")
         estimation = _reg.TransformationEstimationPointToPlane(
             _reg.TukeyLoss(k=dist * cfg.robust_scale) if robust else _reg.L2Loss())
@@ -285,11 +302,7 @@ def align_to_map(
     assert result is not None
 
     pairs = np.asarray(result.correspondence_set, dtype=np.int64).reshape(-1, 2)
-    if len(pairs):
-        normals = target_nrm[pairs[:, 1]]
-        spread = float(np.linalg.eigvalsh(normals.T @ normals / len(pairs))[0])
-    else:
-        spread = 0.0
+    spread = _normal_spread(target_nrm[pairs[:, 1]]) if len(pairs) else 0.0
     R = T[:3, :3]
     offset_m = float(np.linalg.norm(R @ pivot + T[:3, 3] - pivot))
     offset_deg = math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))

@@ -96,6 +96,20 @@ def test_floor_and_one_wall_are_degenerate(room_map) -> None:
     assert "degenerate" in result.reason
 
 
+def test_a_floor_only_cloud_is_judged_degenerate_before_icp_moves_it(room_map) -> None:
+    """ICP on a floor alone has a singular system (x, y, yaw free) and used to throw the cloud
+    metres away, so the verdict depended on where it landed; the geometry under the cloud as
+    placed decides it now, every time, and the cloud is not moved."""
+    rng = np.random.default_rng(5)
+    floor = np.column_stack([rng.uniform(2.0, 3.5, 3000), rng.uniform(1.8, 3.2, 3000),
+                             np.full(3000, 0.01)])
+    for _ in range(3):
+        result = align_to_map(floor, *room_map)
+        assert not result.accepted
+        assert result.reason.startswith("degenerate") and "before ICP" in result.reason
+        assert np.array_equal(result.T_correction, np.eye(4))
+
+
 def test_bad_clouds_are_rejected_with_a_reason(room_map, robot_cloud) -> None:
     with_nan = robot_cloud.copy()
     with_nan[10, 1] = np.nan
