@@ -50,6 +50,9 @@ COMMANDS: Final[dict[str, Command]] = {
                       "rendered camera images with exact labels"),
     "train": Command("smartedge.train_cmd", "main",
                      "train the detector / keypoint CNN on renders"),
+    "calibrate": Command("smartedge.calibrate.cli", "main",
+                         "calibrate the site: ChArUco board, intrinsics, extrinsics, and the "
+                         "robot itself as the target"),
     "site": Command("smartedge.site_tool", "main",
                     "check a site file or a camera calibration file"),
     "status": Command("smartedge.introspect", "status_main",
