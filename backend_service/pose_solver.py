@@ -29,6 +29,16 @@ Methods (pick with :class:`SolverConfig`):
   CasADi evaluation through a preallocated :meth:`casadi.Function.buffer` plus a 3x3 (6x6)
   solve.
 
+Compiled kernels: where a C compiler exists, the Gauss-Newton function and the residual
+function (:meth:`PoseProblem.evaluate`) are not one constant-folded expression per camera set
+but ONE small per-camera kernel per (keypoint count, DoF, loss), with the camera and the robot
+model as inputs, compiled once per machine by :mod:`backend_service.compiled_functions` (kept
+on disk, built in the background while the virtual machine answers) and mapped over the
+cameras: about 3.5x (normal equations) and 4.5x (residuals) cheaper than CasADi's virtual
+machine at 64 cameras, and a new camera set costs milliseconds instead of a symbolic build of
+a third of a second. No compiler, a failed build or ``SMARTEDGE_POSE_JIT=0`` leave everything
+on the virtual machine, as before.
+
 The default, :data:`DEFAULT_METHOD`, was chosen by measurement (``smartedge bench pose``,
 docs/benchmarks.md).
 
@@ -55,6 +65,7 @@ from typing import Final
 import casadi as ca
 import numpy as np
 
+from backend_service.compiled_functions import compiled
 from backend_service.covariance import ErrorModel
 from protocol.camera import CameraModel
 
@@ -240,7 +251,24 @@ def _project_with_jacobian_sym(camera: CameraModel, pc: ca.SX,
     distorted normalized <- normalized <- camera point <- pose. Returns u, v (M x 1) and
     du, dv (M x dof). The same model as :func:`_project_cam_sym` (tested against CasADi's AD);
     written out because the shared 2x2 distortion Jacobian needs about 30 % fewer
-    instructions than forward AD through the distortion once per pose direction."""
+    instructions than forward AD through the distortion once per pose direction. The
+    camera's coefficients are constants here: terms of zero coefficients are left out."""
+    d = np.zeros(8)
+    d[: camera.dist.size] = camera.dist
+    K = camera.K
+    return _projection_with_jacobian(
+        (float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])),
+        tuple(float(v) for v in d), pc, dpc_dq,
+        distorted=bool(np.any(d != 0.0)), rational=bool(np.any(d[5:] != 0.0)))
+
+
+def _projection_with_jacobian(k: Sequence, dist: Sequence, pc: ca.SX,
+                              dpc_dq: tuple[ca.SX, ca.SX, ca.SX], *, distorted: bool = True,
+                              rational: bool = True) -> tuple[ca.SX, ...]:
+    """:func:`_project_with_jacobian_sym` for intrinsics ``k`` = (fx, skew, cx, fy, cy) and
+    the 8 OpenCV coefficients ``dist`` = (k1, k2, p1, p2, k3, k4, k5, k6), numbers or
+    symbols. ``distorted`` / ``rational``: False leaves out the distortion / its denominator
+    (only right when those coefficients are zero)."""
     dof = dpc_dq[0].shape[1]
 
     def cols(e: ca.SX) -> ca.SX:  # (M x 1) -> (M x dof) for elementwise products
@@ -253,14 +281,12 @@ def _project_with_jacobian_sym(camera: CameraModel, pc: ca.SX,
     dZ = dpc_dq[2] * cols(Z > _MIN_DEPTH_M)  # the clamp's derivative
     dx = cols(iz) * (dpc_dq[0] - cols(x) * dZ)
     dy = cols(iz) * (dpc_dq[1] - cols(y) * dZ)
-    d = np.zeros(8)
-    d[: camera.dist.size] = camera.dist
-    if np.any(d != 0.0):
-        k1, k2, p1, p2, k3, k4, k5, k6 = (float(v) for v in d)
+    if distorted:
+        k1, k2, p1, p2, k3, k4, k5, k6 = dist
         r2 = x * x + y * y
         num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         dnum = k1 + r2 * (2 * k2 + r2 * (3 * k3))
-        if k4 != 0.0 or k5 != 0.0 or k6 != 0.0:
+        if rational:
             den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
             radial = num / den
             dradial = (dnum - radial * (k4 + r2 * (2 * k5 + r2 * (3 * k6)))) / den
@@ -276,11 +302,11 @@ def _project_with_jacobian_sym(camera: CameraModel, pc: ca.SX,
         dyd = d01 * dx + d11 * dy
     else:
         xd, yd, dxd, dyd = x, y, dx, dy
-    K = camera.K
-    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-    v = K[1, 1] * yd + K[1, 2]
-    du = K[0, 0] * dxd + K[0, 1] * dyd
-    dv = K[1, 1] * dyd
+    fx, skew, cx, fy, cy = k
+    u = fx * xd + skew * yd + cx
+    v = fy * yd + cy
+    du = fx * dxd + skew * dyd
+    dv = fy * dyd
     return u, v, du, dv
 
 
@@ -513,6 +539,106 @@ class _GaussNewtonKernel:
 
 
 # --------------------------------------------------------------------------------------------
+# the compiled per-camera kernel
+# --------------------------------------------------------------------------------------------
+
+#: camera parameters of the kernel: fx, skew, cx, fy, cy, 8 OpenCV coefficients,
+#: R_cam_world (row-major), t_cam_world
+_CAMERA_PARAMS: Final = 5 + 8 + 9 + 3
+
+
+def camera_parameters(camera: CameraModel) -> np.ndarray:
+    """The (25,) parameter vector of one camera for the compiled kernel."""
+    d = np.zeros(8)
+    d[: camera.dist.size] = camera.dist
+    K, T = camera.K, camera.T_cam_world
+    return np.concatenate([[K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]], d,
+                           T[:3, :3].reshape(-1), T[:3, 3]])
+
+
+def _one_camera_sym(num_keypoints: int, dof: int) -> tuple[list[ca.SX], tuple[ca.SX, ...]]:
+    """The symbolic inputs ``[q, camera (25), observed pixels (2M), weights (M), keypoints
+    (3M)]`` of one camera's kernel and, from them, (ru, rv (M), Ju, Jv (M x dof), depths (M)):
+    the weighted pixel residuals of :meth:`PoseProblem.normal_equations_vm`, per camera, with
+    the camera and the robot model as inputs instead of constants."""
+    M = num_keypoints
+    q = ca.SX.sym("q", dof)
+    cam = ca.SX.sym("camera", _CAMERA_PARAMS)
+    obs = ca.SX.sym("uv", 2 * M)
+    w = ca.SX.sym("w", M)
+    kps = ca.SX.sym("keypoints", 3 * M)
+    R_wr, t_wr = _rotation_sym(q, dof)
+    R_cw = ca.reshape(cam[13:22], 3, 3).T
+    kp = ca.reshape(kps, 3, M).T
+    pts_cam = kp @ (R_cw @ R_wr).T + ca.repmat((R_cw @ t_wr + cam[22:25]).T, M, 1)
+    dpc_dq = tuple(ca.jacobian(pts_cam[:, a], q) for a in range(3))  # AD: rigid motion
+    u, v, du, dv = _projection_with_jacobian(
+        tuple(cam[i] for i in range(5)), tuple(cam[5 + i] for i in range(8)), pts_cam, dpc_dq)
+    o = ca.reshape(obs, 2, M).T
+    sw = ca.sqrt(w)
+    residuals = (sw * (u - o[:, 0]), sw * (v - o[:, 1]), ca.repmat(sw, 1, dof) * du,
+                 ca.repmat(sw, 1, dof) * dv, pts_cam[:, 2])
+    return [q, cam, obs, w, kps], residuals
+
+
+def _camera_kernel_sym(num_keypoints: int, dof: int, loss: str) -> ca.Function:
+    """``(q, camera (25), observed pixels (2M), weights (M), scale, keypoints (3M)) ->
+    [cost, gradient, normal-matrix upper triangle]`` of ONE camera: what
+    :meth:`PoseProblem.normal_equations_vm` sums over the cameras, so one compiled function
+    serves every camera set."""
+    (q, cam, obs, w, kps), (ru, rv, Ju, Jv, _) = _one_camera_sym(num_keypoints, dof)
+    c = ca.SX.sym("c", 1)
+    cost, grad, h_upper = _normal_equations_sym(ru, rv, Ju, Jv, c, loss, dof)
+    return ca.Function(f"pose_camera_kernel_m{num_keypoints}_dof{dof}_{loss}",
+                       [q, cam, obs, w, c, kps], [ca.densify(ca.vertcat(cost, grad, h_upper))],
+                       ["q", "camera", "uv", "w", "c", "keypoints"], ["normal_equations"])
+
+
+def _residual_kernel_sym(num_keypoints: int, dof: int) -> ca.Function:
+    """``(q, camera (25), observed pixels (2M), weights (M), keypoints (3M)) -> [weighted
+    residuals (2M, u/v interleaved), their Jacobian (2M x dof), depths (M)]`` of ONE camera:
+    what :meth:`PoseProblem.evaluate` returns, per camera (the Jacobian by the chain rule of
+    :func:`_projection_with_jacobian`)."""
+    M = num_keypoints
+    (q, cam, obs, w, kps), (ru, rv, Ju, Jv, depth) = _one_camera_sym(M, dof)
+    r = ca.reshape(ca.horzcat(ru, rv).T, 2 * M, 1)
+    J = ca.vertcat(*[ca.vertcat(Ju[j, :], Jv[j, :]) for j in range(M)])
+    return ca.Function(f"pose_residual_kernel_m{M}_dof{dof}", [q, cam, obs, w, kps],
+                       [ca.densify(r), ca.densify(J), ca.densify(depth)],
+                       ["q", "camera", "uv", "w", "keypoints"], ["residuals", "jacobian", "depth"])
+
+
+def _normal_equations_kernel(num_keypoints: int, dof: int, loss: str, wait: bool = False
+                             ) -> tuple[ca.Function | None, bool]:
+    return compiled(("normal_equations", num_keypoints, dof, loss),
+                   lambda: _camera_kernel_sym(num_keypoints, dof, loss), wait)
+
+
+def _residuals_kernel(num_keypoints: int, dof: int, wait: bool = False
+                      ) -> tuple[ca.Function | None, bool]:
+    return compiled(("residuals", num_keypoints, dof),
+                   lambda: _residual_kernel_sym(num_keypoints, dof), wait)
+
+
+def compiled_camera_kernel(num_keypoints: int, dof: int, loss: str, *,
+                           wait: bool = False) -> ca.Function | None:
+    """The compiled per-camera Gauss-Newton kernel (:func:`_camera_kernel_sym`) for this
+    keypoint count, DoF and loss, or ``None``: not built yet (the first call starts the build
+    in the background; ``wait=True`` waits for it), switched off (:data:`JIT_ENV` = ``"0"``),
+    no compiler, a failed build, or a library whose numbers differ from the virtual
+    machine's (never used then). The library is built once per machine, loaded once per
+    process."""
+    return _normal_equations_kernel(num_keypoints, dof, loss, wait)[0]
+
+
+def compiled_residual_kernel(num_keypoints: int, dof: int, *,
+                             wait: bool = False) -> ca.Function | None:
+    """The compiled per-camera residual kernel (:func:`_residual_kernel_sym`), as
+    :func:`compiled_camera_kernel`."""
+    return _residuals_kernel(num_keypoints, dof, wait)[0]
+
+
+# --------------------------------------------------------------------------------------------
 # the cached problem
 # --------------------------------------------------------------------------------------------
 
@@ -522,7 +648,9 @@ class PoseProblem:
 
     Built by :func:`get_problem` (cached). The cameras and the model keypoints
     ``keypoints_base_m`` (M, 3) are constants; parameter layout (see :meth:`pack`): observed
-    pixels (N*M*2, camera-major), weights (N*M), robust scale (px).
+    pixels (N*M*2, camera-major), weights (N*M), robust scale (px). Its functions are built on
+    first use: the compiled per-camera kernels mapped over the cameras where there are any,
+    the symbolic problem (:attr:`residual_fn`, the NLP methods) otherwise and on request.
     """
 
     def __init__(self, cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray, dof: int,
@@ -534,7 +662,35 @@ class PoseProblem:
         self.keypoints_base_m = kp_base
         self.dof = int(dof)
         self.loss = loss
-        N, M = self.num_cameras, self.num_keypoints
+        self._solvers: dict[tuple[str, int], ca.Function] = {}
+        self._cameras = tuple(cameras)
+        self._gn: _GaussNewtonKernel | None = None
+        self._residual_buffer: tuple | None = None
+        self._residual_current = False  # the buffer's outputs belong to its inputs
+        # built on first use: the whole problem as one symbolic expression (the NLP methods,
+        # and the residual function where no compiled kernel evaluates the residuals)
+        self._symbolic: tuple[ca.Function, dict[str, ca.SX]] | None = None
+        self._residual_eval: ca.Function | None = None
+        self._residual_final = False  # no better function is going to come
+        self._residual_dense = False
+        self._gn_final = False
+
+    @property
+    def residual_fn(self) -> ca.Function:
+        """``(q, p) -> (weighted residuals (2NM), Jacobian (2NM x dof), depths (NM))`` on
+        CasADi's virtual machine, the Jacobian by automatic differentiation (the reference
+        of the hand-chained kernels)."""
+        return self._build_symbolic()[0]
+
+    @property
+    def _nlp(self) -> dict[str, ca.SX]:
+        return self._build_symbolic()[1]
+
+    def _build_symbolic(self) -> tuple[ca.Function, dict[str, ca.SX]]:
+        if self._symbolic is not None:
+            return self._symbolic
+        N, M, dof, loss, kp_base = (self.num_cameras, self.num_keypoints, self.dof, self.loss,
+                                    self.keypoints_base_m)
         q = ca.SX.sym("q", dof)
         uv = ca.SX.sym("uv", N * M * 2)
         w = ca.SX.sym("w", N * M)
@@ -542,7 +698,7 @@ class PoseProblem:
         p = ca.vertcat(uv, w, c)
         R_wr, t_wr = _rotation_sym(q, dof)
         res_parts, depth_parts, s_parts = [], [], []
-        for i, cam in enumerate(cameras):
+        for i, cam in enumerate(self._cameras):
             # Composite camera<-robot transform first: the model keypoints are constants, so
             # each keypoint costs one 3x3 product with known (often zero) coefficients.
             R_cw = ca.DM(cam.T_cam_world[:3, :3])
@@ -562,15 +718,41 @@ class PoseProblem:
         s = ca.vertcat(*s_parts)
         depth = ca.vertcat(*depth_parts)
         f = 0.5 * ca.sum1(_rho_sym(s, c, loss))
-        #: (q, p) -> (weighted residuals (2NM), Jacobian (2NM x dof), depths (NM))
-        self.residual_fn = ca.Function("pose_residuals", [q, p], [r, ca.jacobian(r, q), depth])
-        self._nlp = {"x": q, "p": p, "f": f}
-        self._solvers: dict[tuple[str, int], ca.Function] = {}
-        self._cameras = tuple(cameras)
-        self._gn: _GaussNewtonKernel | None = None
-        self._residual_buffer: tuple | None = None
-        self._residual_fn_dense = all(self.residual_fn.sparsity_out(i).is_dense()
-                                      for i in range(3))
+        residual_fn = ca.Function("pose_residuals", [q, p], [r, ca.jacobian(r, q), depth])
+        self._symbolic = (residual_fn, {"x": q, "p": p, "f": f})
+        return self._symbolic
+
+    def _residual_function(self) -> ca.Function:
+        """What :meth:`evaluate` runs: the compiled residual kernel mapped over the cameras
+        when there is one, else :attr:`residual_fn` (replaced by the kernel as soon as its
+        background build is done)."""
+        if self._residual_eval is None or not self._residual_final:
+            kernel, self._residual_final = _residuals_kernel(self.num_keypoints, self.dof)
+            if kernel is None:
+                if self._residual_eval is not None:
+                    return self._residual_eval
+                self._residual_eval = self.residual_fn
+            else:
+                self._residual_buffer = None  # bound to the function it replaces
+                N, M, dof = self.num_cameras, self.num_keypoints, self.dof
+                q = ca.MX.sym("q", dof)
+                p = ca.MX.sym("p", N * M * 3 + 1)
+                r, J, z = kernel.map(N, "serial")(
+                    q, self._camera_matrix(), ca.reshape(p[: 2 * N * M], 2 * M, N),
+                    ca.reshape(p[2 * N * M: 3 * N * M], M, N),
+                    ca.DM(self.keypoints_base_m.reshape(-1)))
+                self._residual_eval = ca.Function(
+                    "pose_residuals", [q, p],
+                    [ca.reshape(r, 2 * N * M, 1), ca.vertcat(*ca.horzsplit(J, dof)),
+                     ca.reshape(z, N * M, 1)])
+            # a buffer holds only structural non-zeros: the fast path needs dense outputs
+            self._residual_dense = all(self._residual_eval.sparsity_out(i).is_dense()
+                                       for i in range(3))
+        return self._residual_eval
+
+    def _camera_matrix(self) -> ca.DM:
+        """(25, N): camera i's :func:`camera_parameters` in column i."""
+        return ca.DM(np.stack([camera_parameters(c) for c in self._cameras], axis=1))
 
     # -- parameters --------------------------------------------------------------------------
 
@@ -587,41 +769,72 @@ class PoseProblem:
 
     def evaluate(self, q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weighted residuals (2NM,), Jacobian (2NM, dof), depths (NM,) in metres at ``q``
-        (fresh arrays)."""
-        if not self._residual_fn_dense:
-            r, J, z = self.residual_fn(q, p)
+        (fresh arrays). The outputs of the last call are kept: asking again at the same ``q``
+        and ``p`` (the solution's checks, then its covariance) returns copies of them without
+        a second CasADi evaluation."""
+        fn = self._residual_function()
+        if not self._residual_dense:
+            r, J, z = fn(q, p)
             return np.asarray(r).reshape(-1), np.asarray(J), np.asarray(z).reshape(-1)
         if self._residual_buffer is None:
             # Same function, called through a buffer: ~3x less call overhead than f(q, p).
             # (A buffer holds only structural non-zeros, hence the density check.)
             K, dof = self.num_cameras * self.num_keypoints, self.dof
-            io = (np.zeros(dof), np.zeros(self.residual_fn.size1_in(1)), np.zeros(2 * K),
+            io = (np.zeros(dof), np.zeros(fn.size1_in(1)), np.zeros(2 * K),
                   np.zeros((dof, 2 * K)), np.zeros(K))  # J in CasADi's column-major order
-            buf, run = self.residual_fn.buffer()
+            buf, run = fn.buffer()
             for i, arr in enumerate(io[:2]):
                 buf.set_arg(i, memoryview(arr))
             for i, arr in enumerate(io[2:]):
                 buf.set_res(i, memoryview(arr.reshape(-1)))
             self._residual_buffer = (io, buf, run)
+            self._residual_current = False
         io, _, run = self._residual_buffer
-        io[0][:] = np.asarray(q, dtype=np.float64).reshape(-1)
-        io[1][:] = p
-        run()
+        q_in = np.asarray(q, dtype=np.float64).reshape(-1)
+        # exact comparison: any difference (a NaN included) evaluates again
+        if not (self._residual_current and np.array_equal(io[0], q_in)
+                and np.array_equal(io[1], p)):
+            self._residual_current = False  # stays so if the inputs cannot be taken
+            io[0][:] = q_in
+            io[1][:] = p
+            run()
+            self._residual_current = True
         return io[2].copy(), io[3].T.copy(), io[4].copy()
 
     # -- the Gauss-Newton kernel -------------------------------------------------------------
 
     def normal_equations_function(self) -> ca.Function:
         """``(q, p) -> [cost, gradient (dof), upper triangle of the normal matrix]`` (one flat
-        vector, see :func:`_normal_equations_sym`), built on first use and kept."""
+        vector, see :func:`_normal_equations_sym`), built on first use and kept (the virtual
+        machine's until the compiled kernel is ready, then the kernel's)."""
         return self._gauss_newton_kernel().function
 
     def _gauss_newton_kernel(self) -> _GaussNewtonKernel:
-        if self._gn is None:
-            self._gn = _GaussNewtonKernel(self._build_normal_equations())
+        if self._gn is None or not self._gn_final:
+            kernel, self._gn_final = _normal_equations_kernel(self.num_keypoints, self.dof,
+                                                              self.loss)
+            if kernel is not None:
+                self._gn = _GaussNewtonKernel(self._mapped_normal_equations(kernel))
+            elif self._gn is None:
+                self._gn = _GaussNewtonKernel(self.normal_equations_vm())
         return self._gn
 
-    def _build_normal_equations(self) -> ca.Function:
+    def _mapped_normal_equations(self, kernel: ca.Function) -> ca.Function:
+        """The compiled per-camera kernel mapped over this problem's cameras and summed: the
+        same inputs and outputs as :meth:`normal_equations_vm`."""
+        N, M, dof = self.num_cameras, self.num_keypoints, self.dof
+        q = ca.MX.sym("q", dof)
+        p = ca.MX.sym("p", N * M * 3 + 1)
+        # camera i's pixels and weights are column i (CasADi reshapes column-major)
+        per_camera = kernel.map(N, "serial")(
+            q, self._camera_matrix(), ca.reshape(p[: 2 * N * M], 2 * M, N),
+            ca.reshape(p[2 * N * M: 3 * N * M], M, N), p[3 * N * M],
+            ca.DM(self.keypoints_base_m.reshape(-1)))
+        return ca.Function("pose_normal_equations", [q, p], [ca.sum2(per_camera)])
+
+    def normal_equations_vm(self) -> ca.Function:
+        """The normal-equations function on CasADi's virtual machine: the cameras and the
+        keypoint model folded in as constants (the reference of the compiled kernel)."""
         N, M, dof = self.num_cameras, self.num_keypoints, self.dof
         q = ca.SX.sym("q", dof)
         uv = ca.SX.sym("uv", N * M * 2)

@@ -157,8 +157,9 @@ viewer_note=""
 log "backend host: router $ROUTER, robots ${ROBOTS[*]:-none}$viewer_note, package $PACKAGE[backend,bridge]"
 log "router: $router_note"
 
-# 1. system packages (open3d needs libusb-1.0 at import time) and user
-ensure_apt python3-venv libusb-1.0-0 libgomp1
+# 1. system packages (open3d needs libusb-1.0 at import time; gcc compiles the pose solver's
+#    kernels once, docs/deployment.md) and user
+ensure_apt python3-venv libusb-1.0-0 libgomp1 gcc
 ensure_user
 
 # 2. python environment

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
+import sys
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any, Final, TypeVar
@@ -63,6 +63,9 @@ _ALLOWED_DTYPES: Final = frozenset(
 _NESTED: Final[dict[tuple[str, str], type]] = {("RobotDetections", "detections"): Detection}
 _REGISTRY: Final[dict[str, type[Message]]] = {cls.SCHEMA: cls for cls in MESSAGE_TYPES}
 _ARRAY_KEYS: Final = frozenset({"dtype", "shape", "data"})
+_LITTLE_ENDIAN_HOST: Final = sys.byteorder == "little"
+#: the allowed wire dtypes, looked up once
+_WIRE_DTYPES: Final[dict[str, np.dtype]] = {name: np.dtype(name) for name in _ALLOWED_DTYPES}
 
 M = TypeVar("M", bound=Message)
 
@@ -73,15 +76,27 @@ M = TypeVar("M", bound=Message)
 
 
 def _array_to_wire(arr: np.ndarray) -> dict[str, Any]:
-    le = arr.astype(arr.dtype.newbyteorder("<"), copy=False)
-    return {
-        "dtype": le.dtype.str,
-        "shape": list(arr.shape),
-        "data": np.ascontiguousarray(le).tobytes(),
-    }
+    dt = arr.dtype
+    if dt.byteorder == ">" or (dt.byteorder == "=" and not _LITTLE_ENDIAN_HOST):
+        arr = arr.astype(dt.newbyteorder("<"))
+        dt = arr.dtype
+    # tobytes() is C order whatever the array's layout
+    return {"dtype": dt.str, "shape": list(arr.shape), "data": arr.tobytes()}
+
+
+#: types sent as they are (bool and int subclasses by the general rule below)
+_AS_IS: Final = frozenset({type(None), str, int, float, bool})
 
 
 def _value_to_wire(value: Any) -> Any:
+    kind = type(value)
+    # the exact types of a message's fields first, each decided by one lookup
+    if kind in _AS_IS:
+        return value
+    if kind is np.ndarray:
+        return _array_to_wire(value)
+    if kind is tuple or kind is list:
+        return [_value_to_wire(v) for v in value]
     if value is None or isinstance(value, (str, int, float)):
         return value
     if isinstance(value, np.ndarray):
@@ -120,23 +135,29 @@ def _array_from_wire(path: str, obj: Any) -> np.ndarray:
     if not isinstance(obj, dict) or len(obj) != 3 or not _ARRAY_KEYS.issuperset(obj):
         raise DecodeError(f"{path}: expected an array map with keys dtype, shape, data")
     dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
-    if not isinstance(dtype, str) or dtype not in _ALLOWED_DTYPES:
+    dt = _WIRE_DTYPES.get(dtype) if isinstance(dtype, str) else None
+    if dt is None:
         raise DecodeError(f"{path}: dtype {dtype!r} not allowed")
     if not isinstance(data, bytes):
         raise DecodeError(f"{path}: data must be binary, got {type(data).__name__}")
-    if (
-        not isinstance(shape, list)
-        or len(shape) > MAX_ARRAY_NDIM
-        or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
-    ):
+    count = 1
+    if isinstance(shape, list) and len(shape) <= MAX_ARRAY_NDIM:
+        for d in shape:
+            # exactly int (msgpack's integers; a bool is not a size)
+            if type(d) is not int or d < 0:
+                count = -1
+                break
+            count *= d
+    else:
+        count = -1
+    if count < 0:
         raise DecodeError(f"{path}: shape must be a list of at most {MAX_ARRAY_NDIM} sizes >= 0")
-    dt = np.dtype(dtype)
-    count = math.prod(shape)
     if count * dt.itemsize != len(data):
         raise DecodeError(
             f"{path}: shape {shape} of {dtype} needs {count * dt.itemsize} bytes, got {len(data)}"
         )
-    return np.frombuffer(data, dtype=dt).reshape(shape)
+    # a view of the payload's bytes: read-only, C-contiguous, nothing copied
+    return np.ndarray(shape, dt, data)
 
 
 def _field_kind(f: dataclasses.Field) -> str:
@@ -164,38 +185,46 @@ def _field_specs(cls: type, schema: str) -> tuple[tuple[str, str, bool, type | N
     )
 
 
+def _where(path: str, name: str) -> str:
+    return f"{path}.{name}" if path else name
+
+
 def _record_from_wire(path: str, cls: type, obj: Any, schema: str) -> Any:
     if not isinstance(obj, dict):
         raise DecodeError(f"{path or cls.__name__}: expected a map, got {type(obj).__name__}")
     kwargs: dict[str, Any] = {}
+    # field paths are spelled only for an error message (this runs for every field received)
     for name, kind, required, nested in _field_specs(cls, schema):
         if name not in obj:
             if required:
-                raise DecodeError(
-                    f"{path}.{name}: required field missing"
-                    if path
-                    else f"{name}: required field missing"
-                )
+                raise DecodeError(f"{_where(path, name)}: required field missing")
             continue
-        where = f"{path}.{name}" if path else name
         value = obj[name]
-        if nested is not None:
+        if kind == "scalar" and nested is None:
+            if isinstance(value, (dict, list, bytes)):
+                raise DecodeError(
+                    f"{_where(path, name)}: expected a scalar, got {type(value).__name__}")
+        elif nested is not None:
             if not isinstance(value, list):
-                raise DecodeError(f"{where}: expected a list, got {type(value).__name__}")
-            value = tuple(
+                raise DecodeError(
+                    f"{_where(path, name)}: expected a list, got {type(value).__name__}")
+            where = _where(path, name)
+            value = tuple([
                 _record_from_wire(f"{where}[{i}]", nested, item, nested.__name__)
                 for i, item in enumerate(value)
-            )
+            ])
         elif kind == "array":
-            value = None if value is None else _array_from_wire(where, value)
-        elif kind == "map" and not isinstance(value, dict):
-            raise DecodeError(f"{where}: expected a map, got {type(value).__name__}")
+            if value is not None:
+                value = _array_from_wire(_where(path, name), value)
+        elif kind == "map":
+            if not isinstance(value, dict):
+                raise DecodeError(
+                    f"{_where(path, name)}: expected a map, got {type(value).__name__}")
         elif kind == "tuple":
             if not isinstance(value, list):
-                raise DecodeError(f"{where}: expected a list, got {type(value).__name__}")
+                raise DecodeError(
+                    f"{_where(path, name)}: expected a list, got {type(value).__name__}")
             value = tuple(value)
-        elif kind == "scalar" and isinstance(value, (dict, list, bytes)):
-            raise DecodeError(f"{where}: expected a scalar, got {type(value).__name__}")
         kwargs[name] = value
     try:
         return cls(**kwargs)
@@ -372,11 +401,13 @@ def _decode_native(buf: bytes, expected: type[M] | None) -> M | None:
     limits = native_limits(expected)
     left = [limits.max_containers]
 
-    def on_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    def on_map(finished: dict[Any, Any]) -> dict[Any, Any]:
+        # object_hook, not object_pairs_hook: the same count at the same moment (each map
+        # as it is finished), without a list of pairs built and copied into a dict
         left[0] -= 1
         if left[0] < 0:
             raise _TooManyContainers
-        return dict(pairs)
+        return finished
 
     def on_list(items: list[Any]) -> list[Any]:
         left[0] -= 1
@@ -386,7 +417,7 @@ def _decode_native(buf: bytes, expected: type[M] | None) -> M | None:
 
     try:
         obj = msgpack.unpackb(buf, raw=False, use_list=True, strict_map_key=True,
-                              object_pairs_hook=on_map, list_hook=on_list, **limits.unpack)
+                              object_hook=on_map, list_hook=on_list, **limits.unpack)
     except Exception:
         return None
     if not isinstance(obj, dict):

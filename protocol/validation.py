@@ -51,6 +51,8 @@ def check_choice(field: str, value: Any, choices: Sequence[str]) -> str:
 
 
 def check_int(field: str, value: Any, *, lo: int = 0, hi: int = INT64_MAX) -> int:
+    if type(value) is int and lo <= value <= hi:  # the common case, decided at once
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ValidationError(field, f"expected an integer, got {type(value).__name__}")
     value = int(value)
@@ -67,6 +69,8 @@ def check_float(
     hi: float = math.inf,
     finite: bool = True,
 ) -> float:
+    if type(value) is float and lo <= value <= hi and (value - value == 0.0 or not finite):
+        return value  # the common case: a finite float in range (x - x is NaN for inf/NaN)
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValidationError(field, f"expected a number, got {type(value).__name__}")
     value = float(value)
@@ -119,14 +123,15 @@ def check_array(
             arr = arr.reshape([0 if d is None else d for d in shape] if None in shape else shape)
     else:
         raise ValidationError(field, f"expected an array, got {type(value).__name__}")
-    if arr.ndim != len(shape) or any(
-        want is not None and got != want for got, want in zip(arr.shape, shape, strict=True)
-    ):
-        want_txt = "x".join("N" if d is None else str(d) for d in shape)
-        raise ValidationError(field, f"shape {arr.shape} does not match ({want_txt})")
+    got_shape = arr.shape
+    if len(got_shape) != len(shape):
+        _shape_mismatch(field, got_shape, shape)
+    for got, want in zip(got_shape, shape):  # noqa: B905 - lengths compared just above
+        if want is not None and got != want:
+            _shape_mismatch(field, got_shape, shape)
     if max_elems is not None and arr.size > max_elems:
         raise ValidationError(field, f"{arr.size} elements exceed the limit of {max_elems}")
-    if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
+    if finite and arr.dtype.kind == "f" and not _all_finite(arr):
         raise ValidationError(field, "NaN or infinity is not allowed")
     flags = arr.flags
     if not flags.writeable and flags.c_contiguous and arr.dtype.isnative:
@@ -134,6 +139,21 @@ def check_array(
     out = np.array(arr, dtype=arr.dtype.newbyteorder("="), order="C", copy=True)
     out.setflags(write=False)
     return out
+
+
+def _shape_mismatch(field: str, got: tuple[int, ...], shape: Sequence[int | None]) -> None:
+    want_txt = "x".join("N" if d is None else str(d) for d in shape)
+    raise ValidationError(field, f"shape {got} does not match ({want_txt})")
+
+
+def _all_finite(arr: np.ndarray) -> bool:
+    """Every element of a float array finite. The sum of squares is finite exactly when every
+    element is, unless a finite one is so large that it overflows: only then is each element
+    looked at (the common small array costs one BLAS dot instead of a temporary and a
+    reduction)."""
+    if math.isfinite(np.vdot(arr, arr)):
+        return True
+    return bool(np.isfinite(arr).all())
 
 
 def check_covariance(field: str, value: Any, dim: int = 3) -> np.ndarray:

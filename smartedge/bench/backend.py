@@ -6,6 +6,9 @@ to a backend running as its own OS process (``smartedge backend``, no Rerun), an
 the camera-only poses it publishes. Reported per N: frame-sets per second, latency from the
 detection stamp to the received pose (p50/p99; it includes both Zenoh hops, the
 synchronizer and the solve), and dropped frame-sets (published frames without a pose).
+Every frame's payloads are projected and encoded before the run (the cameras do that on their
+own boards; ``--live-encode`` does it during the run, on the backend's cores, as the bench did
+before), so only sending them shares the backend's cores with it.
 """
 
 from __future__ import annotations
@@ -27,12 +30,35 @@ import numpy as np
 from protocol import decode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
+from protocol.site import Site
 from simulation.camera_ring import detection_payloads, robot_pose, write_ring_site
 from smartedge.processes import free_port, stop_process
 
 
+def _prepared_frames(site: Site, n_frames: int, rate_hz: float,
+                     rng: np.random.Generator) -> tuple[int, list[list[tuple[str, bytes]]]]:
+    """(first stamp, every frame's payloads) encoded before the run: the cameras project and
+    encode on their own boards, so that work must not run on the backend's cores while it is
+    measured. The first stamp lies far enough ahead for the encoding to finish (its time
+    extrapolated from two frames, doubled, plus a second); a frame still sent late is counted
+    (``late_publish``)."""
+    t0 = time.perf_counter()
+    for k in range(2):
+        detection_payloads(site, robot_pose(0.0), 0, k, np.random.default_rng(k))
+    per_frame_s = (time.perf_counter() - t0) / 2
+    period_ns = round(1e9 / rate_hz)
+    start_ns = time.time_ns() + round((2.0 * per_frame_s * n_frames + 1.0) * 1e9)
+    frames = [detection_payloads(site, robot_pose(k / rate_hz), start_ns + k * period_ns, k, rng)
+              for k in range(n_frames)]
+    return start_ns, frames
+
+
 def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
-             workdir: Path) -> dict[str, float]:
+             workdir: Path, live_encode: bool = False) -> dict[str, float]:
+    """One case: a backend process fed ``n_cameras`` cameras at ``rate_hz`` for ``warmup_s``
+    (not measured) + ``seconds``. ``live_encode``: each frame is projected and encoded by this
+    process during the run (the previous bench: that work shares the backend's cores) instead
+    of all frames before it."""
     import zenoh
 
     site_path = workdir / f"ring_{n_cameras}.yaml"
@@ -64,16 +90,21 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
                 congestion_control=zenoh.CongestionControl.BLOCK) for cam in site.cameras}
             rng = np.random.default_rng(0)
             period_ns = round(1e9 / rate_hz)
-            start_ns = time.time_ns() + 200_000_000
             n_frames = int((seconds + warmup_s) * rate_hz)
             warm_frames = int(warmup_s * rate_hz)
+            if live_encode:
+                start_ns = time.time_ns() + 200_000_000
+                prepared: list[list[tuple[str, bytes]]] = []
+            else:
+                start_ns, prepared = _prepared_frames(site, n_frames, rate_hz, rng)
             measured_stamps: list[int] = []
             late_publish = 0
             for k in range(n_frames):
                 stamp = start_ns + k * period_ns
-                # each camera encodes its own frame in parallel on its own board: prepare all
-                # payloads first, then send them together at the capture time
-                frame = detection_payloads(site, robot_pose(k / rate_hz), stamp, k, rng)
+                # each camera encodes its own frame in parallel on its own board: all the
+                # payloads of a frame are ready before its capture time and sent together
+                frame = prepared[k] if prepared else detection_payloads(
+                    site, robot_pose(k / rate_hz), stamp, k, rng)
                 while (now := time.time_ns()) < stamp:
                     time.sleep(min(0.002, (stamp - now) * 1e-9))
                 if now - stamp > period_ns:
@@ -141,6 +172,10 @@ def main(argv: Sequence[str]) -> int:
                              "Zenoh case runs once per value, e.g. 0,2 for quiet and busy")
     parser.add_argument("--no-zenoh", action="store_true",
                         help="only the in-process stage breakdown")
+    parser.add_argument("--live-encode", action="store_true",
+                        help="project and encode each frame during the run, on the backend's "
+                             "cores (the previous bench); default: every frame before the run, "
+                             "as the cameras do it on their own boards")
     args = parser.parse_args(list(argv))
     counts = [int(v) for v in args.cameras.split(",")]
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
@@ -153,14 +188,16 @@ def main(argv: Sequence[str]) -> int:
     if args.no_zenoh:
         return 0
     print(f"backend in its own process, Zenoh on loopback, {args.rate:.0f} Hz, 12 keypoints per "
-          f"camera, {args.seconds:.0f} s per case")
+          f"camera, {args.seconds:.0f} s per case, payloads encoded "
+          + ("during the run (--live-encode)" if args.live_encode else "before the run"))
     print(f"{'cameras':>8}{'load':>6}{'frame-sets/s':>14}{'p50 ms':>9}{'p99 ms':>9}"
           f"{'dropped':>10}{'shed':>7}{'late pub':>10}")
     with tempfile.TemporaryDirectory(prefix="smartedge-bench-") as tmp:
         for n in counts:
             for load in (int(v) for v in args.load.split(",")):
                 with competing_load(load):
-                    r = run_case(n, args.seconds, args.rate, args.warmup, Path(tmp))
+                    r = run_case(n, args.seconds, args.rate, args.warmup, Path(tmp),
+                                 args.live_encode)
                 print(f"{n:>8}{load:>6}{r['frame_sets_per_s']:>14.1f}{r['p50_ms']:>9.2f}"
                       f"{r['p99_ms']:>9.2f}{int(r['dropped']):>6}/{int(r['frames']):<4}"
                       f"{int(r['backend_shed']):>6}{int(r['late_publish']):>9}", flush=True)

@@ -4,6 +4,7 @@ previous release's peer computes the same covariance, and the wrapping leaves no
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from backend_service import covariance, estimate, pipeline, sync
 from smartedge.bench.backend_stages import (
@@ -37,3 +38,14 @@ def test_every_stage_is_measured_and_the_originals_are_restored() -> None:
             assert fig.per_stage_ms[stage] > 0, (stage, fig)
     assert (sync.FrameSetSynchronizer.push, pipeline.estimate_pose,
             estimate.propagate_correlated, covariance.project_with_extrinsic_jacobian) == originals
+
+
+def test_the_pnp_initialized_first_frame_set_is_reported_apart_from_the_steady_state() -> None:
+    fig = measure_stages(4, frames=4)
+    assert fig.frame_sets == 4
+    assert np.isfinite(fig.first_solve_ms) and fig.first_solve_ms > 0
+    # the first frame-set has no prior: PnP per view, several times a steady solve
+    steady = fig.per_stage_ms["solve"] + fig.per_stage_ms["covariance"]
+    assert fig.first_solve_ms > 2 * steady, fig
+    with pytest.raises(ValueError, match="warmup"):
+        measure_stages(4, frames=2, warmup=0)
