@@ -169,11 +169,15 @@ class DetectorCard(ModelCard):
 class KeypointCard(ModelCard):
     """``sigma_calibration``: confidence → RMS keypoint error in crop pixels, measured on the
     held-out sets (:func:`edge_agent.metrics.sigma_calibration`); empty: the edge sends no
-    per-keypoint sigmas and the backend weights by confidence."""
+    per-keypoint sigmas and the backend weights by confidence. ``flip_tta``: the model was
+    trained on mirrored crops too and runs with test-time flip augmentation by default
+    (:class:`KeypointEstimator`; a model trained without mirrors gets worse with it: the
+    robot is not left/right symmetric)."""
 
     KIND: ClassVar[str] = "keypoints"
     crop_padding: float = CROP_PADDING
     sigma_calibration: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+    flip_tta: bool = False
 
     def __post_init__(self) -> None:
         cal = self.sigma_calibration
@@ -192,6 +196,10 @@ class KeypointCard(ModelCard):
 
     def markdown(self) -> str:
         text = super().markdown()
+        if self.flip_tta:
+            text += ("\n## Test-time flip\n\nTrained on mirrored crops too (left/right keypoints "
+                     "swapped); the edge runs each crop mirrored as well and averages the two "
+                     "(the held-out metrics above are without it).\n")
         cal = self.sigma_calibration
         if not cal or not cal.get("confidence"):
             return text + ("\n## Keypoint uncertainty\n\nNot calibrated: the edge sends "
@@ -418,15 +426,45 @@ class Detector:
         return out
 
 
+def mirror_permutation(keypoint_names: Sequence[str]) -> np.ndarray:
+    """(K,) index of each keypoint's mirror partner under a left/right flip of the image:
+    ``left`` and ``right`` swapped in the name (``front_left_top`` ↔ ``front_right_top``), a
+    name with neither is its own partner. Raises :class:`ModelError` when a partner is
+    missing (the robot's keypoints are not left/right paired)."""
+    names = list(keypoint_names)
+    index = {n: i for i, n in enumerate(names)}
+    perm = np.arange(len(names))
+    for i, name in enumerate(names):
+        parts = name.split("_")
+        if "left" not in parts and "right" not in parts:
+            continue
+        mirrored = "_".join({"left": "right", "right": "left"}.get(w, w) for w in parts)
+        if mirrored not in index:
+            raise ModelError(f"keypoint {name!r} has no mirror partner {mirrored!r} in "
+                             f"{names}: flipping needs left/right pairs")
+        perm[i] = index[mirrored]
+    return perm
+
+
 class KeypointEstimator:
-    """The keypoint network: crops around boxes → keypoints in frame pixels + confidences."""
+    """The keypoint network: crops around boxes → keypoints in frame pixels + confidences.
+
+    ``flip``: test-time flip augmentation (None: as the card's ``flip_tta`` says): each crop
+    also runs mirrored (one batch of two), the mirrored result is mapped back
+    (``u -> w - 1 - u``, each keypoint to its left/right partner, :func:`mirror_permutation`)
+    and averaged with the direct one. It doubles the network's work; the result is exactly
+    mirror-consistent (the estimate on a mirrored frame is the mirrored estimate)."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
-                 providers: Sequence[str] | None = None, spinning: bool = False) -> None:
+                 providers: Sequence[str] | None = None, spinning: bool = False,
+                 flip: bool | None = None) -> None:
         self.path = Path(onnx_path)
         if not self.path.is_file():
             raise ModelError(f"{self.path}: keypoint model file not found")
         self.card = KeypointCard.read(card_path(self.path))
+        flip = self.card.flip_tta if flip is None else flip
+        self.flip = flip
+        self._mirror = mirror_permutation(self.card.keypoint_names) if flip else None
         self.session = _session(self.path, threads, providers, spinning)
         _check_io(self.path, self.session, [("crop", (3, self.card.input_h, self.card.input_w))],
                   ["keypoints", "confidence"])
@@ -464,7 +502,7 @@ class KeypointEstimator:
                  for image_rgb, frame_tfs in zip(images_rgb, tfs, strict=True)
                  for tf in frame_tfs]
         if crops:
-            kp_all, conf_all = self.session.run(None, {"crop": to_nchw(np.stack(crops))})
+            kp_all, conf_all = self._run(np.stack(crops))
         out: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         start = 0
         for frame_tfs in tfs:
@@ -484,6 +522,19 @@ class KeypointEstimator:
             scales = np.array([tf.scale for tf in frame_tfs])[:, None]  # crop px per image px
             out.append((kp_img, conf, sigma_crop / scales))
         return out
+
+    def _run(self, crops: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, K, 2) crop-pixel keypoints and (n, K) confidences of (n, h, w, 3) crops."""
+        if self._mirror is None:
+            kp, conf = self.session.run(None, {"crop": to_nchw(crops)})
+            return kp, conf
+        n = len(crops)
+        kp, conf = self.session.run(None, {"crop": to_nchw(np.concatenate(
+            [crops, crops[:, :, ::-1]]))})
+        kp_m = kp[n:][:, self._mirror].astype(np.float64)
+        kp_m[..., 0] = self.card.input_w - 1 - kp_m[..., 0]
+        conf_m = conf[n:][:, self._mirror]
+        return (kp[:n] + kp_m) / 2.0, (conf[:n] + conf_m) / 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -521,18 +572,20 @@ class RobotKeypointPipeline:
     model's card. ``providers``: onnxruntime execution providers in order of preference
     (default CPU). ``spinning``: let onnxruntime's idle threads spin (its default); off here,
     because on a 2-core board spinning threads starve the frame pre-processing (measured
-    ~2x slower per frame, ``smartedge bench edge``)."""
+    ~2x slower per frame, ``smartedge bench edge``). ``flip``: the keypoint network's
+    test-time flip augmentation (:class:`KeypointEstimator`; None: as its card says)."""
 
     def __init__(self, detector: Path | str | None = None, keypoints: Path | str | None = None,
                  *, threads: int = 2, providers: Sequence[str] | None = None,
-                 keypoint_names: Sequence[str] | None = None, spinning: bool = False) -> None:
+                 keypoint_names: Sequence[str] | None = None, spinning: bool = False,
+                 flip: bool | None = None) -> None:
         shipped = default_model_dir()
         self.providers = list(providers or ["CPUExecutionProvider"])
         self.detector = Detector(shipped / "detector.onnx" if detector is None else detector,
                                  threads=threads, providers=self.providers, spinning=spinning)
         self.keypoints = KeypointEstimator(
             shipped / "keypoints.onnx" if keypoints is None else keypoints, threads=threads,
-            providers=self.providers, spinning=spinning)
+            providers=self.providers, spinning=spinning, flip=flip)
         self.folder = self.keypoints.path.parent
         kp_names = list(self.keypoints.card.keypoint_names)
         if keypoint_names is not None and list(keypoint_names) != kp_names:

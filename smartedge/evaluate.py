@@ -6,8 +6,10 @@
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
-    smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate]
+    smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
+                                 [--breakdown]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
+    smartedge evaluate calibration --out DIR [--quick] [--runs N] [--drive-s S] [--no-table]
 
 ``ate`` prints the APE statistics of ``evo_ape tum GT.tum EST.tum --align`` (translation part,
 metres); ``paper`` runs the simulated experiments of Sec. IV (:mod:`smartedge.experiments`)
@@ -154,6 +156,7 @@ def _keypoints(args: argparse.Namespace) -> int:
     try:
         result = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
                                     scenario_path=args.scenario, threads=args.threads,
+                                    flip=args.flip, breakdown=args.breakdown,
                                     progress=lambda line: print(line, flush=True))
     except (ModelError, OSError, ValueError) as exc:
         print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
@@ -249,10 +252,35 @@ def build_parser() -> argparse.ArgumentParser:
                       help="views per set: randomized scenes and the site's cameras (default 300)")
     p_kp.add_argument("--scenario", default=None, help="scenario file (default: the paper's lab)")
     p_kp.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    p_kp.add_argument("--flip", action=argparse.BooleanOptionalAction, default=None,
+                      help="with (--flip) or without (--no-flip) the keypoint network's "
+                      "test-time flip augmentation (default: as the model's card says)")
+    p_kp.add_argument("--breakdown", action="store_true", help="also per keypoint (bias, "
+                      "spread) and per distance (common shift and scale, the rest)")
     p_kp.add_argument("--calibrate", action="store_true",
                       help="instead: measure the confidence -> pixel error table on the "
                       "validation seeds (1001/1002) and write it into the keypoint model's card "
                       "(the edge then sends per-keypoint sigmas)")
+    p_cal = sub.add_parser("calibration", help="the site calibration (intrinsics, board "
+                           "extrinsics, the robot as the target) against the simulator's true "
+                           "cameras, and Table I with each calibrated site file")
+    p_cal.add_argument("--out", required=True, help="output folder (report, picture, site "
+                       "files, the drive's recording)")
+    p_cal.add_argument("--quick", action="store_true",
+                       help="one camera's intrinsics, a short board walk, a 90 s drive, Table I "
+                       "on traj1 only")
+    p_cal.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
+    p_cal.add_argument("--scenario", default=None,
+                       help="scenario file (default: the paper's lab)")
+    p_cal.add_argument("--drive-s", type=float, default=None,
+                       help="seconds of the robot's calibration drive (default 300; --quick 90)")
+    p_cal.add_argument("--runs", type=int, default=None,
+                       help="Table I: runs of each trajectory and direction (default 1)")
+    p_cal.add_argument("--trajectories", default="",
+                       help="Table I: comma-separated trajectories (default: all; --quick traj1)")
+    p_cal.add_argument("--no-table", action="store_true", help="skip Table I")
+    p_cal.add_argument("--jobs", type=int, default=None,
+                       help="Table I: worker processes (default: one per core)")
     p_cmp = sub.add_parser("compare", help="side-by-side headline figures of finished "
                            "`evaluate paper` runs (Markdown)")
     p_cmp.add_argument("runs", nargs="+", metavar="NAME=DIR",
@@ -269,6 +297,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _keypoints(args)
     if args.what == "compare":
         return _compare(args)
+    if args.what == "calibration":
+        from smartedge.experiments.calibration import main as calibration_main
+
+        return calibration_main(args)
     if args.runs < 1 or args.feedback_seeds < 1 or (
             args.robustness_runs is not None and args.robustness_runs < 1) or (
             args.jobs is not None and args.jobs < 1):

@@ -3,9 +3,10 @@
 Renders (once, cached in ``OUT/cache``) domain-randomized scenes, views from the site's own
 cameras and (``--robot-views``) from the robot's own head camera, trains with a progress line
 and checkpoints (run the same command again to resume an
-interrupted run), validates on held-out seeds, exports one ONNX file, checks onnxruntime
-against torch and writes the model card (``OUT/<kind>.json`` + ``.md``). Needs the ``train``
-extra (torch). Uses CUDA when torch sees a GPU.
+interrupted run, on this or another machine, GPU or CPU), validates on held-out seeds, exports
+one ONNX file, checks onnxruntime against torch and writes the model card
+(``OUT/<kind>.json`` + ``.md``, with where and how long each leg trained). Needs the
+``train`` extra (torch). Uses CUDA when torch sees a GPU (``--device``), with bf16 autocast.
 
 Examples::
 
@@ -13,9 +14,11 @@ Examples::
     smartedge train keypoints --out runs/models --minutes 45
     smartedge train segmentation --out runs/seg --minutes 40 --threads 1 --workers 1
     smartedge train keypoints --out runs/tiny --steps 5 --train-views 16 --val-views 8 --tiny
+    smartedge train keypoints --out runs/kp --mirror --batch 128 --minutes 4 --workers 16
     smartedge train keypoints --out runs/husky --robot-mesh husky.urdf --keypoints husky_kp.yaml
 
-The shipped models in ``edge_agent/models/`` were made with ``scripts/train_shipped_models.sh``.
+The shipped models in ``edge_agent/models/`` were made with ``scripts/train_shipped_models.sh``
+(the keypoint network since 2026-11-26 with ``scripts/train_keypoints_gpu.sh``, on a GPU).
 """
 
 from __future__ import annotations
@@ -67,6 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
                    "segmentation, 32 keypoints)")
     p.add_argument("--lr", type=float, default=2e-3, help="AdamW learning rate (default 2e-3)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--device", default="auto", help="auto (default: CUDA when torch sees a "
+                   "GPU, else the CPU), cpu or cuda[:N]; a checkpoint resumes on any of them")
+    p.add_argument("--leg-steps", type=int, metavar="N", help="stop after N steps of this "
+                   "leg and export what is there; the same command resumes the schedule, here "
+                   "or on another machine (e.g. a GPU lent for a few minutes)")
+    p.add_argument("--mirror", action="store_true", help="keypoints: also train on mirrored "
+                   "crops (left/right keypoints swapped), for flip test-time augmentation")
+    p.add_argument("--no-calibration", action="store_true", help="keypoints: skip the "
+                   "confidence-to-sigma calibration after training (run it later with "
+                   "`smartedge evaluate keypoints --model OUT --calibrate`)")
+    p.add_argument("--no-amp", action="store_true", help="train in float32 on a GPU too "
+                   "(default: bf16 autocast where the GPU supports it; never on a CPU)")
     p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
     p.add_argument("--init-from", metavar="CKPT", help="fine-tune: start from the weights of "
                    "an earlier run's <kind>.ckpt (same kind and image sizes) with a fresh "
@@ -123,12 +138,15 @@ def main(argv: Sequence[str]) -> int:
         batch = args.batch or (32 if args.kind == "keypoints" else 16)
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
-                          workers=args.workers, init_from=args.init_from)
+                          workers=args.workers, init_from=args.init_from,
+                          device=args.device, amp=False if args.no_amp else None,
+                          leg_steps=args.leg_steps, mirror=args.mirror)
         mesh_name = Path(args.robot_mesh).name if args.robot_mesh else "built-in HSR-like mesh"
         views = SimulationViews(str(scenario.source_path), model, mesh)
         path = train(cfg, views, Path(args.out), robot_mesh_name=mesh_name,
                      say=lambda line: print(line, flush=True))
-        if args.kind == "keypoints" and not args.tiny and args.robot_mesh is None:
+        if (args.kind == "keypoints" and not args.tiny and args.robot_mesh is None
+                and not args.no_calibration):
             from smartedge.evaluation.keypoints import calibrate_keypoints
 
             calibrate_keypoints(Path(args.out), count=args.val_views,

@@ -36,6 +36,7 @@ from edge_agent.models import (
     card_path,
     decode_detections,
     export_differences,
+    mirror_permutation,
     reference_path,
 )
 from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
@@ -74,6 +75,17 @@ class TrainConfig:
     #: fine-tune: start from the weights of this checkpoint (``<kind>.ckpt`` of an earlier run
     #: of the same kind and geometry) with a fresh optimizer and schedule
     init_from: str | None = None
+    #: ``auto`` (CUDA when torch sees a GPU), ``cpu`` or ``cuda`` (``cuda:N``)
+    device: str = "auto"
+    #: bf16 autocast on CUDA (None: on where the GPU supports bf16; never on CPU)
+    amp: bool | None = None
+    #: keypoints: mirror half the crops left/right, keypoints swapped with their mirror
+    #: partners (:func:`edge_agent.models.mirror_permutation`): the network also sees the
+    #: robot's mirror image (what flip test-time augmentation feeds it)
+    mirror: bool = False
+    #: stop this leg after so many steps (checkpointed; the same command resumes the schedule,
+    #: here or on another machine); None: run to the end
+    leg_steps: int | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -82,6 +94,8 @@ class TrainConfig:
         clash = train_seeds & {s.seed for s in self.val_sets}
         if clash:
             raise TrainingError(f"held-out sets reuse training seed(s) {sorted(clash)}")
+        if self.device != "auto" and self.device.split(":")[0] not in ("cpu", "cuda"):
+            raise TrainingError(f"device {self.device!r}: expected auto, cpu or cuda[:N]")
         if self.steps < 1 or self.batch < 1:
             raise TrainingError(f"steps {self.steps}, batch {self.batch}: both must be >= 1")
         if self.kind == "segmentation":
@@ -147,7 +161,7 @@ def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def simcc_targets(kp_px: torch.Tensor, bins: int, split: int, sigma_px: float) -> torch.Tensor:
     """(B, K) pixel coordinates → (B, K, bins) Gaussian label distributions."""
-    centres = torch.arange(bins, dtype=kp_px.dtype) / split
+    centres = torch.arange(bins, dtype=kp_px.dtype, device=kp_px.device) / split
     t = torch.exp(-((centres - kp_px[..., None]) ** 2) / (2 * sigma_px ** 2))
     return t / t.sum(-1, keepdim=True).clamp_min(1e-12)
 
@@ -162,10 +176,12 @@ def keypoint_weights(kp: np.ndarray, in_image: np.ndarray, w: int, h: int) -> np
 def photometric(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Per-image contrast/brightness/colour gain in [0, 1] space (cheap, in torch)."""
     b = x.shape[0]
+    # drawn on the (CPU) generator, so a run draws the same numbers on any device
     gain = 0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=gen)
     colour = 0.9 + 0.2 * torch.rand(b, 3, 1, 1, generator=gen)
     bias = 0.12 * (torch.rand(b, 1, 1, 1, generator=gen) - 0.5)
-    return (x * gain * colour + bias).clamp(0, 1)
+    dev = x.device
+    return (x * gain.to(dev) * colour.to(dev) + bias.to(dev)).clamp(0, 1)
 
 
 def class_weights(labels: np.ndarray, num_classes: int, lo: float = 0.2, hi: float = 5.0
@@ -202,18 +218,48 @@ def _build(cfg: TrainConfig, num_keypoints: int) -> torch.nn.Module:
     return KeypointNet(num_keypoints, g.crop_w, g.crop_h)
 
 
+def _images(data: np.ndarray, idx: np.ndarray, device: torch.device,
+            resident: torch.Tensor | None = None) -> torch.Tensor:
+    """Rows ``idx`` of (N, H, W, 3) uint8 images as (B, 3, H, W) float in [0, 1] on ``device``:
+    gathered on the device from ``resident`` (the whole array already there) or copied there
+    as uint8 (a quarter of the float bytes) and converted on the device."""
+    if resident is not None:
+        x = resident[torch.from_numpy(idx).to(resident.device)]
+    else:
+        x = torch.from_numpy(np.ascontiguousarray(data[idx])).to(device, non_blocking=True)
+    return x.permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def mirror_crops(x: torch.Tensor, kp: np.ndarray, wgt: np.ndarray, flip: np.ndarray,
+                 perm: np.ndarray) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """Mirror the crops where ``flip`` (B,) is set: images (B, 3, H, W) left/right, and the
+    labels with them: the mirrored crop's keypoint j is the original's partner ``perm[j]``,
+    at ``u -> W - 1 - u`` (pixel centres); its weight moves along."""
+    w = x.shape[-1]
+    kp_m = kp[:, perm].copy()
+    kp_m[..., 0] = w - 1 - kp_m[..., 0]
+    kp = np.where(flip[:, None, None], kp_m, kp)
+    wgt = np.where(flip[:, None], wgt[:, perm], wgt)
+    f = torch.from_numpy(flip).to(x.device)[:, None, None, None]
+    return torch.where(f, x.flip(-1), x), kp, wgt
+
+
 def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx: np.ndarray,
                 gen: torch.Generator, rng: np.random.Generator, device: torch.device,
-                weights: torch.Tensor | None = None) -> torch.Tensor:
+                weights: torch.Tensor | None = None,
+                resident: torch.Tensor | None = None,
+                mirror_perm: np.ndarray | None = None) -> torch.Tensor:
+    """One batch's loss. Under autocast the losses are computed from float32 logits.
+    ``mirror_perm`` (keypoints): mirror half the crops, keypoints to their partners."""
     g = cfg.geometry
     if cfg.kind == "segmentation":
         images, labels = data.det_images[idx], data.seg_labels[idx]
         flip = rng.uniform(size=len(idx)) < 0.5
         images = np.where(flip[:, None, None, None], images[:, :, ::-1], images)
         labels = np.where(flip[:, None, None], labels[:, :, ::-1], labels)
-        x = photometric(_to_tensor(images), gen).to(device)
+        x = photometric(_images(images, np.arange(len(idx)), device), gen)
         target = torch.from_numpy(labels.astype(np.int64)).to(device)
-        return F.cross_entropy(model.forward_train(x), target, weight=weights)
+        return F.cross_entropy(model.forward_train(x).float(), target, weight=weights)
     if cfg.kind == "detector":
         images = data.det_images[idx]
         boxes = frame_to_input(data.boxes[idx], data.frame_size[idx], g.det_w, g.det_h)
@@ -222,25 +268,30 @@ def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx
         fx0 = g.det_w - 1 - boxes[:, 2]
         fx1 = g.det_w - 1 - boxes[:, 0]
         boxes = np.where(flip[:, None], np.stack([fx0, boxes[:, 1], fx1, boxes[:, 3]], 1), boxes)
-        x = photometric(_to_tensor(images), gen).to(device)
+        x = photometric(_images(images, np.arange(len(idx)), device), gen)
         out = model.forward_train(x)
         h, w = out.heat_logits.shape[-2:]
         heat, size, off, mask = (torch.from_numpy(a).to(device)
                                  for a in detector_targets(boxes, w, h, RobotDetector.stride))
         n = mask.sum().clamp_min(1.0)
-        l_size = (F.l1_loss(out.log_size, size, reduction="none") * mask).sum() / n
-        l_off = (F.l1_loss(out.offset, off, reduction="none") * mask).sum() / n
-        return focal_loss(out.heat_logits, heat) + l_size + l_off
+        l_size = (F.l1_loss(out.log_size.float(), size, reduction="none") * mask).sum() / n
+        l_off = (F.l1_loss(out.offset.float(), off, reduction="none") * mask).sum() / n
+        return focal_loss(out.heat_logits.float(), heat) + l_size + l_off
     kp = data.crop_kp[idx]
     wgt = keypoint_weights(kp, data.crop_in_image[idx], g.crop_w, g.crop_h)
+    x = _images(data.crops, idx, device, resident)
+    if mirror_perm is not None:
+        flip = rng.uniform(size=len(idx)) < 0.5
+        x, kp, wgt = mirror_crops(x, kp, wgt, flip, mirror_perm)
     wgt = torch.from_numpy(wgt).to(device)
-    x = photometric(_to_tensor(data.crops[idx]), gen).to(device)
+    x = photometric(x, gen)
     out = model.forward_train(x)
     kp_t = torch.from_numpy(kp).to(device)
-    tx = simcc_targets(kp_t[..., 0], out.logits_x.shape[-1], model.split, cfg.sigma_px)
-    ty = simcc_targets(kp_t[..., 1], out.logits_y.shape[-1], model.split, cfg.sigma_px)
-    ce = (-(tx * F.log_softmax(out.logits_x, -1)).sum(-1)
-          - (ty * F.log_softmax(out.logits_y, -1)).sum(-1))
+    logits_x, logits_y = out.logits_x.float(), out.logits_y.float()
+    tx = simcc_targets(kp_t[..., 0], logits_x.shape[-1], model.split, cfg.sigma_px)
+    ty = simcc_targets(kp_t[..., 1], logits_y.shape[-1], model.split, cfg.sigma_px)
+    ce = (-(tx * F.log_softmax(logits_x, -1)).sum(-1)
+          - (ty * F.log_softmax(logits_y, -1)).sum(-1))
     return (ce * wgt).sum() / wgt.sum().clamp_min(1.0)
 
 
@@ -254,13 +305,79 @@ def _progress_line(step: int, total: int, loss: float, rate: float, eta_s: float
             f"{rate:.1f} img/s eta {eta_s / 60:.1f} min")
 
 
+def resolve_device(name: str = "auto") -> torch.device:
+    """``auto``: the first CUDA device when torch sees one, else the CPU; ``cuda`` without a
+    GPU is refused (:class:`TrainingError`) rather than silently trained on the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError) as exc:
+        raise TrainingError(f"device {name!r}: {exc}") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise TrainingError(f"device {name!r}: torch sees no CUDA GPU (torch "
+                                f"{torch.__version__}); use --device cpu or auto")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise TrainingError(f"device {name!r}: only {torch.cuda.device_count()} GPU(s)")
+    elif device.type != "cpu":
+        raise TrainingError(f"device {name!r}: expected auto, cpu or cuda[:N]")
+    return device
+
+
+def device_description(device: torch.device) -> str:
+    """Where a phase ran, for the model card: the GPU's name, or the CPU's model and cores."""
+    if device.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(device)})"
+    return f"cpu ({_cpu_name()}, {_cpu_count()} cores)"
+
+
+def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
+    """bf16 autocast: only on CUDA (its range equals float32's, so no loss scaling), where the
+    GPU supports it, unless ``cfg.amp`` says otherwise."""
+    if device.type != "cuda" or cfg.amp is False:
+        return False
+    return bool(torch.cuda.is_bf16_supported())
+
+
+def _to_cpu(obj: Any) -> Any:
+    """Tensors of a (nested) state dict moved to the CPU: a checkpoint loads on any machine."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(_to_cpu(v) for v in obj)
+    return obj
+
+
+def _resident_images(cfg: TrainConfig, data: RenderedSet, device: torch.device,
+                     say: Callable[[str], None]) -> torch.Tensor | None:
+    """On a GPU, the keypoint crops (uint8) kept on the device when they take at most a
+    quarter of its free memory: batches are then gathered there, not copied per step."""
+    if device.type != "cuda" or cfg.kind != "keypoints":
+        return None
+    free, _ = torch.cuda.mem_get_info(device)
+    if data.crops.nbytes > free // 4:
+        say(f"crops ({data.crops.nbytes / 1e9:.1f} GB) stay in host memory")
+        return None
+    say(f"crops ({data.crops.nbytes / 1e9:.2f} GB) copied to {device}")
+    return torch.from_numpy(np.ascontiguousarray(data.crops)).to(device)
+
+
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
-                 say: Callable[[str], None], render_s: float | None = None) -> dict[str, Any]:
-    """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists. Returns the run's
-    record (steps, training wall time, the first run's render time, losses)."""
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+                 say: Callable[[str], None], render_s: float | None = None,
+                 mirror_perm: np.ndarray | None = None) -> dict[str, Any]:
+    """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists, on any device (the
+    checkpoint holds CPU tensors and the random generators' states). Returns the run's record
+    (steps, training wall time, the first run's render time, losses, ``phases``: where and how
+    long each leg trained)."""
+    device = resolve_device(cfg.device)
+    amp = _use_amp(cfg, device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
     model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     rows = _rows(cfg, data)
@@ -271,15 +388,18 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
                              "identity": identity, "render_wall_s": render_s}
     if cfg.init_from and not ckpt.exists():
         state["history"] = _init_weights(Path(cfg.init_from), model, identity, device, say)
+    saved_rng: dict[str, Any] | None = None
     if ckpt.exists():
         try:
-            saved = torch.load(ckpt, map_location=device, weights_only=False)
+            # CPU first: a checkpoint saved on a GPU resumes on a CPU-only machine and back
+            saved = torch.load(ckpt, map_location="cpu", weights_only=False)
             model.load_state_dict(saved["model"])
-            opt.load_state_dict(saved["opt"])
+            opt.load_state_dict(saved["opt"])  # moves its state to the parameters' device
         except Exception as exc:  # torch raises many types for a bad or foreign file
             raise TrainingError(f"{ckpt}: cannot resume from this checkpoint ({exc}); "
                                 "delete it or use another --out") from None
         state = saved["state"]
+        saved_rng = saved.get("rng")
         state.setdefault("render_wall_s", None)  # checkpoints from before it was recorded
         if state.get("identity", identity) != identity:
             raise TrainingError(f"{ckpt}: checkpoint of another configuration "
@@ -289,6 +409,7 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             state["total_steps"] = cfg.steps
         say(f"resuming from {ckpt} at step {state['step']}/{state['total_steps']}")
     history = state.setdefault("history", [])
+    phases = state.setdefault("phases", [])
     weights = None
     if cfg.kind == "segmentation":
         state.setdefault("class_weights", class_weights(data.seg_labels,
@@ -297,11 +418,24 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     first_step = state["step"]
     gen = torch.Generator().manual_seed(cfg.seed + state["step"])
     rng = np.random.default_rng([cfg.seed, state["step"]])
+    if saved_rng is not None:  # continue the very same random streams
+        gen.set_state(saved_rng["torch"])
+        rng.bit_generator.state = saved_rng["numpy"]
+    resident = _resident_images(cfg, data, device, say)
+    where = device_description(device)
+    say(f"training on {where}{', bf16 autocast' if amp else ''}")
     model.train()
     t_last = time.perf_counter()
+    t_phase = time.perf_counter()
     window: list[float] = []
     step_times: list[float] = []
-    while state["step"] < state["total_steps"]:
+
+    def save() -> None:
+        _save_checkpoint(ckpt, model, opt, state, {"torch": gen.get_state(),
+                                                   "numpy": rng.bit_generator.state})
+
+    while state["step"] < state["total_steps"] and (
+            cfg.leg_steps is None or state["step"] - first_step < cfg.leg_steps):
         step = state["step"]
         warmup = min(1.0, (step + 1) / 100)
         lr = cfg.lr * warmup * 0.5 * (1 + math.cos(math.pi * step / state["total_steps"]))
@@ -309,16 +443,19 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             group["lr"] = lr
         idx = rng.choice(rows, cfg.batch, replace=False)
         t0 = time.perf_counter()
-        loss = _batch_loss(cfg, model, data, idx, gen, rng, device, weights)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+            loss = _batch_loss(cfg, model, data, idx, gen, rng, device, weights, resident,
+                               mirror_perm if cfg.mirror else None)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
         opt.step()
+        loss_value = float(loss.detach())  # waits for the GPU: the step time is its own
         dt = time.perf_counter() - t0
         step_times.append(dt)
         state["wall_s"] += dt
         state["step"] += 1
-        window.append(float(loss.detach()))
+        window.append(loss_value)
         if cfg.minutes is not None and state["step"] == 20 and state.get("budgeted") is None:
             per_step = float(np.median(step_times[5:])) * 1.05
             state["total_steps"] = max(40, int(cfg.minutes * 60 / per_step))
@@ -333,13 +470,18 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             eta = (state["total_steps"] - state["step"]) * cfg.batch / rate
             say(_progress_line(state["step"], state["total_steps"], mean, rate, eta))
         if state["step"] % cfg.checkpoint_every == 0 or time.perf_counter() - t_last > 300:
-            _save_checkpoint(ckpt, model, opt, state)
+            save()
             t_last = time.perf_counter()
     if state["step"] > first_step:
+        leg_s = time.perf_counter() - t_phase
+        phases.append({"steps": [first_step, state["step"]], "device": device.type,
+                       "where": where, "amp": "bf16" if amp else None,
+                       "batch": cfg.batch, "wall_s": round(leg_s, 1)})
         history.append(f"steps {first_step}-{state['step']} of a {state['total_steps']}-step "
-                       f"cosine schedule, {cfg.threads} thread(s), "
-                       f"{'cuda' if device.type == 'cuda' else 'cpu'}")
-    _save_checkpoint(ckpt, model, opt, state)
+                       f"cosine schedule on {where}"
+                       f"{', bf16 autocast' if amp else ''}, {cfg.threads} thread(s), "
+                       f"{leg_s:.0f} s")
+    save()
     model.eval()
     return state
 
@@ -360,7 +502,7 @@ def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
     if not path.is_file():
         raise TrainingError(f"{path}: --init-from checkpoint not found")
     try:
-        saved = torch.load(path, map_location=device, weights_only=False)
+        saved = torch.load(path, map_location="cpu", weights_only=False)
         other = saved["state"]
         if other.get("identity", identity) != identity:  # older checkpoints have none
             raise TrainingError(f"{path}: checkpoint of another configuration "
@@ -375,9 +517,13 @@ def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
             f"fine-tuned from that checkpoint ({other['step']} steps) with a fresh optimizer"]
 
 
-def _save_checkpoint(path: Path, model: torch.nn.Module, opt: Any, state: dict[str, Any]) -> None:
+def _save_checkpoint(path: Path, model: torch.nn.Module, opt: Any, state: dict[str, Any],
+                     rng: dict[str, Any] | None = None) -> None:
+    """Weights, optimizer, the run's record and the random generators' states, all on the CPU
+    (device-independent: resumes on another machine, GPU or not)."""
     tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "state": state}, tmp)
+    torch.save({"model": _to_cpu(model.state_dict()), "opt": _to_cpu(opt.state_dict()),
+                "state": state, "rng": rng}, tmp)
     tmp.replace(path)
 
 
@@ -544,8 +690,10 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
     model = _build(cfg, model_def.num_keypoints)
     n_params = sum(p.numel() for p in model.parameters())
     say(f"{cfg.kind}: {n_params / 1e6:.2f} M parameters, {_rows(cfg, data)} training rows, "
-        f"device {'cuda' if torch.cuda.is_available() else 'cpu'}")
-    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s)
+        f"device {device_description(resolve_device(cfg.device))}")
+    perm = (mirror_permutation(model_def.keypoint_names)
+            if cfg.mirror and cfg.kind == "keypoints" else None)
+    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s, perm)
     t_eval = time.perf_counter()
     metrics = validate(cfg, model, val)
     for name, figures in metrics.items():
@@ -580,11 +728,15 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
         "train_sets": [dataclasses.asdict(s) for s in cfg.train_sets],
         "val_sets": [dataclasses.asdict(s) for s in cfg.val_sets],
         "steps": state["step"], "batch": cfg.batch, "lr": cfg.lr, "sigma_px": cfg.sigma_px,
+        "mirror_augmentation": cfg.mirror,
         "train_wall_s": round(state["wall_s"], 1),
         "render_wall_s": None if render_s is None else round(render_s, 1),
         "total_wall_s": round(total_s, 1),
-        "device": "cuda" if torch.cuda.is_available() else "cpu",
+        # where the last leg trained (every leg: ``phases``)
+        "device": (state["phases"][-1]["device"] if state.get("phases")
+                   else resolve_device(cfg.device).type),
         "machine": f"{platform.machine()}, {_cpu_count()} cores, {platform.system()}",
+        "phases": list(state.get("phases", [])),
         "torch": torch.__version__,
         "final_loss": round(state["losses"][-1][1], 4) if state["losses"] else None,
         "parameters": n_params, "robot_mesh": mesh_name,
@@ -602,7 +754,20 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
     if cfg.kind == "segmentation":
         return SegmentationCard(input_w=g.det_w, input_h=g.det_h, output_w=g.seg_w,
                                 output_h=g.seg_h, classes=list(SEMANTIC_CLASSES), **common)
-    return KeypointCard(input_w=g.crop_w, input_h=g.crop_h, **common)
+    # a model that saw mirrored crops runs with flip test-time augmentation by default
+    return KeypointCard(input_w=g.crop_w, input_h=g.crop_h, flip_tta=cfg.mirror, **common)
+
+
+def _cpu_name() -> str:
+    """The CPU's model name (Linux), else the architecture."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.machine() or "unknown CPU"
 
 
 def _cpu_count() -> int:

@@ -11,6 +11,7 @@ separately, and whether a low confidence means a worse keypoint.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -33,12 +34,16 @@ class KeypointEvaluation:
     figures: dict[str, dict[str, float]]
     views: int
     wall_s: float
+    #: per set, when asked for: :func:`error_breakdown`
+    breakdown: dict[str, ErrorBreakdown] = dataclasses.field(default_factory=dict)
 
     def lines(self) -> list[str]:
         out = []
         for set_name, figs in self.figures.items():
             for name, value in figs.items():
                 out.append(f"{set_name} {name} {_fmt(value)}")
+        for set_name, b in self.breakdown.items():
+            out += [f"{set_name} {line}" for line in b.lines()]
         return out
 
 
@@ -100,9 +105,12 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
 def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
                        count: int = 300, modes: Sequence[str] = ("randomized", "site"),
                        scenario_path: Path | None = None, threads: int = 2,
+                       flip: bool | None = None, breakdown: bool = False,
                        progress: Callable[[str], None] | None = None) -> KeypointEvaluation:
     """Render ``count`` held-out views per mode from ``seed`` and evaluate the models of
-    ``model_dir`` (default: the shipped ones)."""
+    ``model_dir`` (default: the shipped ones); ``flip``: with the keypoint network's test-time
+    flip augmentation or without (None: as the model's card says); ``breakdown``: also
+    :func:`error_breakdown` per set."""
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
@@ -110,15 +118,18 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
     model = scenario.site.robot_model(scenario.robot_id)
     pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads,
-                                     keypoint_names=model.keypoint_names)
+                                                 keypoint_names=model.keypoint_names, flip=flip)
     t0 = time.perf_counter()
     figures: dict[str, dict[str, float]] = {}
+    split: dict[str, ErrorBreakdown] = {}
     for mode in modes:
         gen = SampleGenerator(scenario, mode, seed=seed)
         say(f"rendering {count} held-out {mode} views (seed {seed})")
         samples = [gen(i) for i in range(count)]
         figures[mode] = evaluate_set(pipeline, samples)
-    return KeypointEvaluation(figures, count * len(modes), time.perf_counter() - t0)
+        if breakdown:
+            split[mode] = error_breakdown(pipeline, samples)
+    return KeypointEvaluation(figures, count * len(modes), time.perf_counter() - t0, split)
 
 
 #: held-out seeds the calibration renders (the training's validation seeds, never the
@@ -263,3 +274,87 @@ def calibrate_keypoints(model_dir: Path | None = None, *, count: int = 300,
         card.write(path.parent)
         say(f"wrote the calibration into {path}")
     return table
+
+
+#: distance bins of :func:`error_breakdown` (camera to robot, metres)
+BREAKDOWN_DISTANCES_M: Final = (0.0, 3.0, 4.5, 6.0, 100.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorBreakdown:
+    """Where the keypoint error comes from, through the deployed pipeline (detector boxes) on
+    rendered views, in frame pixels. ``per_keypoint``: name → figures (``n``, ``median px``,
+    ``bias x px`` / ``bias y px``: the mean signed error, systematic; ``spread px``: the RMS
+    per axis about that bias, random; ``occluded share``); ``per_distance``: bin label →
+    (``n``: detections, ``median px``, ``shift px``, ``scale``, ``rest px``: the per-detection
+    common shift and scale, which move the pose along the view, and the rest, which is what
+    turns the heading, as :func:`detection_common_error` splits them)."""
+
+    per_keypoint: dict[str, dict[str, float]]
+    per_distance: dict[str, dict[str, float]]
+
+    def lines(self) -> list[str]:
+        out = []
+        for name, figs in self.per_keypoint.items():
+            out.append(f"keypoint {name}: " + ", ".join(f"{k} {_fmt(v)}" for k, v in figs.items()))
+        for name, figs in self.per_distance.items():
+            out.append(f"distance {name}: " + ", ".join(f"{k} {_fmt(v)}" for k, v in figs.items()))
+        return out
+
+
+def error_breakdown(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
+                    min_score: float = 0.3,
+                    distances_m: Sequence[float] = BREAKDOWN_DISTANCES_M) -> ErrorBreakdown:
+    """Per-keypoint bias and spread and per-distance error split of the robots the pipeline
+    finds (IoU >= 0.5 with the true box) in ``samples``."""
+    names = list(pipeline.keypoints.card.keypoint_names)
+    k = len(names)
+    errs, valid, occl, dist, common, med = [], [], [], [], [], []
+    for s in samples:
+        robot = s.robots[0] if s.robots else None
+        if robot is None or robot.bbox_xyxy is None:
+            continue
+        found = pipeline(s.image_rgb, min_score=min_score, max_robots=1)
+        if not found or box_iou(found[0].bbox_xyxy, np.asarray(robot.bbox_xyxy)) < 0.5:
+            continue
+        true = np.asarray(robot.keypoints_px, np.float64)
+        e = np.asarray(found[0].keypoints_px, np.float64) - true
+        ok = np.asarray(robot.in_image, bool)
+        errs.append(e)
+        valid.append(ok)
+        occl.append(~np.asarray(robot.visible, bool))
+        depth = np.asarray(robot.depth_m, np.float64)
+        dist.append(float(np.median(depth[ok])) if ok.any() else math.nan)
+        med.append(float(np.median(np.linalg.norm(e[ok], axis=1))) if ok.any() else math.nan)
+        common.append(detection_common_error(found[0].keypoints_px[ok], true[ok])
+                      if ok.sum() >= 3 else np.full(4, np.nan))
+    e_all = np.asarray(errs).reshape(-1, k, 2)
+    v_all = np.asarray(valid).reshape(-1, k)
+    o_all = np.asarray(occl).reshape(-1, k)
+    per_keypoint: dict[str, dict[str, float]] = {}
+    for j, name in enumerate(names):
+        ej = e_all[v_all[:, j], j]
+        if not len(ej):
+            continue
+        bias = ej.mean(axis=0)
+        per_keypoint[name] = {
+            "n": float(len(ej)),
+            "median px": float(np.median(np.linalg.norm(ej, axis=1))),
+            "bias x px": float(bias[0]), "bias y px": float(bias[1]),
+            "spread px": float(np.sqrt(np.mean((ej - bias) ** 2))),
+            "occluded share": float(o_all[v_all[:, j], j].mean()),
+        }
+    d = np.asarray(dist)
+    c = np.asarray(common).reshape(-1, 4)
+    m = np.asarray(med)
+    per_distance: dict[str, dict[str, float]] = {}
+    for lo, hi in itertools.pairwise(distances_m):
+        sel = (d >= lo) & (d < hi) & np.all(np.isfinite(c), axis=1)
+        if not sel.any():
+            continue
+        label = f"{lo:g}-{hi:g} m" if hi < 100 else f">= {lo:g} m"
+        summary = common_error_summary(list(c[sel]))
+        per_distance[label] = {"n": float(sel.sum()), "median px": float(np.median(m[sel])),
+                               "shift px": summary["shift_px"], "scale": summary["scale"],
+                               "rest px": summary["rest_px"]}
+    return ErrorBreakdown(per_keypoint, per_distance)
