@@ -89,6 +89,19 @@ def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * K @ K
 
 
+def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation → (3,) rotation vector (axis * angle, rad), the inverse of
+    :func:`rotation_from_rotvec` for angles below ~179 deg (the axis of a half turn is not
+    recovered)."""
+    R = np.asarray(R, dtype=np.float64)
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = float(np.linalg.norm(axis)) / 2.0  # sin(angle)
+    angle = math.atan2(s, (float(np.trace(R[:3, :3])) - 1.0) / 2.0)
+    if s < 1e-12:
+        return axis / 2.0
+    return axis * (angle / (2.0 * s))
+
+
 def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) of a (3, 3) rotation, inverse of :func:`rotation_from_rpy` for
     ``|pitch| < pi / 2``; yaw in [-pi, pi)."""
@@ -232,6 +245,16 @@ def invert_transform(T: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # lens distortion
 # --------------------------------------------------------------------------------------------
+
+
+def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(position difference m, rotation angle deg) between two (4, 4) poses of the same frame,
+    e.g. an estimated and a true ``T_world_cam``."""
+    A, B = np.asarray(T_a, np.float64), np.asarray(T_b, np.float64)
+    dp = float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
+    dR = A[:3, :3].T @ B[:3, :3]
+    s = float(np.linalg.norm([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]))
+    return dp, math.degrees(math.atan2(s / 2.0, (float(np.trace(dR)) - 1.0) / 2.0))
 
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:

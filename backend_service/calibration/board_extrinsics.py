@@ -19,14 +19,12 @@ import collections
 import dataclasses
 import logging
 import math
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
 import cv2
 import numpy as np
-import yaml
 
 from backend_service.calibration.board import (
     BoardDetection,
@@ -34,6 +32,7 @@ from backend_service.calibration.board import (
     CalibrationError,
     CharucoBoardSpec,
 )
+from backend_service.calibration.site_file import pose_node
 from protocol.camera import CameraModel
 from protocol.config_file import ConfigReader, join_key, read_yaml_file
 from protocol.geometry import (
@@ -43,7 +42,6 @@ from protocol.geometry import (
     quaternion_to_rotation,
     rotation_from_rotvec,
     rotation_from_rpy,
-    rotation_to_quaternion,
 )
 
 log = logging.getLogger(__name__)
@@ -502,59 +500,16 @@ def load_board_poses(path: str | Path) -> dict[str, np.ndarray]:
             for stamp, value in node.items()}
 
 
-def _pose_yaml(T: np.ndarray) -> dict[str, list[float]]:
-    q = rotation_to_quaternion(T[:3, :3])
-    return {"translation_m": [round(float(v), 6) for v in T[:3, 3]],
-            "quaternion_xyzw": [round(float(v), 9) for v in q]}
-
-
-def write_site_with_cameras(site_path: str | Path, result: BoardExtrinsicsResult,
-                            out_path: str | Path,
-                            calibration_files: Mapping[str, Path] | None = None) -> Path:
-    """Copy the site file with each solved camera's ``T_world_cam`` replaced (clock offsets and
-    every other key as they were); each camera's uncertainty and the adjustment's report as
-    comments at the top. Cameras without a solution keep their pose (named in the header).
-    ``calibration_files``: camera id -> intrinsics file (``calibrate intrinsics``' camera_info
-    YAML) that replaces that camera's inline intrinsics (``calibration_file:``, relative to the
-    written file where it can be). The output is loaded back by the caller
-    (``protocol.site.load_site``)."""
-    doc = read_yaml_file(site_path, "site file")
-    ctx = ConfigReader(str(site_path))
-    cams = ctx.require("", ctx.mapping("", doc), "cameras")
-    if not isinstance(cams, list):
-        raise ctx.fail("cameras", "expected a list of cameras")
-    unsolved = []
-    for i, node in enumerate(cams):
-        if not isinstance(node, dict):
-            raise ctx.fail(f"cameras[{i}]", f"expected a mapping, got {type(node).__name__}")
-        calib = (calibration_files or {}).get(str(node.get("id")))
-        if calib is not None:
-            for key in ("K", "intrinsics", "distortion", "resolution"):
-                node.pop(key, None)
-            node["calibration_file"] = _relative_to(Path(calib), Path(out_path).parent)
-        sol = result.cameras.get(str(node.get("id")))
-        if sol is None:
-            unsolved.append(str(node.get("id")))
-            continue
-        node.pop("T_cam_world", None)
-        node["T_world_cam"] = _pose_yaml(sol.T_world_cam)
-    header = [f"# cameras' T_world_cam from `smartedge calibrate extrinsics` (source: "
-              f"{Path(site_path).name})"]
-    header += [f"# {line}" for line in result.report().splitlines()]
+def site_header(result: BoardExtrinsicsResult, site_path: str | Path,
+                unsolved: Sequence[str] = ()) -> str:
+    """The header of a site file written from ``result``
+    (:func:`backend_service.calibration.site_file.write_site_with_cameras`): the source, the
+    adjustment's report with each camera's uncertainty, the cameras left as they were."""
+    lines = [f"cameras' T_world_cam from `smartedge calibrate extrinsics` (source: "
+             f"{Path(site_path).name})", *result.report().splitlines()]
     if unsolved:
-        header.append(f"# not solved (pose as before): {', '.join(unsolved)}")
-    p = Path(out_path)
-    p.write_text("\n".join(header) + "\n" + yaml.safe_dump(doc, sort_keys=False,
-                                                            default_flow_style=None),
-                 encoding="utf-8")
-    return p
-
-
-def _relative_to(path: Path, folder: Path) -> str:
-    try:
-        return os.path.relpath(path.resolve(), folder.resolve())
-    except ValueError:  # another drive
-        return str(path.resolve())
+        lines.append(f"not solved (pose as before): {', '.join(unsolved)}")
+    return "\n".join(lines)
 
 
 def report_yaml(result: BoardExtrinsicsResult) -> dict[str, Any]:
@@ -565,7 +520,7 @@ def report_yaml(result: BoardExtrinsicsResult) -> dict[str, Any]:
         "fixed_stamps": list(result.fixed_stamps),
         "cameras": {
             c.camera_id: {
-                "T_world_cam": _pose_yaml(c.T_world_cam),
+                "T_world_cam": pose_node(c.T_world_cam),
                 "std_position_m": round(c.std_position_m, 6),
                 "std_rotation_deg": round(c.std_rotation_deg, 5),
                 "covariance_position_m_rotation_rad": [[float(f"{v:.6g}") for v in row]
@@ -574,18 +529,10 @@ def report_yaml(result: BoardExtrinsicsResult) -> dict[str, Any]:
                 "sightings": c.num_sightings,
                 "corners": c.num_corners,
             } for c in result.cameras.values()},
-        "board_poses": {s: _pose_yaml(T) for s, T in result.board_poses.items()},
+        "board_poses": {s: pose_node(T) for s, T in result.board_poses.items()},
         "skipped": [{"camera": c, "stamp": s, "reason": why}
                     for (c, s), why in sorted(result.skipped.items())],
     }
-
-
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(position error m, rotation error deg) between two (4, 4) poses."""
-    dp = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
-    dR = T_est[:3, :3].T @ T_true[:3, :3]
-    angle = math.degrees(math.acos(float(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
-    return dp, angle
 
 
 def sightings_by_stamp(sightings: Sequence[BoardSighting]) -> dict[str, list[str]]:

@@ -221,9 +221,10 @@ def extrinsics_main(argv: Sequence[str]) -> int:
         load_board_poses,
         pose_from_xyz_rpy,
         report_yaml,
+        site_header,
         solve_board_extrinsics,
-        write_site_with_cameras,
     )
+    from backend_service.calibration.site_file import write_site_with_cameras
     from protocol.site import load_camera_calibration, load_site
 
     p = argparse.ArgumentParser(
@@ -304,8 +305,12 @@ def extrinsics_main(argv: Sequence[str]) -> int:
             except ValueError as exc:
                 raise SmartedgeError(f"--fixed-board: {exc}") from None
         result = solve_board_extrinsics(cameras, sightings, spec, fixed)
-        out = write_site_with_cameras(args.site, result, args.out, calibration_files)
-        load_site(out)  # what we wrote must load
+        unsolved = sorted(set(site.cameras) - set(result.cameras))
+        # the written file is loaded back and checked by the writer
+        write_site_with_cameras(
+            args.site, args.out, {c: r.T_world_cam for c, r in result.cameras.items()},
+            site_header(result, args.site, unsolved), calibration_files)
+        out = args.out
     except SmartedgeError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

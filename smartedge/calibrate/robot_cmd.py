@@ -26,19 +26,16 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from protocol import keys
 from protocol.codec import decode
-from protocol.config_file import read_yaml_file
 from protocol.errors import DecodeError, SmartedgeError, ValidationError
-from protocol.geometry import rotation_to_quaternion
-from protocol.site import Site, SiteConfigError, load_site, parse_site
+from protocol.site import Site, load_site
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1
@@ -153,59 +150,6 @@ def feed_live(site: Site, data: Any, counters: InputCounters, duration_s: float,
 
 
 # --------------------------------------------------------------------------------------------
-# the site file
-# --------------------------------------------------------------------------------------------
-
-
-def pose_node(T_world_cam: np.ndarray) -> dict[str, list[float]]:
-    """A ``T_world_cam`` as the site file writes it: translation and unit quaternion."""
-    q = rotation_to_quaternion(T_world_cam[:3, :3])
-    return {"translation_m": [round(float(v), 6) for v in T_world_cam[:3, 3]],
-            "quaternion_xyzw": [round(float(v), 9) for v in q]}
-
-
-def site_document_with_cameras(site_path: str | Path,
-                               T_world_cam: Mapping[str, np.ndarray]) -> dict[str, Any]:
-    """The parsed site file with the named cameras' poses replaced (``T_cam_world`` /
-    ``T_world_cam`` of those entries become one ``T_world_cam``); everything else as it was.
-    Raises :class:`SiteConfigError` naming the file when a camera is not in it."""
-    doc = read_yaml_file(site_path, "site file", SiteConfigError)
-    cams = doc.get("cameras") if isinstance(doc, dict) else None
-    if not isinstance(cams, list):
-        raise SiteConfigError(str(site_path), "cameras", "expected a list of cameras")
-    done = set()
-    for entry in cams:
-        cid = entry.get("id") if isinstance(entry, dict) else None
-        if cid in T_world_cam:
-            entry.pop("T_cam_world", None)
-            entry["T_world_cam"] = pose_node(np.asarray(T_world_cam[cid], float))
-            done.add(cid)
-    missing = sorted(set(T_world_cam) - done)
-    if missing:
-        raise SiteConfigError(str(site_path), "cameras", f"no camera with id {missing}")
-    return doc
-
-
-def write_site_with_cameras(site_path: str | Path, out_path: str | Path,
-                            T_world_cam: Mapping[str, np.ndarray], header: str = "") -> Site:
-    """Write ``site_path`` with the named cameras' poses replaced to ``out_path`` (comments
-    are not kept); the written file is read back and checked. Returns it parsed."""
-    doc = site_document_with_cameras(site_path, T_world_cam)
-    out = Path(out_path)
-    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
-    lines = [f"# {line}" for line in header.splitlines()] if header else []
-    lines.append("# comments of the original file are not kept by smartedge calibrate")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n" + text, encoding="utf-8")
-    base = Path(site_path).parent
-    site = parse_site(yaml.safe_load(out.read_text(encoding="utf-8")), str(out), base)
-    for cid, T in T_world_cam.items():
-        if not np.allclose(site.cameras[cid].T_world_cam, T, atol=1e-5):
-            raise SmartedgeError(f"{out}: camera {cid!r} did not read back as written")
-    return site
-
-
-# --------------------------------------------------------------------------------------------
 # the command
 # --------------------------------------------------------------------------------------------
 
@@ -310,6 +254,7 @@ def main(argv: Sequence[str]) -> int:
         CalibrationError,
         calibrate,
     )
+    from backend_service.calibration.site_file import write_site_with_cameras
     from smartedge.record import RecordingError
 
     try:

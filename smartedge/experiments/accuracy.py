@@ -44,6 +44,7 @@ import numpy as np
 from backend_service.estimate import estimate_pose
 from backend_service.frame_set import FrameSet
 from backend_service.pipeline import BackendPipeline, FusionFactory, PipelineOutput
+from protocol.site import Site
 from simulation.detections import DetectionSimulator
 from simulation.runner import SimulationRun, run_seed
 from simulation.scenario import Scenario
@@ -167,15 +168,19 @@ def nees_table(results: Sequence[RunResult]) -> tuple[str, dict[str, dict[str, f
 def run_once(scenario: Scenario, trajectory: str, reverse: bool, iteration: int,
              config: PaperConfig, fusion_factory: FusionFactory | None,
              world: World | None = None,
-             detector: DetectionSimulator | None = None) -> RunResult:
+             detector: DetectionSimulator | None = None,
+             service_site: Site | None = None) -> RunResult:
     """Simulate one run and take the per-stop samples (see the module docstring).
 
     The simulated messages go in arrival order through :class:`BackendPipeline` (the backend
     service's own object) exactly as the service receives them. The raw row is an ablation on
     the pipeline's own record: the stop's first frame-set, from the prior the pipeline used,
-    solved with the single-camera heuristic off."""
+    solved with the single-camera heuristic off. ``service_site``: the site file the backend
+    is given (default: the scenario's); the simulated cameras stay the scenario's true ones
+    (:func:`simulation.detections.true_cameras`), so another calibration of the same cameras
+    can be compared (``smartedge evaluate calibration``)."""
     wall0 = time.perf_counter()
-    site = scenario.site
+    site = scenario.site if service_site is None else service_site
     sim = SimulationRun(scenario, trajectory, reverse,
                         seed=run_seed(scenario, trajectory, reverse, iteration, config.seed),
                         world=world, detector=detector)
@@ -276,8 +281,10 @@ class Experiment1Worker:
 
     def __init__(self, scenario: Scenario, config: PaperConfig,
                  fusion_factory: FusionFactory | None, world: World | None = None,
-                 detector: DetectionSimulator | None = None) -> None:
+                 detector: DetectionSimulator | None = None,
+                 service_site: Site | None = None) -> None:
         self.scenario = scenario
+        self.service_site = service_site
         self.config = config
         self.fusion_factory = fusion_factory
         self.world = world or World(scenario)
@@ -302,7 +309,7 @@ class Experiment1Worker:
         stats: RenderedStats | None = getattr(det, "stats", None)
         before = dataclasses.replace(stats) if stats is not None else None
         res = run_once(self.scenario, planned.trajectory, planned.reverse, planned.iteration,
-                       self.config, self.fusion_factory, self.world, det)
+                       self.config, self.fusion_factory, self.world, det, self.service_site)
         if self.config.calibration_seeds:
             res = _with_suffix(res, f"_cal{planned.calibration_seed}")
         return res, (None if stats is None or before is None else stats - before)
@@ -311,18 +318,21 @@ class Experiment1Worker:
 def run_experiment1(scenario: Scenario, trajectories: Sequence[str], config: PaperConfig,
                     fusion_factory: FusionFactory | None, world: World,
                     detector: DetectionSimulator, say: Callable[[str], None],
-                    ) -> list[RunResult]:
+                    service_site: Site | None = None) -> list[RunResult]:
     """Experiment 1: each of ``trajectories`` in both directions, ``config.runs_per_direction``
     times (:func:`run_once`), for each of ``config.calibration_seeds`` (a detector per draw of
     the cameras' calibration error; without them the scenario's one draw, ``detector``).
 
     The runs are independent: with ``config.jobs`` > 1 they go to that many worker processes
     (:mod:`smartedge.experiments.parallel`), each building its own world and detection source,
-    and come back in the planned order; the results are those of the serial run."""
+    and come back in the planned order; the results are those of the serial run.
+    ``service_site``: the site file the backend is given instead of the scenario's
+    (:func:`run_once`)."""
     cal_seeds = config.calibration_seeds or (scenario.seeds.calibration,)
     plan = [PlannedRun(cs, n, rev, it) for cs in cal_seeds for n in trajectories
             for rev in (False, True) for it in range(config.runs_per_direction)]
-    jobs = resolve_jobs(config.jobs, len(plan), (scenario, config, fusion_factory))
+    jobs = resolve_jobs(config.jobs, len(plan), (scenario, config, fusion_factory,
+                                                 service_site))
     say(f"paper experiment 1: {len(plan)} runs on {scenario.name} "
         f"({'with' if fusion_factory is not None else 'without'} fusion"
         + (f", calibration seeds {','.join(map(str, cal_seeds))}"
@@ -330,8 +340,8 @@ def run_experiment1(scenario: Scenario, trajectories: Sequence[str], config: Pap
         + (f", {jobs} processes" if jobs > 1 else "") + ")")
     # workers build their own world and detection source; in this process, the given ones
     state_args: tuple[object, ...] = (
-        (scenario, config.per_process(jobs), fusion_factory) if jobs > 1
-        else (scenario, config, fusion_factory, world, detector))
+        (scenario, config.per_process(jobs), fusion_factory, None, None, service_site)
+        if jobs > 1 else (scenario, config, fusion_factory, world, detector, service_site))
     results: list[RunResult] = []
     images: RenderedStats | None = None
     runs = map_runs(Experiment1Worker.run, plan, jobs, Experiment1Worker, state_args)

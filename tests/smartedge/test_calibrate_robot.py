@@ -10,16 +10,17 @@ import numpy as np
 import pytest
 import yaml
 
-from backend_service.calibration.robot_target import pose_error
+from backend_service.calibration.site_file import write_site_with_cameras
 from protocol import keys
 from protocol.codec import decode
+from protocol.geometry import pose_error
 from protocol.messages import RobotDetections
 from protocol.site import load_site
 from simulation.calibration_drive import perturbed_camera_poses, record_drive
 from simulation.detections import true_cameras
 from simulation.scenario import load_scenario
 from smartedge.calibrate import cli
-from smartedge.calibrate.robot_cmd import main, write_site_with_cameras
+from smartedge.calibrate.robot_cmd import main
 from smartedge.record import Recorder
 
 DRIVE_S = 60.0

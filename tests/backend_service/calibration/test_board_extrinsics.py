@@ -10,11 +10,12 @@ from backend_service.calibration.board import BoardDetector, CalibrationError
 from backend_service.calibration.board_extrinsics import (
     BoardSighting,
     load_board_poses,
-    pose_error,
+    site_header,
     solve_board_extrinsics,
-    write_site_with_cameras,
 )
+from backend_service.calibration.site_file import write_site_with_cameras
 from protocol.errors import ConfigFileError
+from protocol.geometry import pose_error
 from protocol.site import load_site
 from simulation.detections import true_cameras
 from simulation.scenario import load_scenario
@@ -67,8 +68,12 @@ def test_one_fixed_board_ties_every_camera_jointly(lab, tmp_path) -> None:
         assert dp < 0.04 and da < 0.3, (cid, dp, da)
         assert dp < 3 * sol.std_position_m + 0.005, (cid, dp, sol.std_position_m)
         assert da < 3 * sol.std_rotation_deg + 0.05, (cid, da, sol.std_rotation_deg)
-    out = write_site_with_cameras(PAPER_LAB, result, tmp_path / "site.yaml")
+    out = tmp_path / "site.yaml"
+    written = write_site_with_cameras(
+        PAPER_LAB, out, {c: r.T_world_cam for c, r in result.cameras.items()},
+        site_header(result, PAPER_LAB))
     site = load_site(out)
+    assert sorted(written.cameras) == sorted(site.cameras)
     nominal = load_site(PAPER_LAB)
     for cid, sol in result.cameras.items():
         np.testing.assert_allclose(site.cameras[cid].T_world_cam, sol.T_world_cam, atol=1e-6)

@@ -16,9 +16,9 @@ from backend_service.calibration.robot_target import (
     CalibrationError,
     RobotTargetConfig,
     calibrate,
-    pose_error,
 )
 from protocol.codec import decode
+from protocol.geometry import pose_error
 from protocol.messages import Detection, PoseEstimate, RobotDetections
 from protocol.site import look_at_T_world_cam
 from simulation.calibration_drive import drive_messages, perturbed_camera_poses
