@@ -53,7 +53,8 @@ from protocol.site import Site
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PoseResult", "SolverConfig", "estimate_from_detections", "estimate_pose"]
+__all__ = ["PoseResult", "SolverConfig", "estimate_from_detections", "estimate_pose",
+           "solver_views"]
 
 #: A keypoint this close to (or behind) a camera's image plane makes the solution impossible.
 MIN_DEPTH_M: Final = 0.05
@@ -152,6 +153,30 @@ def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] |
     if problems:
         log.debug("estimate_from_detections: dropped %s", "; ".join(problems))
     return estimate_pose(frame_set, site, prior, config, prior_covariance)
+
+
+def solver_views(frame_set: FrameSet, site: Site, config: SolverConfig | None = None
+                 ) -> tuple[list[CameraModel], np.ndarray, np.ndarray]:
+    """The views a solve of ``frame_set`` uses, sorted by camera id as the solver orders them,
+    with the keypoints as it weighs them (step 1 of the module docstring): ``cameras`` (C),
+    ``keypoints_px`` (C, M, 2; NaN where not finite) and ``weights`` (C, M; 0 where not used).
+    Empty arrays when nothing is usable; never raises on bad data."""
+    config = config or SolverConfig()
+    try:
+        model = site.robot_model(frame_set.robot_id or None)
+    except KeyError:
+        return [], np.zeros((0, 0, 2)), np.zeros((0, 0))
+    kp_base = np.asarray(model.keypoints_base_m, dtype=np.float64)
+    th = site.thresholds
+    min_score = th.min_keypoint_score if config.min_keypoint_score is None \
+        else config.min_keypoint_score
+    views, _ = _prepare_views(frame_set, site, kp_base, float(min_score), config.sigma_floor_px)
+    M = kp_base.shape[0]
+    if not views:
+        return [], np.zeros((0, M, 2)), np.zeros((0, M))
+    views.sort(key=lambda v: v.camera.camera_id)
+    return ([v.camera for v in views], np.stack([v.keypoints_px for v in views]),
+            np.stack([np.where(v.valid, v.weights, 0.0) for v in views]))
 
 
 def _prepare_views(frame_set: FrameSet, site: Site, kp_base: np.ndarray,

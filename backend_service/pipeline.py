@@ -17,7 +17,14 @@ same way by the backend service (:mod:`backend_service.service`), the paper's ex
    MultiFrameAverager`) and the average is flagged ``multi_frame``;
 5. **pose graph**: camera estimates (single frames while moving when ``fuse_while_moving``,
    averages while static) and odometry go into :class:`~backend_service.fusion.
-   PoseGraphFusion`; each odometry sample yields the fused pose at its stamp.
+   PoseGraphFusion`; each odometry sample yields the fused pose at its stamp;
+6. **camera health**: every solved frame-set with enough cameras also feeds
+   :class:`~backend_service.camera_health.CameraHealthMonitor` (each camera's residual bias
+   against the pose the other cameras agree on); a camera judged moved is named in
+   :meth:`BackendPipeline.problems` and, with ``camera_health.action: exclude``, its detections
+   are left out of every solve (counted ``camera_health.excluded_views``) until it is
+   recalibrated (its calibrated pose in ``site`` changes: assign a new :class:`Site` to
+   :attr:`BackendPipeline.site`), :meth:`BackendPipeline.reset_camera_health` or a restart.
 
 Inputs are the wire messages in arrival order (:meth:`BackendPipeline.feed`) plus the clock
 (:meth:`BackendPipeline.poll`); outputs are :class:`PipelineOutput` records: the camera
@@ -38,7 +45,8 @@ from typing import TYPE_CHECKING, Final, Protocol
 
 import numpy as np
 
-from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
+from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor, NoiseModel
+from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, solver_views
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
 from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
@@ -95,7 +103,8 @@ class PipelineConfig:
     ``max_input_delay_s``: the backend service sheds (counts, ``shed``) camera detections that
     waited longer than this in its input queue: when the host cannot keep up, the oldest
     frame-sets go first and the latency stays bounded instead of growing until every pose is
-    stale.
+    stale. ``camera_health``: watching the cameras for a bump (the site file's
+    ``camera_health`` section, :class:`~backend_service.camera_health.CameraHealthConfig`).
     """
 
     solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
@@ -106,6 +115,7 @@ class PipelineConfig:
     static_max_yaw_rate_radps: float = 0.02
     static_dwell_s: float = 1.0
     max_input_delay_s: float = 0.25
+    camera_health: CameraHealthConfig = dataclasses.field(default_factory=CameraHealthConfig)
 
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_SOURCES:
@@ -118,7 +128,9 @@ class PipelineConfig:
         """The site file's ``pose`` section (this class's scalar fields and
         :class:`SolverConfig`'s, in one flat mapping) and ``multi_frame`` section
         (:class:`MultiFrameConfig`), with the static-detection thresholds of ``thresholds``;
-        ``overrides`` (e.g. from command-line flags) win. Errors name the file and key."""
+        ``camera_health`` section (:class:`~backend_service.camera_health.
+        CameraHealthConfig`); ``overrides`` (e.g. from command-line flags) win. Errors name the
+        file and key."""
         th = site.thresholds
         reader = site.section_reader()
         pose = site.section("pose")
@@ -133,6 +145,7 @@ class PipelineConfig:
         base = reader.section(
             "pose", {k: v for k, v in pose.items() if k in own}, cls,
             base=cls(solver=solver, multi_frame=multi_frame,
+                     camera_health=CameraHealthConfig.from_site(site),
                      static_max_speed_mps=th.static_max_speed_mps,
                      static_max_yaw_rate_radps=th.static_max_yaw_rate_radps,
                      static_dwell_s=th.static_dwell_s))
@@ -285,6 +298,11 @@ class BackendPipeline:
             for rid in site.robots
         }
         self.counters: collections.Counter[str] = collections.Counter()
+        solver = self.config.solver
+        self.camera_health = CameraHealthMonitor(
+            self.config.camera_health,
+            NoiseModel(solver.covariance_floor_px, solver.error_model.detection_shift_sigma_px,
+                       solver.error_model.detection_scale_sigma))
         self._future_at: dict[str, int] = {}  # counter -> arrival time of the last drop
         self._fusion_resets_seen: dict[str, int] = {}
         self._fusion_reset_at: dict[str, int] = {}
@@ -368,7 +386,14 @@ class BackendPipeline:
             at = self._fusion_reset_at.get(rid)
             if at is not None and now_ns - at <= PROBLEM_HOLD_NS:
                 out.append(f"fusion of {rid} restarted after a bad odometry stamp")
+        out.extend(self.camera_health.problems())
         return out
+
+    def reset_camera_health(self, camera_id: str | None = None) -> None:
+        """Forget what the camera-health monitor gathered about ``camera_id`` (every camera
+        when ``None``): a camera judged moved is back in the solve and judged afresh. A
+        recalibrated camera (a new calibrated pose in :attr:`site`) needs no reset."""
+        self.camera_health.reset(camera_id)
 
     # -- internals ---------------------------------------------------------------------------
 
@@ -398,9 +423,23 @@ class BackendPipeline:
         if track is None:
             return out
         prior, source, prior_cov = track.prior(fs.stamp_ns)
+        health = self.camera_health
+        health.check_calibration(self.site.cameras)
+        excluded = health.excluded
+        seen = fs  # what the cameras saw, the left-out ones too (still compared)
+        if excluded and any(o.camera_id in excluded for o in fs.observations):
+            kept = tuple(o for o in fs.observations if o.camera_id not in excluded)
+            self.counters["camera_health.excluded_views"] += len(fs.observations) - len(kept)
+            fs = FrameSet(fs.robot_id, fs.stamp_ns, kept)
         t0 = time.perf_counter()
         result = estimate_pose(fs, self.site, prior, self.config.solver, prior_cov)
         solve_s = time.perf_counter() - t0
+        if (result.ok and result.T_world_robot is not None
+                and len(seen.observations) > self.config.camera_health.min_other_cameras
+                and health.due(track.robot_id, fs.stamp_ns)):
+            ids = set(health.select(seen.camera_ids))
+            self._watch_cameras(track, FrameSet(seen.robot_id, seen.stamp_ns, tuple(
+                o for o in seen.observations if o.camera_id in ids)), result)
         static = track.static_at(fs.stamp_ns)
         averaged: PoseEstimate | None = None
         if not result.ok or result.estimate is None:
@@ -429,6 +468,17 @@ class BackendPipeline:
                                       averaged, solve_s, prior_cov))
         return out
 
+    def _watch_cameras(self, track: RobotTrack, fs: FrameSet, result: PoseResult) -> None:
+        """The camera-health monitor's look at a solved frame-set (the views as the solver
+        weighed them, the joint solution)."""
+        cameras, uv, w = solver_views(fs, self.site, self.config.solver)
+        if len(cameras) < self.config.camera_health.min_other_cameras:
+            return
+        model = self.site.robot_model(fs.robot_id or None)
+        assert result.T_world_robot is not None
+        self.camera_health.observe(track.robot_id, fs.stamp_ns, cameras,
+                                   model.keypoints_base_m, result.T_world_robot, uv, w)
+
     def _fuse(self, track: RobotTrack, est: PoseEstimate) -> list[PoseEstimate]:
         if track.fusion is None:
             return []
@@ -454,6 +504,8 @@ class BackendPipeline:
         out.update({f"sync.{k}": int(v) for k, v in self.sync.counters.items()})
         for cam, per in self.sync.camera_counters.items():
             out.update({f"sync.camera.{cam}.{k}": int(v) for k, v in per.items() if v})
+        out.update({f"camera_health.{k}": int(v)
+                    for k, v in self.camera_health.counters.items()})
         for rid, t in self.tracks.items():
             counters = getattr(t.fusion, "counters", None)
             if counters:

@@ -5,7 +5,9 @@ camera's *true* pose (the site's calibrated pose perturbed by a fixed calibratio
 for visibility (image bounds, range, obstacles, the robot's own body) and corrupted by the
 detector error model of :class:`simulation.scenario.NoiseConfig`. Stamps carry each camera's
 clock error; arrival times add latency and jitter. Everything random comes from seeded numpy
-Generators, so a seed reproduces a run exactly.
+Generators, so a seed reproduces a run exactly. A camera can be bumped during a run
+(:class:`CameraBump`: from a given time on, its true pose is moved; the site file, and so
+every service, still has the calibrated one).
 
 The geometry of a frame (projections, visibility tests, the robot's projected hull) depends only
 on the camera and the robot's pose, so :class:`DetectionSimulator` keeps it per camera, keyed by
@@ -35,6 +37,35 @@ MODEL_ID = "sim-noise-v1"
 MAX_PREPARED_FRAMES = 16_384
 #: frames computed together (bounds the temporaries of a vectorized computation)
 GEOMETRY_CHUNK = 1024
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraBump:
+    """A camera knocked out of place during a run: from ``at_ns`` (true capture time, common
+    clock) on, the true pose of ``camera_id`` is rotated by ``rotation_deg`` (a rotation vector,
+    degrees, world axes, about the optical centre) and its optical centre moved by
+    ``translation_m`` (world axes, metres): R' = Exp(w) R, c' = c + t, the parametrization of
+    :func:`backend_service.covariance.project_with_extrinsic_jacobian`."""
+
+    camera_id: str
+    at_ns: int
+    translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        for name in ("translation_m", "rotation_deg"):
+            value = np.asarray(getattr(self, name), dtype=np.float64)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise ValueError(f"CameraBump.{name}: expected 3 finite numbers, got "
+                                 f"{getattr(self, name)!r}")
+
+    def apply(self, camera: CameraModel) -> CameraModel:
+        """``camera`` with its pose moved by this bump."""
+        T_world_cam = camera.T_world_cam.copy()
+        dR = rotation_from_rotvec(np.radians(np.asarray(self.rotation_deg, np.float64)))
+        T_world_cam[:3, :3] = dR @ T_world_cam[:3, :3]
+        T_world_cam[:3, 3] += np.asarray(self.translation_m, np.float64)
+        return dataclasses.replace(camera, T_cam_world=invert_transform(T_world_cam))
 
 
 def true_cameras(scenario: Scenario) -> dict[str, CameraModel]:
@@ -105,16 +136,33 @@ def _readonly(*arrays: np.ndarray) -> None:
 
 
 class DetectionSimulator:
-    """Produces :class:`protocol.RobotDetections` for the cameras of a scenario."""
+    """Produces :class:`protocol.RobotDetections` for the cameras of a scenario.
+
+    ``bumps``: cameras knocked out of place during the run (:class:`CameraBump`); a bumped
+    camera's frames from the bump on are seen through its moved pose.
+    """
 
     #: whether :meth:`detect_many` costs less than one :meth:`detect` per frame, so that a
     #: runner should hand it the cameras' frames of one capture together (not here)
     batches_frames: ClassVar[bool] = False
 
-    def __init__(self, scenario: Scenario, world: World | None = None) -> None:
+    def __init__(self, scenario: Scenario, world: World | None = None,
+                 bumps: Sequence[CameraBump] = ()) -> None:
         self.scenario = scenario
         self.world = world or World(scenario)
         self.cameras = true_cameras(scenario)
+        for bump in bumps:
+            if bump.camera_id not in self.cameras:
+                raise ValueError(f"CameraBump: unknown camera {bump.camera_id!r}; the site has "
+                                 f"{sorted(self.cameras)}")
+        #: per camera, its bumps in time order, each with the true camera after it
+        self._bumps: dict[str, list[tuple[int, CameraModel]]] = {}
+        for bump in sorted(bumps, key=lambda b: b.at_ns):
+            chain = self._bumps.setdefault(bump.camera_id, [])
+            before = chain[-1][1] if chain else self.cameras[bump.camera_id]
+            chain.append((int(bump.at_ns), bump.apply(before)))
+        #: per (camera, bump index): the last frame computed for the bumped camera
+        self._last_bumped: dict[tuple[str, int], tuple[bytes, FrameGeometry]] = {}
         self.model = scenario.site.robot_model(scenario.robot_id)
         kps = self.model.keypoints_base_m
         self._kps_h = np.column_stack([kps, np.ones(len(kps))])
@@ -180,10 +228,33 @@ class DetectionSimulator:
                                 self._compute_geometry(camera_id, poses[chunk]), strict=True))
         self._prepared[camera_id] = prepared
 
-    def _compute_geometry(self, camera_id: str, poses: np.ndarray) -> list[FrameGeometry]:
+    def true_camera(self, camera_id: str, true_capture_ns: int) -> tuple[int, CameraModel]:
+        """The true camera at ``true_capture_ns`` and which bump made it (-1: none yet)."""
+        idx, cam = -1, self.cameras[camera_id]
+        for i, (at_ns, bumped) in enumerate(self._bumps.get(camera_id, ())):
+            if true_capture_ns >= at_ns:
+                idx, cam = i, bumped
+        return idx, cam
+
+    def _bumped_geometry(self, camera_id: str, bump: int, camera: CameraModel,
+                         pose: np.ndarray) -> FrameGeometry:
+        """Frame geometry through a bumped camera (computed per frame; a static robot repeats
+        the last one)."""
+        key = _pose_key(pose)
+        last = self._last_bumped.get((camera_id, bump))
+        if last is not None and last[0] == key:
+            return last[1]
+        geometry = self._compute_geometry(camera_id, np.asarray(pose, np.float64)[None, :3],
+                                          camera)[0]
+        self._last_bumped[(camera_id, bump)] = (key, geometry)
+        return geometry
+
+    def _compute_geometry(self, camera_id: str, poses: np.ndarray,
+                          camera: CameraModel | None = None) -> list[FrameGeometry]:
         """:class:`FrameGeometry` of (N, 3) ``poses``: each frame's numbers are those of a
-        one-frame call (the same operations per element; matrix products row by row)."""
-        cam = self.cameras[camera_id]
+        one-frame call (the same operations per element; matrix products row by row).
+        ``camera``: the true camera to see through (default: the unbumped one)."""
+        cam = self.cameras[camera_id] if camera is None else camera
         cfg = self.scenario.cameras
         n, m = len(poses), len(self._kps_h)
         # (N, 4, 4) T_world_robot per frame
@@ -192,7 +263,7 @@ class DetectionSimulator:
         hull_w = (self._hull_h @ T.transpose(0, 2, 1))[:, :, :3]  # (N, H, 3)
         uv, depth = cam.project(kps_w.reshape(-1, 3))
         uv, depth = uv.reshape(n, m, 2), depth.reshape(n, m)
-        cam_pos = self._camera_position[camera_id]
+        cam_pos = self._camera_position[camera_id] if camera is None else cam.position_world
         dist = np.hypot(poses[:, 0] - cam_pos[0], poses[:, 1] - cam_pos[1])
         in_view = (cam.in_image(uv.reshape(-1, 2)).reshape(n, m) & (depth > 0.1)
                    & (dist <= cfg.max_range_m)[:, None])
@@ -241,10 +312,11 @@ class DetectionSimulator:
                rng: np.random.Generator) -> RobotDetections:
         """The detections message of one frame of ``camera_id`` with the robot at true planar
         ``pose`` (x, y, theta) at ``true_capture_ns``."""
-        cam = self.cameras[camera_id]
+        bump, cam = self.true_camera(camera_id, true_capture_ns)
         stamp = self.capture_stamp_ns(camera_id, true_capture_ns)
         dets: tuple[Detection, ...] = ()
-        geometry = self.frame_geometry(camera_id, pose)
+        geometry = (self.frame_geometry(camera_id, pose) if bump < 0
+                    else self._bumped_geometry(camera_id, bump, cam, pose))
         if (geometry.visibility.detectable
                 and rng.random() >= self.scenario.cameras.miss_probability):
             dets = (self._noisy_detection(cam, geometry, rng),)

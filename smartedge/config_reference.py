@@ -54,6 +54,7 @@ class Section:
 
 
 def sections() -> list[Section]:
+    from backend_service.camera_health import CameraHealthConfig
     from backend_service.estimate import SolverConfig
     from backend_service.fusion import FusionConfig
     from backend_service.multi_frame import MultiFrameConfig
@@ -89,6 +90,13 @@ def sections() -> list[Section]:
         Section("multi_frame", "backend_service", ((MultiFrameConfig, None),),
                 "`count` defaults to `thresholds.multi_frame_count`."),
         Section("fusion", "backend_service (pose graph)", ((FusionConfig, None),)),
+        Section("camera_health", "backend_service: is every camera where its calibration says",
+                ((CameraHealthConfig, None),),
+                "A camera named moved shows in the backend's status (`degraded: cam3 moved "
+                "~4 cm / 1.1 deg since calibration`) and counters (`camera_health.moved.<id>`); "
+                "with `action: exclude` it is left out of the solve until its calibrated pose in "
+                "the site file changes, the backend restarts or the monitor is reset "
+                "(docs/calibration.md)."),
         Section("map", "mapper (the semantic map, `smartedge mapper`)",
                 ((MappingConfig, None), (SemanticMapConfig, None), (AlignmentConfig, None)),
                 "One flat section for the mapper, the voxel map and the ICP gate; the ICP's "

@@ -31,6 +31,8 @@ BENCHES: Final[dict[str, Command]] = {
                    "semantic map fusion (M points/s) and ICP latency"),
     "bridge": Command("smartedge.bench.bridge", "main",
                       "robot bridge ROS output: encoding per flavour, loopback latency"),
+    "camera-health": Command("smartedge.bench.camera_health", "main",
+                             "bumped-camera detection: delay, false alarms per hour, CPU"),
     "reliability": Command("smartedge.bench.faults", "main",
                            "the fault harness: hostile and faulty input against the running "
                            "services (issue 17's probes)"),
