@@ -1,8 +1,9 @@
 """Read an MCAP recording made by ``smartedge record``: messages per key and the first poses.
 
-A recording holds every sample of the recorded keys as it arrived: one MCAP channel per Zenoh
-key, the payload the wire bytes (msgpack, :func:`protocol.decode` reads them), the receive time
-in nanoseconds. Foxglove and the ``mcap`` CLI open the same file.
+A recording holds every sample of the recorded keys as it arrived, with the receive time in
+nanoseconds: per Zenoh key a ROS 2 channel (standard types where they exist, CDR) for Foxglove
+and ``ros2 bag``, and a wire channel with the msgpack bytes as published, which
+:func:`smartedge.record.read_recording` returns (:func:`protocol.decode` reads them).
 
     .venv/bin/smartedge record run.mcap --duration 30     # while the system runs
     .venv/bin/python examples/read_recording.py run.mcap --poses 5

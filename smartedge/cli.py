@@ -62,6 +62,8 @@ COMMANDS: Final[dict[str, Command]] = {
     "record": Command("smartedge.record", "record_main",
                       "capture the traffic into an MCAP file"),
     "replay": Command("smartedge.record", "replay_main", "publish an MCAP recording back"),
+    "export": Command("smartedge.export", "main",
+                      "data out of a recording: poses as a TUM trajectory"),
 }
 
 

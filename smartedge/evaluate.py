@@ -3,6 +3,7 @@
 ::
 
     smartedge evaluate ate GT.tum EST.tum [--align] [--correct-scale] [--max-diff S]
+    smartedge evaluate ate GT.tum REC.mcap --est-key smartedge/SITE/robot/ID/pose [--align]
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
@@ -32,18 +33,30 @@ import sys
 from collections.abc import Sequence
 
 from protocol.errors import SmartedgeError
-from smartedge.evaluation.metrics import MetricsError, ape, format_stats
+from smartedge.evaluation.metrics import Trajectory, ape, format_stats
 from smartedge.evaluation.trajectory_io import TrajectoryFileError, read_tum
+
+
+def _trajectory(path: str, key: str | None) -> Trajectory:
+    """A TUM file, or with ``key`` the poses of that key / topic of an MCAP recording."""
+    if key is None:
+        if path.endswith(".mcap"):
+            raise TrajectoryFileError(path, None, "a recording: name the poses with --gt-key / "
+                                      "--est-key (a smartedge key or a ROS pose topic)")
+        return read_tum(path)
+    from smartedge.export import read_poses
+
+    return read_poses(path, key)
 
 
 def _ate(args: argparse.Namespace) -> int:
     try:
-        ref = read_tum(args.gt)
-        est = read_tum(args.est)
+        ref = _trajectory(args.gt, args.gt_key)
+        est = _trajectory(args.est, args.est_key)
         result = ape(
             ref, est, align=args.align, correct_scale=args.correct_scale, max_diff_s=args.max_diff
         )
-    except (TrajectoryFileError, MetricsError) as exc:
+    except SmartedgeError as exc:  # file, recording, key or metrics problems, named
         print(f"smartedge evaluate ate: {exc}", file=sys.stderr)
         return 1
     if args.align and args.correct_scale:
@@ -174,9 +187,14 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="what", metavar="WHAT", required=True)
-    p_ate = sub.add_parser("ate", help="absolute trajectory error of EST against GT (TUM files)")
-    p_ate.add_argument("gt", help="reference trajectory (TUM)")
-    p_ate.add_argument("est", help="estimated trajectory (TUM)")
+    p_ate = sub.add_parser("ate", help="absolute trajectory error of EST against GT (TUM files "
+                           "or MCAP recordings)")
+    p_ate.add_argument("gt", help="reference trajectory (TUM, or MCAP with --gt-key)")
+    p_ate.add_argument("est", help="estimated trajectory (TUM, or MCAP with --est-key)")
+    p_ate.add_argument("--gt-key", default=None,
+                       help="GT is a recording: its key or ROS pose topic (e.g. the mocap's)")
+    p_ate.add_argument("--est-key", default=None,
+                       help="EST is a recording: its key, e.g. smartedge/SITE/robot/ID/pose")
     p_ate.add_argument("--align", "-a", action="store_true", help="SE(3) Umeyama alignment")
     p_ate.add_argument(
         "--correct-scale", "-s", action="store_true", help="also estimate a scale (Sim(3))"

@@ -91,6 +91,34 @@ def test_recording_holds_inputs_and_outputs(live_recording: Path) -> None:
     assert counts["camera_pose"] > 20 and counts["backend"] >= 5  # estimates, status
 
 
+def test_every_channel_of_the_live_recording_decodes_as_ros2(live_recording: Path) -> None:
+    """The recording ``smartedge record`` wrote during the live run: an independent decoder
+    (``mcap-ros2-support``) reads every channel, each key has its typed and its wire channel."""
+    decoder = pytest.importorskip("mcap_ros2.decoder")
+    from mcap.reader import make_reader
+
+    from smartedge import record_ros
+
+    per_topic: dict[str, tuple[str, int]] = {}
+    with live_recording.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[decoder.DecoderFactory()])
+        for schema, channel, _message, obj in reader.iter_decoded_messages():
+            assert obj is not None
+            name, n = per_topic.get(channel.topic, (schema.name, 0))
+            per_topic[channel.topic] = (name, n + 1)
+    keys_seen = {key for key, _, _ in read_recording(live_recording)}
+    for key in keys_seen:
+        wire_name, n_wire = per_topic[record_ros.wire_topic(key)]
+        assert wire_name == record_ros.WIRE_TYPE
+        typed_name, n_typed = per_topic[record_ros.ros_topic(key)]
+        assert typed_name in record_ros.ROS_TYPES.values(), typed_name
+        assert n_typed == n_wire, key  # every payload decoded and converted
+    names = {name for name, _ in per_topic.values()}
+    assert {"smartedge_msgs/msg/RobotDetections", "nav_msgs/msg/Odometry",
+            "geometry_msgs/msg/PoseWithCovarianceStamped",
+            "diagnostic_msgs/msg/DiagnosticArray"} <= names, names
+
+
 def test_offline_pipeline_on_the_recording_gives_the_live_estimates(live_recording: Path) -> None:
     sc = load_scenario()
     pipeline = BackendPipeline(sc.site, PipelineConfig.from_site(sc.site))
