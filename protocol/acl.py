@@ -80,9 +80,10 @@ BRIDGE_SERVICE: Final = "robot-bridge"
 VIEWER_SERVICE: Final = "viewer"
 
 #: ROS topics the robot bridge publishes on the robot: corrections (HSR, Nav2/AMCL), the pose
-#: outputs and tf (robot_bridge/adapters/ros2.py)
+#: outputs, tf, the semantic map and its obstacle grid (robot_bridge/adapters/ros2.py)
 DEFAULT_BRIDGE_ROS_TOPICS: Final = (
-    "laser_2d_correct_pose", "initialpose", "smartedge/pose", "smartedge/camera_pose", "tf")
+    "laser_2d_correct_pose", "initialpose", "smartedge/pose", "smartedge/camera_pose", "tf",
+    "smartedge/semantic_map", "smartedge/obstacles")
 #: ROS topics the robot's own side publishes that the bridge reads: odometry and localization
 #: (HSR on ROS 2 and ROS 1, Nav2/AMCL)
 DEFAULT_ROBOT_ROS_TOPICS: Final = ("switched_odom", "odom", "hsrb/odom", "amcl_pose", "global_pose")
@@ -151,7 +152,8 @@ class RosKeys:
             raise ValidationError("ros.domain_id", "expected an integer") from None
         bridge = [*DEFAULT_BRIDGE_ROS_TOPICS, *(
             str(section[k]) for k in ("correction_topic", "pose_topic", "camera_pose_topic",
-                                      "tf_topic") if section.get(k))]
+                                      "tf_topic", "map_cloud_topic", "obstacles_topic")
+            if section.get(k))]
         robot = [*DEFAULT_ROBOT_ROS_TOPICS, *(
             str(section[k]) for k in ("odometry_topic", "localization_topic")
             if section.get(k) and section.get(k) != "none")]

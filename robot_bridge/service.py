@@ -30,13 +30,14 @@ import numpy as np
 
 from protocol import keys
 from protocol.errors import UsageError
-from protocol.messages import Message, PoseEstimate, ServiceStatus
+from protocol.messages import Message, PoseEstimate, SemanticCloud, ServiceStatus
 from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
 from robot_bridge.adapters.base import RobotAdapter
 from robot_bridge.adapters.registry import add_adapter_arguments, get_adapter
 from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
+from robot_bridge.map_output import MapOutput, MapOutputConfig
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,7 @@ class RobotBridgeNode(ServiceNode):
         self._next_localization_ns = 0
         self._localization_seq = 0
         self._frame = site.world_frame
+        self.map_output = MapOutput(MapOutputConfig.from_site(site), site.world_frame)
 
     def attach(self, session: Any) -> None:
         self.adapter = self._adapter_factory(session)
@@ -90,7 +92,17 @@ class RobotBridgeNode(ServiceNode):
             # the backend's heartbeat: its status (every second) and its liveliness token
             Subscription(keys.status_key(self.site, "backend", "*"), ServiceStatus, capacity=64),
             Subscription(keys.alive_key(self.site, "backend", "*"), liveliness=True),
+            *self._map_subscriptions(),
         ]
+
+    def _map_subscriptions(self) -> list[Subscription]:
+        """The mapper's voxels, when the map output is on and the adapter publishes maps
+        (``attach`` came first): latest only (a queue of two)."""
+        config = self.map_output.config
+        if not config.enabled or not self._adapter_publishes_maps():
+            return []
+        return [Subscription(keys.map_voxels_key(self.site, config.map_id), SemanticCloud,
+                             capacity=2)]
 
     def handle(self, key: str, message: Message, recv_ns: int) -> Iterable[Outgoing]:
         if isinstance(message, ServiceStatus):
@@ -99,6 +111,10 @@ class RobotBridgeNode(ServiceNode):
                 self.bridge.on_backend_gone(recv_ns)
             else:
                 self.bridge.on_backend_heartbeat(recv_ns)
+            return []
+        if isinstance(message, SemanticCloud):
+            self.stats.event("maps")
+            self.map_output.on_map(message)
             return []
         assert isinstance(message, PoseEstimate)
         self.stats.event("estimates")
@@ -122,10 +138,28 @@ class RobotBridgeNode(ServiceNode):
             self._advance(now_ns)
         out = self._outgoing(self.bridge.pump(self.adapter, now_ns))
         self.bridge.publish_pose_output(self.adapter, now_ns)
+        self._publish_map(now_ns)
         if now_ns >= self._next_localization_ns:
             self._next_localization_ns = now_ns + LOCALIZATION_PERIOD_NS
             out.extend(self._localization())
         return out
+
+    def _adapter_publishes_maps(self) -> bool:
+        """Whether the adapter has a map output (the ROS adapters; not ``sim``)."""
+        return (self.adapter is not None
+                and type(self.adapter).publish_map is not RobotAdapter.publish_map)
+
+    def _publish_map(self, now_ns: int) -> None:
+        """The newest map to the robot's ROS topics, when one is due (:class:`MapOutput`)."""
+        snapshot = self.map_output.due(now_ns)
+        if snapshot is None or self.adapter is None:
+            return
+        try:
+            ok = self.adapter.publish_map(snapshot)
+        except Exception:  # an adapter's bug must not stop the bridge
+            log.exception("publishing the map failed")
+            ok = False
+        self.stats.count("map_output_published" if ok else "map_output_failed")
 
     def _outgoing(self, box: Outbox) -> list[Outgoing]:
         """Publish what the bridge produced (corrections were already applied to the robot)."""
@@ -169,6 +203,7 @@ class RobotBridgeNode(ServiceNode):
     def counters(self) -> dict[str, int]:
         out = self.stats.snapshot_counters()
         out.update({f"bridge.{k}": int(v) for k, v in self.bridge.counters.items()})
+        out.update({f"map_output.{k}": int(v) for k, v in self.map_output.counters.items()})
         if self.adapter is not None:
             out.update({f"adapter.{k}": int(v) for k, v in dict(self.adapter.counters).items()})
         return out

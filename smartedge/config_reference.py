@@ -65,6 +65,7 @@ def sections() -> list[Section]:
     from protocol.site import ClockPolicy, Thresholds
     from robot_bridge.adapters.ros2 import RosConfig
     from robot_bridge.bridge import BridgeConfig
+    from robot_bridge.map_output import MapOutputConfig
     from robot_bridge.policy import TrustConfig
     from robot_bridge.pose_output import PoseOutputConfig
 
@@ -111,6 +112,11 @@ def sections() -> list[Section]:
                 ((PoseOutputConfig, None),),
                 "Published through the robot adapter (docs/robot_bridge.md, with a "
                 "robot_localization configuration)."),
+        Section("map_output", "robot_bridge (the semantic map as PointCloud2 + OccupancyGrid)",
+                ((MapOutputConfig, None),),
+                "The mapper's voxels (`.../map/<map_id>/voxels`) on the ROS topics "
+                "`ros.map_cloud_topic` and `ros.obstacles_topic`, at most once a second, the "
+                "newest map only (docs/robot_bridge.md, \"The semantic map in ROS\")."),
         Section("ros", "robot_bridge (ROS adapters: ros2, ros1, rmw_zenoh)",
                 ((RosConfig, None),),
                 "`smartedge robot-bridge --robot-profile/--ros-namespace/--correction-topic/"

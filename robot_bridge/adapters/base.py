@@ -14,7 +14,7 @@ import abc
 import dataclasses
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -92,6 +92,17 @@ class MapToOdom:
     child_frame: str = "odom"
 
 
+class MapMessages(Protocol):
+    """The semantic map as ROS messages (:class:`robot_bridge.map_output.MapSnapshot`): the
+    ``sensor_msgs/PointCloud2`` and ``nav_msgs/OccupancyGrid`` wire bytes, CDR or ROS 1
+    (``ros1``); ``None`` for an output that is off. They raise ``ValueError`` (a
+    ``RosConversionError``) when the map cannot be encoded."""
+
+    def cloud_payload(self, *, ros1: bool = False, seq: int = 0) -> bytes | None: ...
+
+    def grid_payload(self, *, ros1: bool = False, seq: int = 0) -> bytes | None: ...
+
+
 #: the pose-output streams: the fused estimate and the camera-only one
 POSE_STREAMS: tuple[str, ...] = ("fused", "cameras")
 
@@ -132,6 +143,12 @@ class RobotAdapter(abc.ABC):
 
     def publish_transform(self, transform: MapToOdom) -> bool:
         """Publish the map -> odom transform (``/tf``); ``False`` when the adapter cannot."""
+        return False
+
+    def publish_map(self, messages: MapMessages) -> bool:
+        """Publish the semantic map as ROS messages (cloud and obstacle grid); ``True`` when
+        what is on went out. The default (an adapter without ROS topics) says ``False`` and the
+        bridge counts ``map_output_failed``."""
         return False
 
     def close(self) -> None:  # noqa: B027 (optional hook, default does nothing)

@@ -59,7 +59,9 @@ from robot_bridge.adapters.rmw_zenoh_wire import (
 )
 from robot_bridge.adapters.ros2 import (
     LOCALIZATION_TYPES,
+    OCCUPANCY_GRID_TYPE,
     ODOMETRY_TYPE,
+    POINT_CLOUD2_TYPE,
     POSE_WITH_COVARIANCE_STAMPED_TYPE,
     TF_MESSAGE_TYPE,
     RosAdapterBase,
@@ -88,6 +90,10 @@ CORRECTION_QOS: Final = QosProfile(history=History.KEEP_ALL, depth=DEFAULT_DEPTH
 POSE_OUTPUT_QOS: Final = QosProfile(depth=10)
 #: /tf as tf2_ros's TransformBroadcaster publishes it (DynamicBroadcasterQoS: QoS(100))
 TF_QOS: Final = QosProfile(depth=100)
+#: the semantic map and its obstacle grid: reliable, volatile, keep last 1 (a new map replaces
+#: an old one; RViz's default subscription and Nav2's static layer with
+#: ``map_subscribe_transient_local: false`` match it)
+MAP_QOS: Final = QosProfile(depth=1)
 
 
 def resolve_domain_id(value: int | None = None,
@@ -154,7 +160,8 @@ class RmwZenohAdapter(RosAdapterBase):
     attachment, and :attr:`counters` says what was wrong (``missing_attachment``,
     ``invalid_attachment``, ``messages_lost`` from sequence gaps, ``invalid_odometry``,
     ``invalid_localization``) besides what went through (``odometry``, ``localization``,
-    ``corrections_published``, ``pose_fused_published``, ``tf_published``...).
+    ``corrections_published``, ``pose_fused_published``, ``tf_published``,
+    ``map_cloud_published``, ``map_grid_published``...).
     """
 
     name = "rmw_zenoh"
@@ -203,6 +210,8 @@ class RmwZenohAdapter(RosAdapterBase):
             stream: self._resolve(self.topics.pose_output_topic(stream))
             for stream in POSE_STREAMS}
         self._tf_topic = self._resolve(self.topics.tf_topic)
+        self._map_cloud_topic = self._resolve(self.topics.map_cloud_topic)
+        self._obstacles_topic = self._resolve(self.topics.obstacles_topic)
         node_token = self._token_key(NODE, self.node_id)
         try:
             self._tokens.append((node_token, session.liveliness().declare_token(node_token)))
@@ -312,6 +321,10 @@ class RmwZenohAdapter(RosAdapterBase):
             publisher = self._correction_pub
         elif target == "tf":
             publisher = self._output(self._tf_topic, TF_MESSAGE_TYPE, TF_QOS)
+        elif target == "map_cloud":
+            publisher = self._output(self._map_cloud_topic, POINT_CLOUD2_TYPE, MAP_QOS)
+        elif target == "map_grid":
+            publisher = self._output(self._obstacles_topic, OCCUPANCY_GRID_TYPE, MAP_QOS)
         else:
             publisher = self._output(self._output_topics[target.removeprefix("pose_")],
                                      POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_OUTPUT_QOS)

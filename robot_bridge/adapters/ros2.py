@@ -35,6 +35,7 @@ from protocol.messages import PoseCorrection, PoseEstimate
 from robot_bridge.adapters.base import (
     POSE_STREAMS,
     LocalizationPose,
+    MapMessages,
     MapToOdom,
     OdometrySample,
     RobotAdapter,
@@ -47,6 +48,8 @@ POSE_WITH_COVARIANCE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseWithCovariance
 POSE_STAMPED_TYPE: Final = "geometry_msgs/msg/PoseStamped"
 LOCALIZATION_TYPES: Final = (POSE_WITH_COVARIANCE_STAMPED_TYPE, POSE_STAMPED_TYPE)
 TF_MESSAGE_TYPE: Final = "tf2_msgs/msg/TFMessage"
+POINT_CLOUD2_TYPE: Final = "sensor_msgs/msg/PointCloud2"
+OCCUPANCY_GRID_TYPE: Final = "nav_msgs/msg/OccupancyGrid"
 #: variance written on the z, roll and pitch diagonal of the continuous pose output: the
 #: cameras do not measure them (robot_localization in 2D mode ignores them anyway)
 UNOBSERVED_VARIANCE: Final = 1.0e6
@@ -57,6 +60,9 @@ NAV2_INITIALPOSE_TOPIC: Final = "initialpose"
 POSE_OUTPUT_TOPIC: Final = "smartedge/pose"
 CAMERA_POSE_OUTPUT_TOPIC: Final = "smartedge/camera_pose"
 TF_TOPIC: Final = "tf"
+#: the semantic map (PointCloud2) and its obstacle grid (OccupancyGrid)
+MAP_CLOUD_TOPIC: Final = "smartedge/semantic_map"
+OBSTACLES_TOPIC: Final = "smartedge/obstacles"
 #: the robot topic sets :class:`RosConfig` knows
 ROBOT_PROFILES: Final = ("hsr", "nav2")
 
@@ -383,7 +389,9 @@ class RosTopics:
     site's ``world_frame``). ``pose_topic`` / ``camera_pose_topic``: the continuous pose
     output (fused / camera-only ``PoseWithCovarianceStamped``), ``tf_topic`` the map -> odom
     transform (``tf2_msgs/msg/TFMessage``); whether and how often they are published is the
-    bridge's ``pose_output`` section.
+    bridge's ``pose_output`` section. ``map_cloud_topic`` / ``obstacles_topic``: the semantic
+    map (``sensor_msgs/msg/PointCloud2``) and its obstacle grid (``nav_msgs/msg/OccupancyGrid``),
+    section ``map_output``.
     """
 
     odometry_topic: str = "odom"
@@ -396,6 +404,8 @@ class RosTopics:
     pose_topic: str = POSE_OUTPUT_TOPIC
     camera_pose_topic: str = CAMERA_POSE_OUTPUT_TOPIC
     tf_topic: str = TF_TOPIC
+    map_cloud_topic: str = MAP_CLOUD_TOPIC
+    obstacles_topic: str = OBSTACLES_TOPIC
 
     @classmethod
     def hsr(cls, *, ros1: bool = False, namespace: str = "") -> RosTopics:
@@ -461,7 +471,9 @@ class RosConfig:
     ``namespace``: zenoh-bridge-ros2dds's (or zenoh-plugin-ros1's) ``namespace``, or the
     rmw_zenoh node namespace. ``domain_id``: the ROS domain (rmw_zenoh keys start with it).
     ``pose_topic``, ``camera_pose_topic``, ``tf_topic``: where the continuous pose output
-    (section ``pose_output``) goes. Frames: corrections and pose outputs carry the site's
+    (section ``pose_output``) goes; ``map_cloud_topic``, ``obstacles_topic``: where the
+    semantic map's ``PointCloud2`` and obstacle ``OccupancyGrid`` go (section ``map_output``).
+    Frames: corrections and pose outputs carry the site's
     ``world_frame``.
     """
 
@@ -474,6 +486,8 @@ class RosConfig:
     pose_topic: str = POSE_OUTPUT_TOPIC
     camera_pose_topic: str = CAMERA_POSE_OUTPUT_TOPIC
     tf_topic: str = TF_TOPIC
+    map_cloud_topic: str = MAP_CLOUD_TOPIC
+    obstacles_topic: str = OBSTACLES_TOPIC
 
     def __post_init__(self) -> None:
         if self.profile not in ROBOT_PROFILES:
@@ -481,7 +495,7 @@ class RosConfig:
         if not 0 <= self.domain_id <= 232:
             raise ValueError(f"domain_id {self.domain_id}: ROS domains are 0..232")
         for name in ("odometry_topic", "correction_topic", "pose_topic",
-                     "camera_pose_topic", "tf_topic"):
+                     "camera_pose_topic", "tf_topic", "map_cloud_topic", "obstacles_topic"):
             value = getattr(self, name)
             if value:
                 _clean_topic(value)  # ValueError naming the bad topic
@@ -502,6 +516,8 @@ class RosConfig:
         changes: dict[str, Any] = {
             "map_frame": map_frame, "pose_topic": self.pose_topic,
             "camera_pose_topic": self.camera_pose_topic, "tf_topic": self.tf_topic,
+            "map_cloud_topic": self.map_cloud_topic or MAP_CLOUD_TOPIC,
+            "obstacles_topic": self.obstacles_topic or OBSTACLES_TOPIC,
         }
         if self.odometry_topic:
             changes["odometry_topic"] = self.odometry_topic
@@ -529,6 +545,8 @@ class RosAdapterBase(RobotAdapter):
     _loc_sub: Any
     _closed: bool
     _latest_localization: LocalizationPose | None
+    #: sequence number of the last map published (ROS 1 headers carry it)
+    _map_seq: int = -1
 
     def _drain(self, subscriber: Any) -> list[bytes]:
         """The payloads received on ``subscriber`` since the last call."""
@@ -567,7 +585,7 @@ class RosAdapterBase(RobotAdapter):
 
     def _send(self, target: str, payload: bytes) -> None:
         """Put ``payload`` on the publisher of ``target``: ``correction``, ``pose_fused``,
-        ``pose_cameras`` or ``tf``. Raises when the transport fails."""
+        ``pose_cameras``, ``tf``, ``map_cloud`` or ``map_grid``. Raises when the transport fails."""
         raise NotImplementedError
 
     def _write(self, target: str, encode: Callable[[], bytes], published: str) -> bool:
@@ -603,6 +621,26 @@ class RosAdapterBase(RobotAdapter):
     def publish_transform(self, transform: MapToOdom) -> bool:
         return self._write("tf", lambda: serialize_map_to_odom(transform, ros1=self.topics.ros1),
                            "tf_published")
+
+    def publish_map(self, messages: MapMessages) -> bool:
+        """The semantic map's cloud (target ``map_cloud``) and obstacle grid (``map_grid``),
+        each when on; ``False`` when one that is on could not be encoded or sent."""
+        if self._closed:
+            return False
+        self._map_seq += 1
+        ok = True
+        for target, encode in (("map_cloud", messages.cloud_payload),
+                               ("map_grid", messages.grid_payload)):
+            try:
+                payload = encode(ros1=self.topics.ros1, seq=self._map_seq)
+            except ValueError as exc:  # RosConversionError, a map that cannot be encoded
+                self._count(f"{target}_invalid")
+                log.warning("%s not sent: %s", target, exc)
+                ok = False
+                continue
+            if payload is not None:  # None: that output is off
+                ok = self._write(target, lambda p=payload: p, f"{target}_published") and ok
+        return ok
 
 
 class RosZenohAdapter(RosAdapterBase):
@@ -666,6 +704,10 @@ class RosZenohAdapter(RosAdapterBase):
             self._publisher.put(payload)
         elif target == "tf":
             self._output_publisher(self.topics.tf_topic, TF_MESSAGE_TYPE).put(payload)
+        elif target == "map_cloud":
+            self._output_publisher(self.topics.map_cloud_topic, POINT_CLOUD2_TYPE).put(payload)
+        elif target == "map_grid":
+            self._output_publisher(self.topics.obstacles_topic, OCCUPANCY_GRID_TYPE).put(payload)
         else:
             topic = self.topics.pose_output_topic(target.removeprefix("pose_"))
             self._output_publisher(topic, POSE_WITH_COVARIANCE_STAMPED_TYPE).put(payload)
