@@ -139,6 +139,13 @@ class ViewerNode(ServiceNode):
             self.view.odometry_pose(robot_id, stamp_ns, float(truth[0]), float(truth[1]),
                                     float(truth[2]), kind="ground_truth")
 
+    def counters(self) -> dict[str, int]:
+        """The node's counters and the view's (previews drawn, ``image_errors``: previews
+        that did not decode, ``image_unknown_camera``)."""
+        out = dict(super().counters())
+        out.update(getattr(self.view, "counters", None) or {})
+        return out
+
     def state(self) -> tuple[str, str]:
         return "ok", f"drawing {len(self._odometry)} robot(s)"
 

@@ -179,9 +179,9 @@ def test_semantic_map_is_drawn_by_class_with_the_legend_and_throttled(
     view.semantic_map(SemanticCloud("main", t0 + 1_000_000_000, 1, "map", msg.points_xyz,
                                     msg.class_ids, msg.confidences))
     view.close()
-    drawn = [obj for entity, obj in logged if entity == "world/map/voxels"]
-    assert len(drawn) == 1
+    drawn = [obj for entity, obj in logged if entity.startswith("world/map/voxels/")]
+    assert len(drawn) == 1  # all points in one 1 m tile, drawn once
     assert drawn[0].class_ids.as_arrow_array().to_pylist() == [2] * n
     stats = _rerun_stats(path)
-    assert "/world/map/voxels:" in stats and "/world/map:" in stats  # points and legend
+    assert "/world/map/voxels/x0_y0:" in stats and "/world/map:" in stats  # points and legend
     assert view._failed == set(), view._failed
