@@ -342,6 +342,14 @@ def deserialize_odometry(payload: Any, *, ros1: bool = False) -> OdometrySample:
     return odometry_from_ros(_deserialize(payload, ODOMETRY_TYPE, ros1))
 
 
+def deserialize_tf_message(payload: Any, *, ros1: bool = False) -> Any:
+    """``/tf`` or ``/tf_static`` wire bytes (CDR, or ROS 1 when ``ros1``) → the decoded
+    ``tf2_msgs/msg/TFMessage`` (rosbags object), for
+    :meth:`robot_bridge.tf_buffer.TfBuffer.add_tf_message`; :class:`RosConversionError` on
+    anything else."""
+    return _deserialize(payload, TF_MESSAGE_TYPE, ros1)
+
+
 def localization_from_ros(msg: Any, ros_type: str) -> LocalizationPose:
     """``PoseWithCovarianceStamped`` (AMCL ``amcl_pose``) or ``PoseStamped`` (HSR
     ``global_pose``) → :class:`LocalizationPose` in the message's frame."""
