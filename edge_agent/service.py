@@ -11,6 +11,9 @@ Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the regist
   detector + keypoint models of the site's robot model (default: the shipped ones in
   ``edge_agent/models/``; ``--model`` overrides). A camera that fails to open or stops
   delivering is reported in the status and retried with back-off.
+- ``ros`` (:mod:`edge_agent.ros_source`): ``sensor_msgs/Image`` or ``CompressedImage`` from a
+  ROS 2 topic on the bus (rmw_zenoh or zenoh-bridge-ros2dds), the header stamp as capture time,
+  the topic's ``CameraInfo`` checked against the site's calibration.
 - ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.sim.plugins`): the simulated
   site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.
@@ -32,6 +35,7 @@ import sys
 from collections.abc import Iterable, Sequence
 from typing import Any, Final
 
+import edge_agent.ros_source  # noqa: F401 (registers --source ros)
 from edge_agent.semantic_cloud import SemanticCloudMaker
 from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
@@ -126,6 +130,13 @@ class EdgeAgentNode(ServiceNode):
         if health is not None:
             return health()  # type: ignore[no-any-return]
         return "ok", f"source={self.source.label}"
+
+    def attach(self, session: Any) -> None:
+        """A source that reads the bus itself (``--source ros``) subscribes on the service's
+        session."""
+        attach = getattr(self.source, "attach", None)
+        if attach is not None:
+            attach(session)
 
     def close(self) -> None:
         closer = getattr(self.source, "close", None)

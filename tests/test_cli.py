@@ -68,7 +68,7 @@ def test_simulation_plugin_registers_twice_harmlessly() -> None:
     sources.register_source("sim", plugins.SIM_SOURCE)  # the same plug-in again: a no-op
     registry.register_adapter("sim", plugins.SIM_ADAPTER)
     registry.register_adapter("ros2", registry.ROS_ADAPTERS)
-    assert sources.source_names() == ("camera", "sim")
+    assert sources.source_names() == ("camera", "ros", "sim")
     assert registry.adapter_names() == ("rmw_zenoh", "ros1", "ros2", "sim")
     # another plug-in under a taken name is a mistake, said so
     with pytest.raises(ValueError, match="already registered"):
@@ -101,7 +101,7 @@ def test_services_alone_offer_no_simulation() -> None:
         "from robot_bridge.service import build_parser as bridge\n"
         "from edge_agent.sources import source_names\n"
         "from robot_bridge.adapters.registry import adapter_names\n"
-        "assert source_names() == ('camera',), source_names()\n"
+        "assert source_names() == ('camera', 'ros'), source_names()\n"
         "assert adapter_names() == ('rmw_zenoh', 'ros1', 'ros2'), adapter_names()\n"
         "assert not [m for m in sys.modules if m.split('.')[0] in ('simulation', 'smartedge')]\n"
         "edge().parse_args(['--camera', 'c', '--source', 'sim'])\n"
