@@ -179,9 +179,16 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
             0.2,
         )
         assert killed_ns < restarted_ns
-        # the odometry of the outage went to the restarted backend again, none lost
+        # the odometry of the outage went to the restarted backend again, none lost. The
+        # replay is sent (and counted) on the bridge's next tick after the heartbeat, so a
+        # status published between the two says "ok" before it counts the replay: wait for it.
+        def replayed() -> bool:
+            monitor.drain()
+            counters = monitor.seen.status["robot-bridge/hsr"].counters
+            return counters.get("bridge.odometry_replayed", 0) > 0
+
+        assert wait_until(replayed, 10, 0.2), monitor.seen.status["robot-bridge/hsr"].counters
         bridge_counters = monitor.seen.status["robot-bridge/hsr"].counters
-        assert bridge_counters.get("bridge.odometry_replayed", 0) > 0, bridge_counters
         assert bridge_counters.get("bridge.odometry_lost", 0) == 0, bridge_counters
     finally:
         for p in procs.values():
