@@ -345,7 +345,7 @@ def deserialize_odometry(payload: Any, *, ros1: bool = False) -> OdometrySample:
 def deserialize_tf_message(payload: Any, *, ros1: bool = False) -> Any:
     """``/tf`` or ``/tf_static`` wire bytes (CDR, or ROS 1 when ``ros1``) → the decoded
     ``tf2_msgs/msg/TFMessage`` (rosbags object), for
-    :meth:`robot_bridge.tf_buffer.TfBuffer.add_tf_message`; :class:`RosConversionError` on
+    :meth:`protocol.tf_buffer.TfBuffer.add_tf_message`; :class:`RosConversionError` on
     anything else."""
     return _deserialize(payload, TF_MESSAGE_TYPE, ros1)
 

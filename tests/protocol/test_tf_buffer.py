@@ -18,8 +18,7 @@ from protocol.geometry import (
     rotation_z,
     rotvec_from_rotation,
 )
-from robot_bridge.adapters import ros2
-from robot_bridge.tf_buffer import (
+from protocol.tf_buffer import (
     TfBuffer,
     TfBufferConfig,
     TfError,
@@ -28,6 +27,7 @@ from robot_bridge.tf_buffer import (
     TfStaleError,
     interpolate_rigid,
 )
+from robot_bridge.adapters import ros2
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S
@@ -142,7 +142,7 @@ def test_interpolation_of_the_moving_head_chain():
 
 
 def test_slerp_takes_the_shorter_arc():
-    from robot_bridge.tf_buffer import Rigid
+    from protocol.tf_buffer import Rigid
 
     qa = np.array(rotation_to_quaternion(rotation_z(math.radians(170))))
     qb = np.array(rotation_to_quaternion(rotation_z(math.radians(-170))))
