@@ -9,6 +9,7 @@
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
                                  [--breakdown]
+    smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
     smartedge evaluate calibration --out DIR [--quick] [--runs N] [--drive-s S] [--no-table]
 
@@ -299,12 +300,54 @@ def build_parser() -> argparse.ArgumentParser:
     p_cal.add_argument("--no-table", action="store_true", help="skip Table I")
     p_cal.add_argument("--jobs", type=int, default=None,
                        help="Table I: worker processes (default: one per core)")
+    p_kc = sub.add_parser("keypoint-choice", help="which keypoints on the robot's rigid base "
+                          "make its heading observable (Cramer-Rao, leave one out, candidates "
+                          "added greedily)")
+    p_kc.add_argument("--scenario", default=None, help="scenario file (default: the paper's lab; "
+                      "its stop poses at 8 headings each, its site's cameras)")
+    p_kc.add_argument("--sigma-px", type=float, default=0.5,
+                      help="pixel noise per keypoint (default 0.5, the shipped network's "
+                      "held-out median error)")
+    p_kc.add_argument("--add", type=int, default=4, help="candidates to add (default 4)")
     p_cmp = sub.add_parser("compare", help="side-by-side headline figures of finished "
                            "`evaluate paper` runs (Markdown)")
     p_cmp.add_argument("runs", nargs="+", metavar="NAME=DIR",
                        help="a column: its name and an `evaluate paper --out` folder")
     p_cmp.add_argument("--no-paper", action="store_true", help="omit the paper's column")
     return parser
+
+
+def _keypoint_choice(args: argparse.Namespace) -> int:
+    from backend_service.pipeline import PipelineConfig
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+    from smartedge.evaluation.keypoint_choice import (
+        format_budget,
+        format_choice,
+        heading_budget,
+        keypoint_choice,
+        stop_poses,
+    )
+
+    if not args.sigma_px > 0 or args.add < 0:
+        print("smartedge evaluate keypoint-choice: --sigma-px must be > 0 and --add >= 0",
+              file=sys.stderr)
+        return 2
+    try:
+        scenario = load_scenario(args.scenario or PAPER_SCENARIO)
+        site = scenario.site
+        cameras = [site.camera(c) for c in sorted(site.cameras)]
+        poses = stop_poses([(w.x, w.y, w.theta) for w in scenario.waypoints.values()])
+        choice = keypoint_choice(cameras, site.robot_model(scenario.robot_id), poses,
+                                 sigma_px=args.sigma_px, add=args.add)
+    except (SmartedgeError, ValueError) as exc:
+        print(f"smartedge evaluate keypoint-choice: {exc}", file=sys.stderr)
+        return 1
+    errors = PipelineConfig.from_site(site).solver.error_model  # the site's pose: section
+    budget = heading_budget(cameras, site.robot_model(scenario.robot_id), poses,
+                            sigma_px=args.sigma_px, errors=errors)
+    print(format_choice(choice))
+    print(format_budget(budget, errors, args.sigma_px))
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -315,6 +358,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _keypoints(args)
     if args.what == "compare":
         return _compare(args)
+    if args.what == "keypoint-choice":
+        return _keypoint_choice(args)
     if args.what == "calibration":
         from smartedge.experiments.calibration import main as calibration_main
 
