@@ -163,6 +163,34 @@ class RosKeys:
         )
 
 
+def site_ros_keys(site: Site, *, ros1: bool = False) -> dict[str, RosKeys]:
+    """Every robot's :class:`RosKeys` from the site file: the ``ros`` section with the robot
+    entry's own ``ros:`` keys on top (:meth:`protocol.site.Site.ros_section`)."""
+    return {rid: RosKeys.from_section(site.ros_section(rid), ros1=ros1) for rid in site.robots}
+
+
+def ros_conflicts(ros_keys: Mapping[str, RosKeys]) -> list[str]:
+    """Pairs of robots whose ROS sides share a topic key (two bridges would correct each
+    other's robot, and one ACL right would cover both): one line per pair, naming both robots
+    and the first shared key, empty when every robot has its own topics."""
+    out = []
+    robots = sorted(ros_keys)
+    for i, a in enumerate(robots):
+        keys_a = (*ros_keys[a].bridge, *ros_keys[a].robot)
+        for b in robots[i + 1:]:
+            keys_b = (*ros_keys[b].bridge, *ros_keys[b].robot)
+            shared = next(((ka, kb) for ka in keys_a for kb in keys_b
+                           if key_exprs_intersect(ka, kb)), None)
+            if shared is not None:
+                what = repr(shared[0]) if shared[0] == shared[1] else \
+                    f"{shared[0]!r} and {shared[1]!r}"
+                out.append(
+                    f"robots {a!r} and {b!r} share ROS topics ({what}): give each robot its "
+                    f"own ROS namespace or domain_id in its entry, e.g. "
+                    f"`- {{id: {b}, model: ..., ros: {{namespace: /{b}}}}}`")
+    return out
+
+
 def _verbatim(chunk: str) -> bool:
     return chunk.startswith("@")
 
@@ -273,6 +301,10 @@ def grants(
         tokens=tuple(keys.alive_key(s, svc, "*") for svc in BACKEND_SERVICES),
         read=(prefix,),
     ))  # fmt: skip
+    if isinstance(ros_keys, Mapping) and len(site.robots) > 1:
+        conflicts = ros_conflicts({r: _ros_keys_for(r, ros_keys) for r in site.robots})
+        if conflicts:
+            raise ValidationError("ros_keys", "; ".join(conflicts))
     for robot in sorted(site.robots):
         ros = _ros_keys_for(robot, ros_keys)
         for key in (*ros.bridge, *ros.robot):

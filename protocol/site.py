@@ -178,7 +178,8 @@ class ClockPolicy:
 @dataclasses.dataclass(frozen=True)
 class Site:
     """A loaded, validated site: ``cameras`` by id, ``robot_models`` by name, ``robots`` maps a
-    robot id to its model name."""
+    robot id to its model name; ``robot_ros`` the raw per-robot overrides of the ``ros`` section
+    (a robot entry's ``ros:`` mapping; :meth:`ros_section` merges them)."""
 
     name: str
     world_frame: str
@@ -191,6 +192,21 @@ class Site:
     sections: Mapping[str, Mapping[str, Any]] = dataclasses.field(
         default_factory=lambda: MappingProxyType({}))
     clock: ClockPolicy = dataclasses.field(default_factory=ClockPolicy)
+    robot_ros: Mapping[str, Mapping[str, Any]] = dataclasses.field(
+        default_factory=lambda: MappingProxyType({}))
+
+    def ros_section(self, robot_id: str | None = None) -> Mapping[str, Any]:
+        """The ``ros`` section as it applies to ``robot_id``: the site-wide keys with the robot
+        entry's own ``ros:`` keys on top (a fleet gives each robot its namespace there);
+        ``None``: the site-wide section."""
+        base = dict(self.section("ros"))
+        if robot_id:
+            if robot_id not in self.robots:
+                raise UnknownIdError(
+                    f"robot {robot_id!r} is not in site {self.name!r}; known: "
+                    f"{sorted(self.robots)}")
+            base.update(self.robot_ros.get(robot_id, {}))
+        return MappingProxyType(base)
 
     def section_reader(self) -> ConfigReader:
         """A reader whose errors name this site file (for a package parsing its section)."""
@@ -624,10 +640,11 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
     if not isinstance(robots_node, list) or not robots_node:
         raise ctx.fail("robots", "expected a non-empty list of {id, model}")
     robots: dict[str, str] = {}
+    robot_ros: dict[str, Mapping[str, Any]] = {}
     for i, r in enumerate(robots_node):
         rk = f"robots[{i}]"
         r = ctx.mapping(rk, r)
-        ctx.no_unknown(rk, r, {"id", "model"})
+        ctx.no_unknown(rk, r, {"id", "model", "ros"})
         rid = ctx.ident(join_key(rk, "id"), ctx.require(rk, r, "id"))
         model_name = ctx.require(rk, r, "model")
         if model_name not in robot_models:
@@ -638,6 +655,8 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
         if rid in robots:
             raise ctx.fail(join_key(rk, "id"), f"duplicate robot id {rid!r}")
         robots[rid] = model_name
+        if r.get("ros") is not None:  # robot_bridge's RosConfig parses the keys
+            robot_ros[rid] = MappingProxyType(dict(ctx.mapping(join_key(rk, "ros"), r["ros"])))
     thresholds = _parse_thresholds(ctx, top.get("thresholds", {}) or {})
     clock = _parse_clock(ctx, top)
     sections = {
@@ -645,7 +664,7 @@ def parse_site(doc: Any, path: str = "<memory>", base_dir: Path | None = None) -
         for name in PACKAGE_SECTIONS
     }
     return Site(name, world_frame, cameras, robot_models, robots, thresholds, path,
-                MappingProxyType(sections), clock)
+                MappingProxyType(sections), clock, MappingProxyType(robot_ros))
 
 
 def load_site(path: str | Path) -> Site:

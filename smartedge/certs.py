@@ -294,7 +294,7 @@ def make_certs(
     days: int = DEFAULT_DAYS,
     ca_days: int = DEFAULT_CA_DAYS,
     viewers: Sequence[str] = (),
-    ros_keys: acl.RosKeys | None = None,
+    ros_keys: acl.RosKeys | Mapping[str, acl.RosKeys] | None = None,
     tls_dir: str = DEFAULT_TLS_DIR,
     router_template: Path | None = None,
     client_template: Path | None = None,
@@ -308,7 +308,7 @@ def make_certs(
     if days < 1 or ca_days < 1:
         raise CertsError("--days and --ca-days must be >= 1")
     sans = san_entries(router_hosts)
-    ros_keys = ros_keys or acl.RosKeys.from_section(site.section("ros"))
+    ros_keys = ros_keys or acl.site_ros_keys(site)
     block = acl.access_control(site, ros_keys, viewers)
     names = [subject["id"] for subject in block["subjects"]]
     if router_template is None and (DEPLOY_ZENOH / "router-tls.json5").exists():
@@ -386,8 +386,9 @@ def main(argv: Sequence[str]) -> int:
         site = load_site(args.site)
         # the bridge's parser validates the ros section (errors name the file and key); the
         # ground floor's acl module then only reads the keys it names
-        RosConfig.from_site(site)
-        ros_keys = acl.RosKeys.from_section(site.section("ros"), ros1=args.ros1)
+        for robot_id in site.robots:
+            RosConfig.from_site(site, robot_id)
+        ros_keys = acl.site_ros_keys(site, ros1=args.ros1)
         names = make_certs(
             site, Path(args.out), router_hosts=args.router_host, days=args.days,
             ca_days=args.ca_days, viewers=args.viewer, ros_keys=ros_keys, tls_dir=args.tls_dir,

@@ -39,6 +39,22 @@ errors name the key (`robot_models.hsr.head_camera.T_base_cam`).
 | `T_base_cam` | optical frame (z forward, x right, y down) -> robot base frame: a 4x4 \
 matrix, `{translation_m, rpy_deg \\| quaternion_xyzw \\| matrix}` or `{position_m, look_at_m}` \
 in the base frame |
+
+## `robots[i].ros:` (robot_bridge; optional)
+
+A robot entry may carry its own `ros:` keys (any key of the `ros:` section below), which apply
+on top of the site-wide section for that robot's bridge, ACL and certificates. A fleet gives
+each robot its ROS namespace (or domain) here:
+
+```yaml
+robots:
+  - {id: hsr1, model: hsr, ros: {namespace: /hsr1}}
+  - {id: hsr2, model: hsr, ros: {namespace: /hsr2}}
+```
+
+Two robots whose ROS topics would be the same are refused by `smartedge site check`,
+`smartedge certs` and `smartedge robot-bridge` (each bridge would correct the other's robot, and
+one ACL right would cover both); errors name the entry (`robots[1].ros.namespace`).
 """
 
 

@@ -29,8 +29,17 @@ def check_sections(site: object) -> None:
         from robot_bridge.bridge import BridgeConfig
     except ImportError:
         return
+    from protocol import acl
+    from robot_bridge.adapters.ros2 import RosConfig
+
     for robot_id in site.robots:  # type: ignore[attr-defined]
         BridgeConfig.from_site(site, robot_id)  # type: ignore[arg-type]
+        RosConfig.from_site(site, robot_id)
+    # two robots on the same ROS topics: each bridge would correct the other's robot
+    conflicts = acl.ros_conflicts(acl.site_ros_keys(site))  # type: ignore[arg-type]
+    if conflicts:
+        raise SiteConfigError(site.source_path, "robots",  # type: ignore[attr-defined]
+                              "; ".join(conflicts))
 
 
 def main(argv: Sequence[str]) -> int:
@@ -72,9 +81,11 @@ def main(argv: Sequence[str]) -> int:
     for rid, model_name in site.robots.items():
         model = site.robot_models[model_name]
         span = np.ptp(model.keypoints_base_m, axis=0)
+        ros = site.ros_section(rid)
+        ns = f", ROS namespace {ros['namespace']!r}" if ros.get("namespace") else ""
         print(
             f"  robot {rid}: model {model_name}, {model.num_keypoints} keypoints spanning "
-            f"{span[0]:.2f} x {span[1]:.2f} x {span[2]:.2f} m"
+            f"{span[0]:.2f} x {span[1]:.2f} x {span[2]:.2f} m{ns}"
         )
     print("ok")
     return 0

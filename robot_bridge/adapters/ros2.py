@@ -511,9 +511,14 @@ class RosConfig:
             _clean_topic(self.localization_topic)
 
     @classmethod
-    def from_site(cls, site: Any) -> RosConfig:
-        """The ``ros`` section of a :class:`protocol.site.Site` (errors name file and key)."""
-        return site.section_reader().section("ros", site.section("ros"), cls)
+    def from_site(cls, site: Any, robot_id: str | None = None) -> RosConfig:
+        """The ``ros`` section of a :class:`protocol.site.Site` as it applies to ``robot_id``
+        (the robot entry's own ``ros:`` keys on top; errors name file and key)."""
+        reader = site.section_reader()
+        if robot_id and robot_id in site.robot_ros:
+            index = list(site.robots).index(robot_id)
+            reader.section(f"robots[{index}].ros", site.robot_ros[robot_id], cls)
+        return reader.section("ros", site.ros_section(robot_id or None), cls)
 
     def topics(self, *, ros1: bool = False, map_frame: str = "map") -> RosTopics:
         """The :class:`RosTopics` of this configuration."""

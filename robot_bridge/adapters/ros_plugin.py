@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import logging
 
+from protocol import acl
 from protocol.errors import UsageError
 from protocol.site import Site
 from robot_bridge.adapters.base import AdapterSetup
@@ -48,11 +49,16 @@ class RosAdapterPlugin:
 
 
 def ros_config(args: argparse.Namespace, site: Site | None) -> RosConfig:
-    """The site file's ``ros`` section with the command-line overrides applied;
-    ``UsageError`` without a site or for a bad override."""
+    """The site file's ``ros`` section for the bridge's robot (``--robot``: its entry's own
+    ``ros:`` keys on top) with the command-line overrides applied; ``UsageError`` without a
+    site or for a bad override."""
     if site is None:
         raise UsageError(f"--site is required with --adapter {args.adapter}")
-    config = RosConfig.from_site(site)
+    config = RosConfig.from_site(site, getattr(args, "robot", None))
+    if len(site.robots) > 1:  # two bridges on one robot's topics would correct each other's
+        conflicts = acl.ros_conflicts(acl.site_ros_keys(site, ros1=getattr(args, "adapter", "") == "ros1"))
+        if conflicts:
+            raise UsageError(f"{site.source_path}: " + "; ".join(conflicts))
     overrides = {
         "profile": getattr(args, "robot_profile", None),
         "namespace": getattr(args, "ros_namespace", None),
