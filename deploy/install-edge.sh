@@ -32,7 +32,15 @@ Options:
                          SMARTEDGE_EDGE_AGENT_ARGS=--device URI; repeatable; with one
                          CAMERA_ID, --device URI is enough. For a RealSense or an image folder,
                          edit that file (docs/deployment.md)
-  --jetson auto|yes|no   install the Jetson GPU drop-in (default auto: if /etc/nv_tegra_release)
+  --jetson auto|yes|no   a Jetson (default auto: if /etc/nv_tegra_release): the GPU drop-in,
+                         a venv that sees JetPack's system packages (--system-site-packages),
+                         and JetPack's OpenCV (with GStreamer: CSI cameras) in place of
+                         opencv-python-headless when the system python3 has it (numpy kept <2,
+                         which that OpenCV is built against)
+  --ort-wheel SPEC       replace the CPU-only onnxruntime with this GPU build (CUDA, TensorRT):
+                         a wheel file, URL or requirement, e.g. NVIDIA's onnxruntime-gpu for
+                         JetPack 6 (docs/deployment.md); give it again on every re-run
+  --ort-index URL        extra pip index to find --ort-wheel in
   --package SPEC         wheel file or source directory to pip install with [edge]
                          (default: the checkout this script is in)
   --python PY            interpreter that creates the venv (default: python3)
@@ -50,11 +58,84 @@ Example:
 USAGE
 }
 
+# jetson_venv: /opt/smartedge sees JetPack's system site-packages (OpenCV with GStreamer,
+# TensorRT's python): a new venv is made with --system-site-packages, an existing one switched.
+jetson_venv() {
+  local venv cfg
+  venv="$(staged "$PREFIX")"
+  if [ "$SKIP_PIP" = 1 ]; then log "skip (--skip-pip): venv $venv --system-site-packages"; return 0; fi
+  if [ ! -x "$venv/bin/python" ]; then
+    run "$PYTHON_BIN" -m venv "$venv" --system-site-packages
+    return 0
+  fi
+  cfg="$venv/pyvenv.cfg"
+  if [ -f "$cfg" ] && grep -q '^include-system-site-packages = false' "$cfg"; then
+    run sed -i 's/^include-system-site-packages = false/include-system-site-packages = true/' "$cfg"
+  fi
+}
+
+# jetson_opencv: when the system python3's OpenCV has GStreamer (JetPack's does), the venv uses
+# it: opencv-python-headless (no GStreamer) goes, numpy stays 1.x (that OpenCV is built
+# against numpy 1.x and cannot load under numpy 2).
+jetson_opencv() {
+  local venv
+  venv="$(staged "$PREFIX")"
+  if [ "$SKIP_PIP" = 1 ]; then log "skip (--skip-pip): JetPack OpenCV in place of opencv-python-headless"; return 0; fi
+  if [ "$DRY_RUN" = 1 ]; then
+    log "would: if the system OpenCV has GStreamer: $venv/bin/python -m pip uninstall -y opencv-python-headless; pip install 'numpy>=1.24,<2'"
+    return 0
+  fi
+  if "$PYTHON_BIN" -c 'import re, sys, cv2; sys.exit(0 if re.search(r"GStreamer:\s*YES", cv2.getBuildInformation()) else 1)' 2>/dev/null; then
+    run "$venv/bin/python" -m pip install --quiet "numpy>=1.24,<2"
+    run "$venv/bin/python" -m pip uninstall --quiet -y opencv-python-headless
+  else
+    log "WARNING: $PYTHON_BIN has no OpenCV with GStreamer (JetPack: apt install nvidia-opencv);"
+    log "  the venv keeps opencv-python-headless: no CSI cameras (--device csi://N) on this board"
+  fi
+}
+
+# gpu_onnxruntime: the GPU build of onnxruntime (--ort-wheel) replaces the CPU-only one; both
+# install the same 'onnxruntime' package, so both distributions go first.
+gpu_onnxruntime() {
+  local venv
+  venv="$(staged "$PREFIX")"
+  if [ "$SKIP_PIP" = 1 ]; then log "skip (--skip-pip): pip install $ORT_WHEEL"; return 0; fi
+  run "$venv/bin/python" -m pip uninstall --quiet -y onnxruntime onnxruntime-gpu
+  if [ -n "$ORT_INDEX" ]; then
+    run "$venv/bin/python" -m pip install --quiet --extra-index-url "$ORT_INDEX" "$ORT_WHEEL"
+  else
+    run "$venv/bin/python" -m pip install --quiet "$ORT_WHEEL"
+  fi
+}
+
+# report_runtime: what the installed venv offers the edge agent (execution providers,
+# GStreamer), so a board that would run on the CPU says so now.
+report_runtime() {
+  local py
+  py="$(staged "$PREFIX")/bin/python"
+  if [ "$DRY_RUN" = 1 ] || [ "$SKIP_PIP" = 1 ] || [ ! -x "$py" ]; then return 0; fi
+  "$py" - <<'PY' || log "WARNING: onnxruntime or OpenCV does not import in $PREFIX"
+import re
+import cv2
+import onnxruntime as ort
+have = ort.get_available_providers()
+gst = re.search(r"GStreamer:\s*(\S+)", cv2.getBuildInformation())
+print(f"install-edge.sh: onnxruntime {ort.__version__} providers {', '.join(have)}; "
+      f"OpenCV {cv2.__version__} GStreamer {gst.group(1) if gst else '?'}")
+if "TensorrtExecutionProvider" not in have:
+    print("install-edge.sh: no TensorRT provider: the networks run on "
+          + ("CUDA" if "CUDAExecutionProvider" in have else "the CPU")
+          + " (GPU: --ort-wheel, docs/deployment.md)")
+PY
+}
+
 SITE=""
 BACKEND_HOST=""
 TLS_DIR=""
 SOURCE=camera
 JETSON=auto
+ORT_WHEEL=""
+ORT_INDEX=""
 EXTRA_FILES=()
 DEVICES=()
 CAMERAS=()
@@ -69,6 +150,8 @@ while [ $# -gt 0 ]; do
     --source) SOURCE="${2:?--source needs camera or sim}"; shift 2 ;;
     --device) DEVICES+=("${2:?--device needs CAMERA=URI}"); shift 2 ;;
     --jetson) JETSON="${2:?--jetson needs auto, yes or no}"; shift 2 ;;
+    --ort-wheel) ORT_WHEEL="${2:?--ort-wheel needs a wheel file, URL or requirement}"; shift 2 ;;
+    --ort-index) ORT_INDEX="${2:?--ort-index needs a URL}"; shift 2 ;;
     -*) usage >&2; die "unknown option $1" ;;
     *) CAMERAS+=("$1"); shift ;;
   esac
@@ -125,14 +208,27 @@ default_package
 normalize_root
 ensure_root_privileges
 [ "$DRY_RUN" = 1 ] && log "dry run: nothing is changed"
-log "edge board: cameras ${CAMERAS[*]}, router tcp/tls on $BACKEND_HOST:7447, package $PACKAGE[edge]"
+log "edge board: cameras ${CAMERAS[*]}, router tcp/tls on $BACKEND_HOST:7447, package ${PACKAGE}[edge]"
 
 # 1. system packages and user
 ensure_apt python3-venv
 ensure_user
 
 # 2. python environment: only the edge extra (no casadi, gtsam, open3d, rerun on a board)
+if [ "$JETSON" = yes ]; then jetson_venv; fi
+had_gpu_ort=0
+if [ -z "$ORT_WHEEL" ] && [ -x "$(staged "$PREFIX")/bin/python" ] && \
+   "$(staged "$PREFIX")/bin/python" -m pip show onnxruntime-gpu >/dev/null 2>&1; then
+  had_gpu_ort=1
+fi
 ensure_venv edge
+if [ "$JETSON" = yes ]; then jetson_opencv; fi
+if [ -n "$ORT_WHEEL" ]; then
+  gpu_onnxruntime
+elif [ "$had_gpu_ort" = 1 ]; then
+  log "WARNING: onnxruntime-gpu was installed; pip just put the CPU-only onnxruntime over it."
+  log "  Re-run with --ort-wheel SPEC (the same GPU wheel) to get CUDA/TensorRT back."
+fi
 
 check_site "$SITE" cameras "${CAMERAS[@]}"
 
@@ -195,6 +291,7 @@ for cam in "${CAMERAS[@]}"; do
   units+=("smartedge-edge-agent@$cam.service")
 done
 units_start "${units[@]}"
+report_runtime
 
 log "done. Check with:"
 log "  systemctl status 'smartedge-edge-agent@*'    journalctl -u 'smartedge-edge-agent@*' -f"

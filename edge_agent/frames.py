@@ -9,11 +9,21 @@ counts the ones the worker never took; a grabber that fails to open or stops del
 reported in :meth:`LatestFrameReader.status` and retried with exponential back-off, and never
 stops the service.
 
-Grabbers: :class:`OpenCVGrabber` (V4L2 device index or path, RTSP/HTTP URL, video file),
-:class:`ImageFolderGrabber` (a folder of images, paced at a rate), :class:`RealSenseGrabber`
-(Intel RealSense colour stream, with depth aligned to it on request, through ``pyrealsense2``,
-optional). The simulation's renderer
-is registered as a source from the top floor.
+Grabbers: :class:`OpenCVGrabber` (V4L2 device index or path, RTSP/HTTP URL, video file,
+GStreamer pipeline or ``csi://N`` for a Jetson's CSI camera), :class:`ImageFolderGrabber` (a
+folder of images, paced at a rate), :class:`RealSenseGrabber` (Intel RealSense colour stream,
+with depth aligned to it on request, through ``pyrealsense2``, optional). The simulation's
+renderer is registered as a source from the top floor.
+
+Capture stamps (the sensor clock is the host's ``CLOCK_REALTIME``, as everywhere in
+smartedge): a V4L2 device's frames carry the driver's buffer timestamp (``CLOCK_MONOTONIC``,
+taken when the frame was captured, not when it was read), converted with the
+monotonic → realtime offset (:class:`MonotonicToRealtime`, measured at open and every second);
+a RealSense frame its metadata stamp (global or system time as is, the camera's hardware clock
+through :class:`DeviceClockMapper`). :class:`StampFilter` refuses a driver stamp that goes
+backwards or jumps (counted; the frame gets the grab time) and says which source the last frame
+used (``stamp_source`` = ``driver`` or ``grab``). Video files, streams, GStreamer pipelines and
+image folders are stamped at the grab, as before.
 """
 
 from __future__ import annotations
@@ -21,9 +31,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
+import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
+from fractions import Fraction
 from pathlib import Path
 from typing import Any, Final, Protocol
 
@@ -38,6 +52,212 @@ IMAGE_SUFFIXES: Final = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm
 
 class FrameSourceError(SmartedgeError):
     """A grabber cannot open or read its source (the message names the device, URL or file)."""
+
+
+STAMP_DRIVER: Final = "driver"
+STAMP_GRAB: Final = "grab"
+
+
+def monotonic_realtime_offset_ns(monotonic_ns: Callable[[], int] = time.monotonic_ns,
+                                 realtime_ns: Callable[[], int] = time.time_ns,
+                                 samples: int = 5) -> int:
+    """``CLOCK_REALTIME - CLOCK_MONOTONIC`` in nanoseconds: of ``samples`` reads of the
+    realtime clock, each between two monotonic reads, the one with the narrowest bracket (the
+    least disturbed by a context switch), against the bracket's middle."""
+    best: tuple[int, int] | None = None
+    for _ in range(max(1, samples)):
+        m0 = monotonic_ns()
+        r = realtime_ns()
+        m1 = monotonic_ns()
+        if best is None or m1 - m0 < best[0]:
+            best = (m1 - m0, r - (m0 + m1) // 2)
+    assert best is not None
+    return best[1]
+
+
+def ms_to_ns(stamp_ms: float) -> int:
+    """A driver's stamp in milliseconds (a double: OpenCV's ``CAP_PROP_POS_MSEC``, RealSense's
+    ``get_timestamp()``) → integer nanoseconds, rounded to the microsecond: the drivers count
+    microseconds, and a double of milliseconds since the epoch holds no finer digit."""
+    return round(float(stamp_ms) * 1e3) * 1_000
+
+
+class MonotonicToRealtime:
+    """``CLOCK_MONOTONIC`` stamps (V4L2 buffers) → ``CLOCK_REALTIME`` (smartedge's sensor
+    clock). The offset is measured when created (at the grabber's open) and again when it is
+    older than ``refresh_s``: NTP slews or steps the realtime clock, the monotonic clock never
+    jumps, so a stamp converted with a fresh offset lands where the wall clock is now."""
+
+    def __init__(self, refresh_s: float = 1.0, *,
+                 monotonic_ns: Callable[[], int] = time.monotonic_ns,
+                 realtime_ns: Callable[[], int] = time.time_ns) -> None:
+        self.refresh_ns = int(refresh_s * 1e9)
+        self._monotonic_ns = monotonic_ns
+        self._realtime_ns = realtime_ns
+        self._measured_at = 0
+        self.offset_ns = 0
+        self.refresh()
+
+    def refresh(self) -> int:
+        self.offset_ns = monotonic_realtime_offset_ns(self._monotonic_ns, self._realtime_ns)
+        self._measured_at = self._monotonic_ns()
+        return self.offset_ns
+
+    def __call__(self, stamp_monotonic_ns: int) -> int:
+        if self._monotonic_ns() - self._measured_at >= self.refresh_ns:
+            self.refresh()
+        return int(stamp_monotonic_ns) + self.offset_ns
+
+
+class DeviceClockMapper:
+    """A device's free-running clock (a RealSense's hardware clock) → the host's realtime
+    clock: ``host = device + offset``, the offset being the smallest ``arrival - device`` of the
+    last ``window`` frames (the transfer delay is never negative, so the smallest difference is
+    the closest to the true offset; the window lets it follow the drift of the two clocks).
+    :meth:`reset` forgets it (the device clock wrapped or the device restarted)."""
+
+    def __init__(self, window: int = 300) -> None:
+        self._offsets: deque[int] = deque(maxlen=max(1, window))
+
+    def __call__(self, device_ns: int, arrival_ns: int) -> int:
+        self._offsets.append(int(arrival_ns) - int(device_ns))
+        return int(device_ns) + min(self._offsets)
+
+    def reset(self) -> None:
+        self._offsets.clear()
+
+
+class StampFilter:
+    """Per frame: the driver's stamp, converted to the sensor clock, where it is plausible,
+    else the time of the grab.
+
+    Refused (counted, logged the first time and every 100th, the frame gets the grab time): a
+    driver stamp that is not after the previous one (``backwards``: the driver reset its clock
+    or repeated a buffer) and one that ``jumps``: later than the grab (by more than
+    ``future_tolerance_s``: a stamp from the future is a wrong clock) or older than the grab
+    by more than ``max_age_s`` (a frame cannot wait that long in the driver's queue; a stamp
+    that far off is in another clock). :attr:`stamp_source` is what the last frame used."""
+
+    def __init__(self, label: str, *, max_age_s: float = 1.0,
+                 future_tolerance_s: float = 0.005) -> None:
+        self.label = label
+        self.max_age_ns = int(max_age_s * 1e9)
+        self.future_tolerance_ns = int(future_tolerance_s * 1e9)
+        self.stamp_source = STAMP_GRAB
+        self.backwards = 0
+        self.jumps = 0
+        self._last_raw: int | None = None
+
+    @property
+    def refused(self) -> int:
+        return self.backwards + self.jumps
+
+    def reset(self) -> None:
+        """Forget the previous stamp (a re-opened device starts a new sequence)."""
+        self._last_raw = None
+
+    def choose(self, driver_ns: int | None, grab_ns: int, raw_ns: int | None = None) -> int:
+        """The frame's stamp: ``driver_ns`` (the driver's stamp in the sensor clock; ``None``:
+        the driver gave none) or ``grab_ns``. ``raw_ns``: the stamp in the driver's own clock,
+        for the backwards test (default ``driver_ns``)."""
+        if driver_ns is None:
+            self.stamp_source = STAMP_GRAB
+            return grab_ns
+        raw = driver_ns if raw_ns is None else raw_ns
+        why = ""
+        if self._last_raw is not None and raw <= self._last_raw:
+            self.backwards += 1
+            why = (f"went backwards by {(self._last_raw - raw) * 1e-6:.3f} ms"
+                   if raw < self._last_raw else "repeated the previous stamp")
+        elif driver_ns > grab_ns + self.future_tolerance_ns:
+            self.jumps += 1
+            why = f"is {(driver_ns - grab_ns) * 1e-6:.1f} ms after the grab"
+        elif driver_ns < grab_ns - self.max_age_ns:
+            self.jumps += 1
+            why = f"is {(grab_ns - driver_ns) * 1e-9:.3f} s before the grab"
+        self._last_raw = raw
+        if why:
+            if self.refused == 1 or self.refused % 100 == 0:
+                log.warning("%s: the driver's frame stamp %s; this frame is stamped at the grab "
+                            "(%d refused so far: %d backwards, %d jumps)", self.label, why,
+                            self.refused, self.backwards, self.jumps)
+            self.stamp_source = STAMP_GRAB
+            return grab_ns
+        self.stamp_source = STAMP_DRIVER
+        return driver_ns
+
+
+# --------------------------------------------------------------------------------------------
+# GStreamer pipelines (a Jetson's CSI cameras)
+# --------------------------------------------------------------------------------------------
+
+_CSI_URI: Final = re.compile(r"^csi://(\d+)(?:\?flip=([0-7]))?$")
+
+
+def is_gstreamer_uri(uri: str) -> bool:
+    """Whether ``--device`` names a GStreamer pipeline (``a ! b ! appsink``) or a Jetson CSI
+    camera (``csi://N``)."""
+    return uri.startswith("csi://") or " ! " in uri or uri.rstrip().endswith("appsink")
+
+
+def csi_pipeline(sensor_id: int, width: int, height: int, fps: float = 30.0,
+                 flip: int = 0) -> str:
+    """The GStreamer pipeline of a Jetson CSI camera (``nvarguscamerasrc``, the Argus camera
+    stack of JetPack): ``width`` x ``height`` at ``fps`` as NV12 in NVMM memory, converted by
+    the VIC (``nvvidconv``, ``flip`` its flip-method 0-7) to BGRx, then to BGR for OpenCV; the
+    appsink keeps only the newest frame (``drop=true max-buffers=1``)."""
+    rate = Fraction(fps).limit_denominator(1001)
+    return (f"nvarguscamerasrc sensor-id={int(sensor_id)} ! "
+            f"video/x-raw(memory:NVMM), width=(int){int(width)}, height=(int){int(height)}, "
+            f"framerate=(fraction){rate.numerator}/{rate.denominator}, format=(string)NV12 ! "
+            f"nvvidconv flip-method={int(flip)} ! video/x-raw, format=(string)BGRx ! "
+            "videoconvert ! video/x-raw, format=(string)BGR ! "
+            "appsink drop=true max-buffers=1 sync=false")
+
+
+def expand_device_uri(uri: str, width: int | None, height: int | None,
+                      fps: float | None) -> str:
+    """``csi://N`` (optionally ``csi://N?flip=M``) → :func:`csi_pipeline` at the camera's
+    resolution (``fps`` default 30); anything else unchanged. Raises
+    :class:`FrameSourceError` for a malformed ``csi://`` or one without a resolution."""
+    if not uri.startswith("csi://"):
+        return uri
+    m = _CSI_URI.match(uri)
+    if m is None:
+        raise FrameSourceError(f"{uri}: expected csi://N or csi://N?flip=M (N the sensor id, "
+                               "M the nvvidconv flip-method 0-7)")
+    if not width or not height:
+        raise FrameSourceError(f"{uri}: the CSI camera needs the calibration's width and height")
+    return csi_pipeline(int(m.group(1)), width, height, fps or 30.0, int(m.group(2) or 0))
+
+
+def gstreamer_in_opencv(build_information: str | None = None) -> bool:
+    """Whether OpenCV's video I/O was built with GStreamer (``cv2.getBuildInformation()``,
+    line ``GStreamer: YES ...``). JetPack's OpenCV has it; opencv-python-headless from PyPI
+    does not."""
+    if build_information is None:
+        import cv2
+
+        build_information = cv2.getBuildInformation()
+    m = re.search(r"^\s*GStreamer:\s*(\S+)", build_information, re.MULTILINE)
+    return m is not None and m.group(1).upper() not in ("NO", "OFF")
+
+
+def check_gstreamer(uri: str, build_information: str | None = None) -> None:
+    """Raise :class:`FrameSourceError` naming the fix when ``uri`` is a GStreamer pipeline or
+    ``csi://`` camera and this OpenCV has no GStreamer."""
+    if not is_gstreamer_uri(uri) or gstreamer_in_opencv(build_information):
+        return
+    import cv2
+
+    raise FrameSourceError(
+        f"{uri}: a GStreamer pipeline, but this OpenCV ({cv2.__version__}, {cv2.__file__}) is "
+        "built without GStreamer (cv2.getBuildInformation(): 'GStreamer: NO'; the "
+        "opencv-python-headless wheel from PyPI never has it). On a Jetson use JetPack's "
+        "OpenCV, which has it: a venv made with --system-site-packages and "
+        "opencv-python-headless uninstalled from it (deploy/install-edge.sh --jetson yes "
+        "does both); elsewhere install an OpenCV built with GStreamer (Debian/Ubuntu: "
+        "python3-opencv, gstreamer1.0-plugins-good)")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -88,41 +308,75 @@ def _to_rgb(image: np.ndarray, what: str) -> np.ndarray:
 
 class OpenCVGrabber:
     """``cv2.VideoCapture``: ``uri`` is a device index (``"0"``), a device path
-    (``/dev/video0``), a stream URL (``rtsp://``, ``http://``) or a video file. ``width`` /
-    ``height`` / ``fps`` are requested from devices (None: the device's default). Video files
-    play at their own frame rate (``realtime``) or as fast as they are read, once or
-    (``loop``) over and over. Stamps: the time
-    of the grab (``CLOCK_REALTIME``), which is what a live camera's frame is closest to."""
+    (``/dev/video0``), a stream URL (``rtsp://``, ``http://``), a video file, a GStreamer
+    pipeline ending in ``appsink`` or ``csi://N`` (a Jetson CSI camera, :func:`csi_pipeline` at
+    ``width`` x ``height``; both need an OpenCV built with GStreamer, else
+    :class:`FrameSourceError` says so at open). ``width`` / ``height`` / ``fps`` are requested
+    from devices (None: the device's default). Video files play at their own frame rate
+    (``realtime``) or as fast as they are read, once or (``loop``) over and over.
+
+    Stamps: a V4L2 device's frames get the driver's buffer timestamp (OpenCV's
+    ``CAP_PROP_POS_MSEC`` on the V4L2 backend is ``v4l2_buffer.timestamp``, the kernel's
+    ``CLOCK_MONOTONIC`` at capture) converted to ``CLOCK_REALTIME`` (:class:`MonotonicToRealtime`),
+    filtered by :class:`StampFilter`; a driver whose stamps are in neither clock is stamped at
+    the grab for good (logged once). Everything else (files, streams, GStreamer) is stamped at
+    the grab (``clock_ns``, ``CLOCK_REALTIME``): their ``POS_MSEC`` is a position in the
+    stream, not a clock. :attr:`stamp_source` says which the last frame got."""
 
     def __init__(self, uri: str, *, width: int | None = None, height: int | None = None,
                  fps: float | None = None, realtime: bool = True, loop: bool = False,
-                 clock_ns: Callable[[], int] = time.time_ns) -> None:
+                 clock_ns: Callable[[], int] = time.time_ns,
+                 monotonic_ns: Callable[[], int] = time.monotonic_ns) -> None:
         self.uri = str(uri)
         self.loop = loop
         self.label = f"opencv:{self.uri}"
         self.width, self.height, self.fps = width, height, fps
         self.realtime = realtime
         self._clock_ns = clock_ns
+        self._monotonic_ns = monotonic_ns
         self._cap: Any = None
         self._seq = 0
         self._is_file = False
         self._period_s = 0.0
         self._next_s = 0.0
+        self.stamps = StampFilter(self.label)
+        #: the clock of the driver's stamps: ``monotonic``, ``realtime``, ``None`` (not known
+        #: yet, or the grab time is used: not a V4L2 device, or a clock of its own)
+        self.driver_clock: str | None = None
+        self._driver_stamps = False
+        self._to_realtime: MonotonicToRealtime | None = None
+
+    @property
+    def stamp_source(self) -> str:
+        """``driver`` or ``grab``: where the last frame's stamp came from."""
+        return self.stamps.stamp_source
+
+    @property
+    def stamps_refused(self) -> int:
+        return self.stamps.refused
 
     def open(self) -> None:
         import cv2
 
         self.close()
-        source: int | str = int(self.uri) if self.uri.isdigit() else self.uri
-        self._is_file = isinstance(source, str) and "://" not in source and \
+        check_gstreamer(self.uri)
+        gstreamer = is_gstreamer_uri(self.uri)
+        if gstreamer:
+            source: int | str = expand_device_uri(self.uri, self.width, self.height, self.fps)
+        else:
+            source = int(self.uri) if self.uri.isdigit() else self.uri
+        self._is_file = not gstreamer and isinstance(source, str) and "://" not in source and \
             not source.startswith("/dev/")
         if self._is_file and not Path(source).is_file():  # type: ignore[arg-type]
             raise FrameSourceError(f"{self.uri}: video file not found")
-        cap = cv2.VideoCapture(source)
+        cap = cv2.VideoCapture(source, cv2.CAP_GSTREAMER) if gstreamer else \
+            cv2.VideoCapture(source)
         if not cap.isOpened():
             cap.release()
-            raise FrameSourceError(f"{self.uri}: OpenCV cannot open this device, stream or file")
-        if not self._is_file:
+            what = ("GStreamer pipeline (gst-launch-1.0 with the same pipeline, fakesink in "
+                    "place of appsink, shows why)" if gstreamer else "device, stream or file")
+            raise FrameSourceError(f"{self.uri}: OpenCV cannot open this {what}")
+        if not self._is_file and not gstreamer:
             if self.width:
                 cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
             if self.height:
@@ -132,8 +386,17 @@ class OpenCVGrabber:
         fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
         self._period_s = 1.0 / fps if self._is_file and self.realtime and 0 < fps < 1000 else 0.0
         self._next_s = time.monotonic()
+        backend = _backend_name(cap)
+        self._driver_stamps = backend == "V4L2" and not self._is_file and not gstreamer
+        self.driver_clock = None
+        self.stamps.reset()
+        self._to_realtime = MonotonicToRealtime(monotonic_ns=self._monotonic_ns,
+                                                realtime_ns=self._clock_ns) \
+            if self._driver_stamps else None
         self._cap = cap
-        log.info("%s: opened (%s)", self.uri, "file" if self._is_file else "live")
+        log.info("%s: opened (%s, backend %s; stamps: %s)", self.uri,
+                 "file" if self._is_file else "live", backend or "?",
+                 "the driver's where plausible" if self._driver_stamps else "grab time")
 
     def read(self) -> Frame | None:
         if self._cap is None:
@@ -154,13 +417,60 @@ class OpenCVGrabber:
             if self._is_file:
                 return None
             raise FrameSourceError(f"{self.uri}: no frame (device unplugged or stream ended)")
+        if self._driver_stamps:
+            stamp = self._driver_stamp(stamp)
         self._seq += 1
         return Frame(_to_rgb(image, self.uri), stamp, self._seq)
+
+    def _driver_stamp(self, grab_ns: int) -> int:
+        """The frame's stamp from the V4L2 buffer timestamp, or ``grab_ns``."""
+        import cv2
+
+        msec = self._cap.get(cv2.CAP_PROP_POS_MSEC)
+        if not math.isfinite(msec) or msec <= 0:  # 0: none yet / the driver gives none
+            return self.stamps.choose(None, grab_ns)
+        raw_ns = ms_to_ns(msec)
+        if self.driver_clock is None:
+            self.driver_clock = v4l2_stamp_clock(raw_ns, self._monotonic_ns(), grab_ns)
+            if self.driver_clock is None:
+                self._driver_stamps = False
+                log.warning("%s: the driver's frame stamps (%.3f s) are neither in "
+                            "CLOCK_MONOTONIC nor in CLOCK_REALTIME; frames are stamped at the "
+                            "grab", self.uri, raw_ns * 1e-9)
+                return self.stamps.choose(None, grab_ns)
+            log.info("%s: frame stamps from the driver (V4L2 buffer timestamps, %s clock)",
+                     self.uri, self.driver_clock)
+        if self.driver_clock == "monotonic":
+            assert self._to_realtime is not None
+            return self.stamps.choose(self._to_realtime(raw_ns), grab_ns, raw_ns)
+        return self.stamps.choose(raw_ns, grab_ns)
 
     def close(self) -> None:
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+
+
+def _backend_name(cap: Any) -> str:
+    """The capture's backend (``V4L2``, ``FFMPEG``, ``GSTREAMER``, ...; ``""`` if unknown)."""
+    try:
+        return str(cap.getBackendName())
+    except Exception:  # cv2.error when the backend has no name
+        return ""
+
+
+def v4l2_stamp_clock(stamp_ns: int, monotonic_now_ns: int, realtime_now_ns: int,
+                     within_s: float = 10.0) -> str | None:
+    """Which clock a V4L2 buffer timestamp is in: ``monotonic`` (the kernel's default for
+    every driver since Linux 3.10, ``V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC``), ``realtime`` (old
+    drivers, uvcvideo's ``clock=realtime``), or ``None`` when it is within ``within_s`` of
+    neither clock now."""
+    window = within_s * 1e9
+    if abs(monotonic_now_ns - stamp_ns) <= window:
+        return "monotonic"
+    if abs(realtime_now_ns - stamp_ns) <= window:
+        return "realtime"
+    return None
 
 
 class ImageFolderGrabber:
@@ -234,22 +544,49 @@ class ImageFolderGrabber:
 
 class RealSenseGrabber:
     """The colour stream of an Intel RealSense camera (the paper's D455) through
-    ``pyrealsense2`` (``pip install pyrealsense2``). Stamps: the frame's own timestamp in the
-    host-synchronised ("global") time domain, in nanoseconds. ``depth``: also stream depth,
+    ``pyrealsense2`` (``pip install pyrealsense2``). Stamps: the colour frame's metadata
+    (``get_timestamp()``, milliseconds, in the domain ``get_frame_timestamp_domain()`` names,
+    :func:`realsense_stamp_ns`), filtered by :class:`StampFilter`; :attr:`stamp_source` says
+    whether the last frame got it or the grab time. ``depth``: also stream depth,
     aligned to the colour image by the SDK (``rs.align``), into :attr:`Frame.depth_m` in metres
     (the device's depth scale applied; 0 = no depth)."""
 
     def __init__(self, serial: str | None = None, *, width: int = 848, height: int = 480,
-                 fps: int = 30, timeout_ms: int = 2000, depth: bool = False) -> None:
+                 fps: int = 30, timeout_ms: int = 2000, depth: bool = False,
+                 clock_ns: Callable[[], int] = time.time_ns) -> None:
         self.serial = serial
         self.label = f"realsense:{serial or 'first'}"
         self.width, self.height, self.fps = width, height, fps
         self.timeout_ms = timeout_ms
         self.depth = depth
+        self._clock_ns = clock_ns
         self._pipe: Any = None
         self._align: Any = None
         self._depth_scale_m = 0.001
         self._seq = 0
+        self.stamps = StampFilter(self.label)
+        self._hardware_clock = DeviceClockMapper()
+        self._last_device_ns: int | None = None
+
+    @property
+    def stamp_source(self) -> str:
+        return self.stamps.stamp_source
+
+    @property
+    def stamps_refused(self) -> int:
+        return self.stamps.refused
+
+    def stamp(self, stamp_ms: float, domain: Any, grab_ns: int) -> int:
+        """The stamp of a colour frame with metadata ``stamp_ms`` in ``domain`` (an
+        ``rs.timestamp_domain`` or its name) that arrived at ``grab_ns``."""
+        name = str(domain).rsplit(".", 1)[-1]
+        device_ns = ms_to_ns(stamp_ms) if math.isfinite(stamp_ms) else None
+        if name == "hardware_clock" and device_ns is not None:
+            if self._last_device_ns is not None and device_ns < self._last_device_ns:
+                self._hardware_clock.reset()  # the camera's counter wrapped or restarted
+            self._last_device_ns = device_ns
+        driver_ns = realsense_stamp_ns(stamp_ms, name, grab_ns, self._hardware_clock)
+        return self.stamps.choose(driver_ns, grab_ns, device_ns)
 
     def open(self) -> None:
         try:
@@ -275,6 +612,9 @@ class RealSenseGrabber:
                                         .get_depth_scale())
             self._align = rs.align(rs.stream.color)
         self._pipe = pipe
+        self.stamps.reset()
+        self._hardware_clock.reset()
+        self._last_device_ns = None
 
     def read(self) -> Frame | None:
         if self._pipe is None:
@@ -296,9 +636,11 @@ class RealSenseGrabber:
         color = frames.get_color_frame()
         if not color:
             raise FrameSourceError(f"{self.label}: frame set without colour")
+        grab_ns = self._clock_ns()
         self._seq += 1
         image = np.asanyarray(color.get_data()).copy()
-        return Frame(image, int(color.get_timestamp() * 1e6), self._seq, depth_m)
+        stamp = self.stamp(color.get_timestamp(), color.get_frame_timestamp_domain(), grab_ns)
+        return Frame(image, stamp, self._seq, depth_m)
 
     def close(self) -> None:
         if self._pipe is not None:
@@ -306,6 +648,24 @@ class RealSenseGrabber:
                 self._pipe.stop()
             self._pipe = None
         self._align = None
+
+
+def realsense_stamp_ns(stamp_ms: float, domain: str, arrival_ns: int,
+                       hardware_clock: DeviceClockMapper) -> int | None:
+    """A RealSense frame's metadata stamp in the sensor clock (``CLOCK_REALTIME``, ns), or
+    ``None`` when it cannot be used. ``domain`` (``rs.timestamp_domain`` name):
+    ``global_time`` (the camera's clock mapped to the host's by the SDK) and ``system_time``
+    (the host's clock when the frame reached the SDK) are host milliseconds since the epoch,
+    taken as they are; ``hardware_clock`` (the camera's own counter, when the SDK cannot map
+    it) goes through ``hardware_clock`` (:class:`DeviceClockMapper`) with the ``arrival_ns``."""
+    if not math.isfinite(stamp_ms) or stamp_ms <= 0:  # NaN, inf or none
+        return None
+    stamp_ns = ms_to_ns(stamp_ms)
+    if domain in ("global_time", "system_time"):
+        return stamp_ns
+    if domain == "hardware_clock":
+        return hardware_clock(stamp_ns, arrival_ns)
+    return None
 
 
 @dataclasses.dataclass

@@ -17,8 +17,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Final
 
@@ -280,35 +281,225 @@ def decode_detections(peaks: np.ndarray, size: np.ndarray, offset: np.ndarray, s
 # --------------------------------------------------------------------------------------------
 
 
-def providers_available(prefer: Sequence[str] = ("TensorrtExecutionProvider",
-                                                 "CUDAExecutionProvider",
-                                                 "CPUExecutionProvider")) -> list[str]:
+TENSORRT: Final = "TensorrtExecutionProvider"
+CUDA: Final = "CUDAExecutionProvider"
+CPU: Final = "CPUExecutionProvider"
+#: the short names ``--providers`` accepts for onnxruntime's execution providers (onnxruntime's
+#: own names, ``...ExecutionProvider``, are accepted as they are)
+PROVIDER_ALIASES: Final = {"tensorrt": TENSORRT, "trt": TENSORRT, "cuda": CUDA, "cpu": CPU}
+#: what a provider falls back to, in order, when it cannot run a node or cannot start
+PROVIDER_FALLBACKS: Final = {TENSORRT: (CUDA, CPU), CUDA: (CPU,)}
+#: ``auto``: the GPU providers this onnxruntime build has, else the CPU
+AUTO_CHAIN: Final = (TENSORRT, CUDA, CPU)
+#: where TensorRT engines are kept (default: ``$STATE_DIRECTORY/trt_engines``, which systemd sets
+#: for the units' ``StateDirectory=``, else ``$XDG_CACHE_HOME/smartedge/trt_engines``)
+ENGINE_CACHE_ENV: Final = "SMARTEDGE_TRT_CACHE"
+
+
+def engine_cache_dir(environ: Mapping[str, str] | None = None) -> Path:
+    """The TensorRT engine cache folder: ``$SMARTEDGE_TRT_CACHE``, else ``trt_engines`` in the
+    service's state directory (``$STATE_DIRECTORY``, set by systemd's ``StateDirectory=``:
+    ``/var/lib/smartedge`` in the shipped units), else ``$XDG_CACHE_HOME/smartedge/trt_engines``
+    (``~/.cache/...`` without it). Not created here."""
+    env = os.environ if environ is None else environ
+    if env.get(ENGINE_CACHE_ENV):
+        return Path(env[ENGINE_CACHE_ENV])
+    state = env.get("STATE_DIRECTORY", "").split(":")[0]  # systemd joins several with ':'
+    if state:
+        return Path(state) / "trt_engines"
+    base = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "smartedge" / "trt_engines"
+
+
+def provider_names(spec: str | Sequence[str]) -> list[str]:
+    """``--providers`` as onnxruntime names, in the order given: ``"tensorrt,cuda"`` or a list
+    of names; short names (:data:`PROVIDER_ALIASES`, any case) or onnxruntime's
+    (``...ExecutionProvider``). ``"auto"`` → ``["auto"]``. Raises ``ValueError`` naming an
+    unknown name and the accepted ones."""
+    items = spec.split(",") if isinstance(spec, str) else list(spec)
+    names: list[str] = []
+    for item in items:
+        name = str(item).strip()
+        if not name:
+            continue
+        if name.lower() == "auto":
+            canonical = "auto"
+        elif name.lower() in PROVIDER_ALIASES:
+            canonical = PROVIDER_ALIASES[name.lower()]
+        elif name.endswith("ExecutionProvider"):
+            canonical = name
+        else:
+            raise ValueError(f"--providers: unknown execution provider {name!r} (use "
+                             f"{', '.join(PROVIDER_ALIASES)}, auto, or onnxruntime's names "
+                             "such as TensorrtExecutionProvider)")
+        if canonical not in names:
+            names.append(canonical)
+    if "auto" in names and len(names) > 1:
+        raise ValueError(f"--providers {spec!r}: auto stands alone")
+    return names or ["auto"]
+
+
+ProviderSpec = tuple[str, dict[str, str]]
+
+
+@dataclasses.dataclass(frozen=True)
+class ExecutionProviders:
+    """The execution providers every network of an edge agent runs on (the detector, the
+    keypoints and the segmentation get the same): ``asked`` the onnxruntime names asked for
+    (``("auto",)`` for auto), ``chain`` what onnxruntime is handed, in order of preference, each
+    with its options (only providers this onnxruntime build has; the CPU always last),
+    ``missing`` the asked-for providers or fallbacks this build lacks, ``engine_cache``: the
+    TensorRT engine folder (``None`` without TensorRT), ``fp16``: TensorRT builds FP16
+    engines."""
+
+    asked: tuple[str, ...]
+    chain: tuple[ProviderSpec, ...]
+    missing: tuple[str, ...] = ()
+    engine_cache: Path | None = None
+    fp16: bool = False
+
+    @property
+    def names(self) -> list[str]:
+        return [name for name, _ in self.chain]
+
+    def for_session(self) -> list[str | tuple[str, dict[str, str]]]:
+        """The ``providers`` argument of ``onnxruntime.InferenceSession``."""
+        return [(name, dict(opts)) if opts else name for name, opts in self.chain]
+
+    def describe(self, got: Sequence[str]) -> str:
+        """What a session ``got`` (its ``get_providers()``) against what was asked, for the
+        log and the status: ``tensorrt+cuda+cpu`` or ``cpu (asked tensorrt; this onnxruntime
+        lacks TensorrtExecutionProvider, CUDAExecutionProvider)``."""
+        text = "+".join(short_provider_name(p) for p in got) or "none"
+        if not self.fell_back(got):
+            return text
+        asked = ",".join(short_provider_name(p) for p in self.asked)
+        why = f"; this onnxruntime lacks {', '.join(self.missing)}" if self.missing else \
+            "; the provider failed to start (see the log above)"
+        return f"{text} (asked {asked}{why})"
+
+    def fell_back(self, got: Sequence[str]) -> bool:
+        """Whether a session that ``got`` these providers runs on less than was asked: its
+        first provider is not the first asked (``auto``: not the first this build offers)."""
+        want = self.names[0] if self.asked == ("auto",) else self.asked[0]
+        return not got or got[0] != want
+
+
+def short_provider_name(name: str) -> str:
+    """``TensorrtExecutionProvider`` → ``tensorrt``, ``CUDAExecutionProvider`` → ``cuda``."""
+    for short, full in PROVIDER_ALIASES.items():
+        if full == name and short != "trt":
+            return short
+    return name.removesuffix("ExecutionProvider").lower()
+
+
+def execution_providers(spec: str | Sequence[str] = "auto", *, fp16: bool = False,
+                        engine_cache: Path | str | None = None,
+                        available: Sequence[str] | None = None) -> ExecutionProviders:
+    """``--providers`` → the providers list onnxruntime gets, with options.
+
+    Each asked name brings its fallbacks (:data:`PROVIDER_FALLBACKS`: TensorRT → CUDA → CPU,
+    CUDA → CPU), the CPU always last; ``auto`` is :data:`AUTO_CHAIN`. Providers this build
+    lacks (``available``: default ``onnxruntime.get_available_providers()``) are left out and
+    listed in ``missing``. TensorRT gets its engine cache (``engine_cache``, default
+    :func:`engine_cache_dir`; FP16 and FP32 engines in subfolders ``fp16`` / ``fp32``, created
+    here) and timing cache enabled, and ``trt_fp16_enable`` from ``fp16``. Raises
+    ``ValueError`` for an unknown name and :class:`ModelError` when the cache folder cannot
+    be created."""
+    asked = provider_names(spec)
+    if available is None:
+        import onnxruntime as ort
+
+        available = ort.get_available_providers()
+    have = set(available) | {CPU}
+    wanted: list[str] = []
+    for name in (AUTO_CHAIN if asked == ["auto"] else asked):
+        for p in (name, *PROVIDER_FALLBACKS.get(name, ())):
+            if p not in wanted:
+                wanted.append(p)
+    if CPU in wanted:
+        wanted.remove(CPU)
+    wanted.append(CPU)
+    missing = tuple(p for p in wanted if p not in have and (asked != ["auto"] or p in asked))
+    chain: list[ProviderSpec] = []
+    cache: Path | None = None
+    for name in wanted:
+        if name not in have:
+            continue
+        opts: dict[str, str] = {}
+        if name == TENSORRT:
+            base = Path(engine_cache) if engine_cache is not None else engine_cache_dir()
+            cache = base / ("fp16" if fp16 else "fp32")
+            try:
+                cache.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ModelError(f"{cache}: cannot create the TensorRT engine cache: "
+                                 f"{exc.strerror or exc}") from None
+            opts = {"trt_engine_cache_enable": "True", "trt_engine_cache_path": str(cache),
+                    "trt_timing_cache_enable": "True", "trt_timing_cache_path": str(base),
+                    "trt_fp16_enable": "True" if fp16 else "False"}
+        chain.append((name, opts))
+    return ExecutionProviders(tuple(asked), tuple(chain), missing, cache, fp16)
+
+
+def as_execution_providers(providers: ExecutionProviders | Sequence[Any] | None
+                           ) -> ExecutionProviders:
+    """``providers`` as given to the networks: an :class:`ExecutionProviders`, names (short or
+    onnxruntime's, turned into one by :func:`execution_providers`), ``(name, options)`` pairs
+    (taken as they are) or ``None`` (the CPU)."""
+    if isinstance(providers, ExecutionProviders):
+        return providers
+    if not providers:
+        return ExecutionProviders((CPU,), ((CPU, {}),))
+    if all(isinstance(p, str) for p in providers):
+        return execution_providers(list(providers))
+    chain = tuple((p, {}) if isinstance(p, str) else (str(p[0]), dict(p[1])) for p in providers)
+    return ExecutionProviders(tuple(n for n, _ in chain), chain)
+
+
+def providers_available(prefer: Sequence[str] = AUTO_CHAIN) -> list[str]:
     """The preferred execution providers this onnxruntime build has (CPU always last)."""
     import onnxruntime as ort
 
     have = set(ort.get_available_providers())
     chosen = [p for p in prefer if p in have]
-    return chosen or ["CPUExecutionProvider"]
+    return chosen or [CPU]
 
 
-def _session(path: Path, threads: int, providers: Sequence[str] | None,
+def _session(path: Path, threads: int, providers: ExecutionProviders | Sequence[Any] | None,
              spinning: bool = False) -> Any:
     import onnxruntime as ort
 
     if not path.is_file():
         raise ModelError(f"{path}: model file not found")
+    chosen = as_execution_providers(providers)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = max(1, int(threads))
     opts.inter_op_num_threads = 1
     opts.log_severity_level = 3
     if not spinning:  # idle intra-op threads sleep instead of spinning (few cores)
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    t0 = time.perf_counter()
     try:
-        return ort.InferenceSession(str(path), opts,
-                                    providers=list(providers or ["CPUExecutionProvider"]))
+        sess = ort.InferenceSession(str(path), opts, providers=chosen.for_session())
     except Exception as exc:  # onnxruntime raises its own exception types for bad files
         raise ModelError(f"{path}: onnxruntime cannot load the model: "
                          f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}") from None
+    got = list(sess.get_providers())
+    if TENSORRT in got:  # the first start builds the engines: minutes on a Jetson
+        log.info("%s: TensorRT session ready in %.1f s (engine cache %s)", path.name,
+                 time.perf_counter() - t0, chosen.engine_cache)
+    key = (chosen.asked, tuple(got))
+    if key not in _REPORTED:  # once per process for each asked/got pair, not once per network
+        _REPORTED.add(key)
+        if chosen.fell_back(got):
+            log.warning("onnxruntime runs %s on %s", path.name, chosen.describe(got))
+        else:
+            log.info("onnxruntime runs %s on %s", path.name, chosen.describe(got))
+    return sess
+
+
+_REPORTED: set[tuple[tuple[str, ...], tuple[str, ...]]] = set()
 
 
 def _check_io(path: Path, sess: Any, inputs: Sequence[tuple[str, tuple[int, ...]]],
@@ -392,12 +583,15 @@ class Detector:
     """The robot detector: full frame → boxes in frame pixels with scores."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
-                 providers: Sequence[str] | None = None, spinning: bool = False) -> None:
+                 providers: ExecutionProviders | Sequence[Any] | None = None,
+                 spinning: bool = False) -> None:
         self.path = Path(onnx_path)
         if not self.path.is_file():
             raise ModelError(f"{self.path}: detector model file not found")
         self.card = DetectorCard.read(card_path(self.path))
         self.session = _session(self.path, threads, providers, spinning)
+        #: the execution providers the session runs on (``get_providers()``)
+        self.providers_used: list[str] = list(self.session.get_providers())
         _check_io(self.path, self.session, [("image", (3, self.card.input_h, self.card.input_w))],
                   ["peaks", "size", "offset"])
 
@@ -456,8 +650,8 @@ class KeypointEstimator:
     mirror-consistent (the estimate on a mirrored frame is the mirrored estimate)."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
-                 providers: Sequence[str] | None = None, spinning: bool = False,
-                 flip: bool | None = None) -> None:
+                 providers: ExecutionProviders | Sequence[Any] | None = None,
+                 spinning: bool = False, flip: bool | None = None) -> None:
         self.path = Path(onnx_path)
         if not self.path.is_file():
             raise ModelError(f"{self.path}: keypoint model file not found")
@@ -466,6 +660,7 @@ class KeypointEstimator:
         self.flip = flip
         self._mirror = mirror_permutation(self.card.keypoint_names) if flip else None
         self.session = _session(self.path, threads, providers, spinning)
+        self.providers_used: list[str] = list(self.session.get_providers())
         _check_io(self.path, self.session, [("crop", (3, self.card.input_h, self.card.input_w))],
                   ["keypoints", "confidence"])
 
@@ -576,16 +771,19 @@ class RobotKeypointPipeline:
     test-time flip augmentation (:class:`KeypointEstimator`; None: as its card says)."""
 
     def __init__(self, detector: Path | str | None = None, keypoints: Path | str | None = None,
-                 *, threads: int = 2, providers: Sequence[str] | None = None,
+                 *, threads: int = 2,
+                 providers: ExecutionProviders | Sequence[Any] | None = None,
                  keypoint_names: Sequence[str] | None = None, spinning: bool = False,
                  flip: bool | None = None) -> None:
         shipped = default_model_dir()
-        self.providers = list(providers or ["CPUExecutionProvider"])
+        #: what both networks were asked to run on (:func:`execution_providers`)
+        self.execution = as_execution_providers(providers)
+        self.providers = self.execution.names
         self.detector = Detector(shipped / "detector.onnx" if detector is None else detector,
-                                 threads=threads, providers=self.providers, spinning=spinning)
+                                 threads=threads, providers=self.execution, spinning=spinning)
         self.keypoints = KeypointEstimator(
             shipped / "keypoints.onnx" if keypoints is None else keypoints, threads=threads,
-            providers=self.providers, spinning=spinning, flip=flip)
+            providers=self.execution, spinning=spinning, flip=flip)
         self.folder = self.keypoints.path.parent
         kp_names = list(self.keypoints.card.keypoint_names)
         if keypoint_names is not None and list(keypoint_names) != kp_names:
@@ -613,6 +811,16 @@ class RobotKeypointPipeline:
     @property
     def model_id(self) -> str:
         return f"{self.keypoints.card.robot_model}/{self.folder.name}"
+
+    @property
+    def providers_used(self) -> list[str]:
+        """The execution providers the detector's session runs on."""
+        return self.detector.providers_used
+
+    def providers_note(self) -> str:
+        """What the networks run on against what was asked (:meth:`ExecutionProviders.describe`),
+        for the status."""
+        return self.execution.describe(self.providers_used)
 
     def __call__(self, image_rgb: np.ndarray, *, min_score: float = 0.3,
                  max_robots: int = 4) -> list[RobotObservation]:
@@ -672,13 +880,14 @@ class SemanticSegmenter:
 
     ``onnx_path``: the model (its :class:`SegmentationCard` beside it); ``None``: the shipped
     ``edge_agent/models/segmentation.onnx``. ``threads``: onnxruntime intra-op threads;
-    ``providers``: execution providers in order of preference (default CPU). A missing, corrupt
+    ``providers``: execution providers in order of preference (default CPU; names or an
+    :class:`ExecutionProviders`, the same the detector gets). A missing, corrupt
     or truncated model, a missing or wrong card, a card whose classes are not
     :data:`protocol.semantic_classes.SEMANTIC_CLASSES` and a graph whose input or output size is
     not the card's raise :class:`ModelError` naming the file."""
 
     def __init__(self, onnx_path: Path | str | None = None, *, threads: int = 2,
-                 providers: Sequence[str] | None = None) -> None:
+                 providers: ExecutionProviders | Sequence[Any] | None = None) -> None:
         self.path = Path(onnx_path) if onnx_path is not None else (
             default_model_dir() / "segmentation.onnx")
         if not self.path.is_file():
@@ -689,7 +898,9 @@ class SemanticSegmenter:
                              f"smartedge's legend {list(SEMANTIC_CLASSES)} "
                              "(protocol.semantic_classes); retrain it")
         self.card = card
-        self.session = _session(self.path, threads, providers)
+        self.execution = as_execution_providers(providers)
+        self.session = _session(self.path, threads, self.execution)
+        self.providers_used: list[str] = list(self.session.get_providers())
         _check_io(self.path, self.session, [("image", (3, card.input_h, card.input_w))],
                   ["class_ids", "confidence"])
         for out in self.session.get_outputs():

@@ -188,9 +188,12 @@ def build_cloud_maker(args: argparse.Namespace, site: Site, camera_id: str, sour
     if segmenter is None:
         try:
             from edge_agent.models import SemanticSegmenter
+            from edge_agent.sources import execution_providers_from_args
 
+            # the same providers as the detector (--providers, --fp16, --trt-cache)
             segmenter = SemanticSegmenter(getattr(args, "segmentation_model", None),
-                                          threads=getattr(args, "threads", 2))
+                                          threads=getattr(args, "threads", 2),
+                                          providers=execution_providers_from_args(args))
         except (ImportError, SmartedgeError, OSError, RuntimeError) as exc:
             log.error("%s: no semantic clouds: the segmentation model cannot be loaded: %s",
                       camera_id, exc)
@@ -199,8 +202,11 @@ def build_cloud_maker(args: argparse.Namespace, site: Site, camera_id: str, sour
     maker = SemanticCloudMaker(segmenter, camera, sensor_id=camera_id,
                                frame_id=site.world_frame, T_frame_sensor=camera.T_world_cam,
                                rate_hz=rate)
-    log.info("%s: semantic clouds at %g Hz in frame %s through %s", camera_id, rate,
-             site.world_frame, getattr(segmenter, "model_id", type(segmenter).__name__))
+    execution = getattr(segmenter, "execution", None)
+    log.info("%s: semantic clouds at %g Hz in frame %s through %s%s", camera_id, rate,
+             site.world_frame, getattr(segmenter, "model_id", type(segmenter).__name__),
+             "" if execution is None else
+             f" on {execution.describe(getattr(segmenter, 'providers_used', []))}")
     return maker
 
 

@@ -135,17 +135,27 @@ class CameraFrameSource(PipelineSource):
         self.reader = reader
         self.label = label
         self.provides_depth = bool(getattr(reader.grabber, "depth", False))
+        self._refused_seen = 0
 
     def poll(self, now_ns: int) -> list[RobotDetections]:
         frame = self.reader.take()
         if frame is None:
             return []
+        refused = int(getattr(self.reader.grabber, "stamps_refused", 0))
+        if refused > self._refused_seen and self._stats is not None:
+            self._stats.count("stamps_refused", refused - self._refused_seen)
+            self._refused_seen = refused
         return [self.process(frame, now_ns, self.reader.status().skipped)]
 
     def health(self) -> tuple[str, str]:
         st = self.reader.status()
         detail = f"source={self.label} frames={st.grabbed} skipped={st.skipped}"
+        extra = runtime_detail(self.pipeline, self.reader.grabber)
+        if extra:
+            detail += " " + extra
         if st.state == "ok":
+            if providers_fell_back(self.pipeline):  # e.g. a Jetson running on its CPU
+                return "degraded", f"{detail}; the networks run on less than was asked"
             return "ok", detail
         if st.state == "ended":
             return "degraded", f"{detail}; the source ended"
@@ -159,6 +169,48 @@ class CameraFrameSource(PipelineSource):
         self.reader.stop()
 
 
+def execution_providers_from_args(args: argparse.Namespace) -> Any:
+    """The :class:`edge_agent.models.ExecutionProviders` of ``--providers``, ``--fp16`` and
+    ``--trt-cache`` (the same for every network of the agent); ``UsageError`` for an unknown
+    provider name or a cache folder that cannot be created."""
+    from edge_agent.models import ModelError, execution_providers
+
+    try:
+        return execution_providers(getattr(args, "providers", "auto") or "auto",
+                                   fp16=bool(getattr(args, "fp16", False)),
+                                   engine_cache=getattr(args, "trt_cache", None))
+    except (ValueError, ModelError) as exc:
+        raise UsageError(str(exc)) from None
+
+
+def runtime_detail(pipeline: Any, grabber: Any = None) -> str:
+    """The status words on what the networks run on (``providers=...``, naming a fallback)
+    and, for a grabber that says, where frame stamps come from (``stamp_source=driver|grab``
+    and the driver stamps refused)."""
+    parts = []
+    models = getattr(pipeline, "models", None)
+    note = getattr(models, "providers_note", None)
+    if note is not None:
+        parts.append(f"providers={note()}")
+    stamps = getattr(grabber, "stamp_source", None)
+    if stamps:
+        parts.append(f"stamp_source={stamps}")
+        refused = int(getattr(grabber, "stamps_refused", 0))
+        if refused:
+            parts.append(f"stamps_refused={refused}")
+    return " ".join(parts)
+
+
+def providers_fell_back(pipeline: Any) -> bool:
+    """Whether the pipeline's networks run on less than ``--providers`` asked for (asked
+    TensorRT, got CUDA or the CPU; ``auto``: less than the best this onnxruntime has)."""
+    models = getattr(pipeline, "models", None)
+    execution = getattr(models, "execution", None)
+    if execution is None:
+        return False
+    return bool(execution.fell_back(models.providers_used))
+
+
 class CameraSourcePlugin:
     """``--source camera``: frames from OpenCV (``--device``: index, device path, stream URL or
     video file), an image folder (``--images``) or a RealSense (``--realsense``), through the
@@ -169,7 +221,9 @@ class CameraSourcePlugin:
         what = g.add_mutually_exclusive_group()
         what.add_argument("--device", metavar="URI",
                           help="OpenCV input: device index (0), device path (/dev/video0), "
-                          "stream URL (rtsp://..., http://...) or video file")
+                          "stream URL (rtsp://..., http://...), video file, GStreamer "
+                          "pipeline ending in appsink, or csi://N (a Jetson CSI camera at the "
+                          "calibration's size; both need an OpenCV with GStreamer)")
         what.add_argument("--images", metavar="DIR", help="a folder of images, in name order")
         what.add_argument("--realsense", nargs="?", const="", metavar="SERIAL",
                           help="an Intel RealSense colour stream, with depth aligned to it "
@@ -183,19 +237,31 @@ class CameraSourcePlugin:
                        "default: the site's robot model's models, else the shipped ones")
         g.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
         g.add_argument("--providers", default="auto",
-                       help="onnxruntime execution providers, comma-separated, or auto "
-                       "(TensorRT, CUDA where installed, else CPU)")
+                       help="onnxruntime execution providers for all networks (detector, "
+                       "keypoints, segmentation), comma-separated: tensorrt, cuda, cpu or "
+                       "onnxruntime's names; each falls back to the next (tensorrt → cuda → "
+                       "cpu); auto (default): the best this onnxruntime has. Asked vs got is "
+                       "logged and shown in the status")
+        g.add_argument("--fp16", action="store_true",
+                       help="TensorRT: build FP16 engines (faster on a Jetson; check accuracy "
+                       "with smartedge evaluate)")
+        g.add_argument("--trt-cache", metavar="DIR", default=None,
+                       help="TensorRT engine cache (default $SMARTEDGE_TRT_CACHE, else "
+                       "trt_engines in the service's state directory, $STATE_DIRECTORY)")
         g.add_argument("--min-score", type=float, default=0.3,
                        help="detector score below which a box is dropped (default 0.3)")
 
     def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource:
         from edge_agent.frames import (
+            FrameSourceError,
             ImageFolderGrabber,
             LatestFrameReader,
             OpenCVGrabber,
             RealSenseGrabber,
+            check_gstreamer,
+            expand_device_uri,
         )
-        from edge_agent.models import RobotKeypointPipeline, providers_available
+        from edge_agent.models import RobotKeypointPipeline
         from edge_agent.pipeline import EdgePipeline
 
         if site is None:
@@ -209,19 +275,21 @@ class CameraSourcePlugin:
                                        height=camera.height,
                                        depth=getattr(args, "cloud_rate", None) != 0)
         elif args.device:
+            try:  # a GStreamer pipeline on an OpenCV without GStreamer: fail at start
+                check_gstreamer(args.device)
+                expand_device_uri(args.device, camera.width, camera.height, None)
+            except FrameSourceError as exc:
+                raise UsageError(str(exc)) from None
             grabber = OpenCVGrabber(args.device, width=camera.width, height=camera.height,
                                     loop=args.loop)
         else:
             raise UsageError("--source camera needs --device URI, --images DIR or --realsense")
-        if args.providers == "auto":
-            providers = providers_available()
-        else:
-            providers = [p.strip() for p in args.providers.split(",") if p.strip()]
+        providers = execution_providers_from_args(args)
         model = site.robot_model()  # the site's robot (one robot per edge model for now)
         models = RobotKeypointPipeline.for_robot(model, args.model, threads=args.threads,
                                                  providers=providers)
-        log.info("%s: models %s and %s, onnxruntime providers %s, %d thread(s)", args.camera,
-                 models.detector.path, models.keypoints.path, providers, args.threads)
+        log.info("%s: models %s and %s on %s, %d thread(s)", args.camera, models.detector.path,
+                 models.keypoints.path, models.providers_note(), args.threads)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
                                 expected_size=(camera.width, camera.height))
         lossless = bool(args.images) and args.rate <= 0

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Callable, Iterator, Sequence
-from typing import Final, Generic, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, Final, Generic, NamedTuple, TypeVar
 
 from protocol.geometry import wrap_angle
 
@@ -37,21 +37,33 @@ R = TypeVar("R")
 OUT_OF_ORDER_POLICIES: Final = ("drop", "insert")
 
 
-class Stamped(NamedTuple, Generic[T]):
-    """One item of a history and its stamp (ns)."""
+if TYPE_CHECKING:  # generic for the type checker: ``Stamped[T]``, ``Bracket[T]``
 
-    stamp_ns: int
-    item: T
+    class Stamped(NamedTuple, Generic[T]):
+        stamp_ns: int
+        item: T
 
+    class Bracket(NamedTuple, Generic[T]):
+        before: Stamped[T]
+        after: Stamped[T]
+        fraction: float
 
-class Bracket(NamedTuple, Generic[T]):
-    """The two items around a stamp: ``before.stamp_ns <= stamp <= after.stamp_ns`` and
-    ``fraction`` = (stamp - before) / (after - before) in [0, 1]. At a stamp the history holds,
-    ``before`` and ``after`` are that item and ``fraction`` is 0."""
+else:  # a generic NamedTuple needs Python 3.11 at run time; JetPack 6 (edge, robot) has 3.10
 
-    before: Stamped[T]
-    after: Stamped[T]
-    fraction: float
+    class Stamped(NamedTuple):
+        """One item of a history and its stamp (ns)."""
+
+        stamp_ns: int
+        item: Any
+
+    class Bracket(NamedTuple):
+        """The two items around a stamp: ``before.stamp_ns <= stamp <= after.stamp_ns`` and
+        ``fraction`` = (stamp - before) / (after - before) in [0, 1]. At a stamp the history
+        holds, ``before`` and ``after`` are that item and ``fraction`` is 0."""
+
+        before: Stamped
+        after: Stamped
+        fraction: float
 
 
 class StampedHistory(Generic[T]):
