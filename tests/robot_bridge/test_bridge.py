@@ -254,6 +254,7 @@ def test_service_node_applies_each_correction_once(
             )
 
     with caplog.at_level(logging.INFO):
+        caplog.clear()  # only the run's lines (building the node may log its configuration)
         run(6.0, vx=0.5)
         run(4.0, vx=0.0)  # estimates all along: decided when the dwell ends, in the pump
         run(6.0, vx=0.5)
