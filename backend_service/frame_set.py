@@ -151,7 +151,8 @@ def frame_set_from_detections(site: Any, detections: Sequence[RobotDetections],
     """One :class:`FrameSet` from camera messages that belong together (one per camera, the
     caller's synchronization), with the checks the synchronizer applies: camera known, image
     size the calibrated one or an exact scale of it (converted), the robot's detection (for
-    ``robot_id``; unidentified detections count when the site has one robot), keypoint count.
+    ``robot_id``; unidentified detections count when the site has one robot: on a site with
+    several, name them first, :mod:`backend_service.association`), keypoint count.
     Stamps are corrected by each camera's clock offset. Returns the frame-set and what was
     dropped and why. ``TypeError`` if ``detections`` is not a sequence of
     :class:`RobotDetections`.

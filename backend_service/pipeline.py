@@ -4,6 +4,11 @@ Everything that turns detections and odometry into poses happens here, in one pl
 same way by the backend service (:mod:`backend_service.service`), the paper's experiments
 (``smartedge evaluate paper``), ``smartedge bench backend`` and replays:
 
+0. **detections to robots** (a site with several robots): each camera message's unnamed
+   detections are named after the robot each is (:class:`~backend_service.association.
+   DetectionRouter`: every robot's :meth:`RobotTrack.prediction` at the image's stamp, its
+   keypoints reprojected, a gated optimal assignment; ambiguous and unmatched detections are
+   counted and left out); a site with one robot skips this, its unnamed detections are its own;
 1. **sync**: :class:`~backend_service.sync.FrameSetSynchronizer` groups per-camera detections
    into frame-sets;
 2. **prior**: one rule (:meth:`RobotTrack.prior`) picks the pose a solve starts from
@@ -45,6 +50,12 @@ from typing import TYPE_CHECKING, Final, Protocol
 
 import numpy as np
 
+from backend_service.association import (
+    AssociationConfig,
+    DetectionRouter,
+    RobotPrediction,
+    predicted_covariance,
+)
 from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor, NoiseModel
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, solver_views
 from backend_service.frame_set import FrameSet, PlanarPose
@@ -64,6 +75,8 @@ log = logging.getLogger(__name__)
 PRIOR_SOURCES: Final = ("fused", "localization")
 #: How many of the robot's own localization messages are kept for the prior lookup.
 LOCALIZATION_BUFFER: Final = 64
+#: How many recent predictions per robot are kept for reuse (:meth:`RobotTrack.prediction`).
+PREDICTIONS_KEPT: Final = 4
 
 
 class Fusion(Protocol):
@@ -105,6 +118,8 @@ class PipelineConfig:
     frame-sets go first and the latency stays bounded instead of growing until every pose is
     stale. ``camera_health``: watching the cameras for a bump (the site file's
     ``camera_health`` section, :class:`~backend_service.camera_health.CameraHealthConfig`).
+    ``association``: how unnamed detections are matched to robots on a site with several
+    (:class:`~backend_service.association.AssociationConfig`).
     """
 
     solver: SolverConfig = dataclasses.field(default_factory=SolverConfig)
@@ -116,6 +131,7 @@ class PipelineConfig:
     static_dwell_s: float = 1.0
     max_input_delay_s: float = 0.25
     camera_health: CameraHealthConfig = dataclasses.field(default_factory=CameraHealthConfig)
+    association: AssociationConfig = dataclasses.field(default_factory=AssociationConfig)
 
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_SOURCES:
@@ -200,7 +216,8 @@ class RobotTrack:
     (a prior is used only when stamped within ``max_age_ms`` of the solve)."""
 
     def __init__(self, robot_id: str, config: PipelineConfig, fusion: Fusion | None,
-                 world_frame: str, clock: ClockPolicy | None = None) -> None:
+                 world_frame: str, clock: ClockPolicy | None = None,
+                 prediction_reuse_ns: int = 20_000_000) -> None:
         self.robot_id = robot_id
         self.config = config
         self.fusion = fusion
@@ -219,6 +236,11 @@ class RobotTrack:
         # the robot's own localization; messages may overtake each other on the way
         self._localization: StampedHistory[PoseEstimate] = StampedHistory(
             LOCALIZATION_BUFFER, out_of_order="insert")
+        self._prediction_reuse_ns = int(prediction_reuse_ns)
+        # recent predictions (stamp, prediction): images of neighbouring frame-sets may arrive
+        # interleaved, each group reuses its own
+        self._predictions: collections.deque[tuple[int, RobotPrediction | None]] = (
+            collections.deque(maxlen=PREDICTIONS_KEPT))
 
     @property
     def motion(self) -> MotionState:
@@ -266,6 +288,49 @@ class RobotTrack:
             return last
         return None
 
+    def prediction(self, stamp_ns: int, config: AssociationConfig) -> RobotPrediction | None:
+        """Where this robot is expected at ``stamp_ns``, for matching detections to robots
+        (:mod:`backend_service.association`): the fused pose (the pose graph at the stamp, or
+        its newest pose carried forward with the last odometry velocity), else the newest
+        camera estimate, else the robot's own localization (its bridge; a robot the cameras
+        have not localized yet) with at least the wide ``unlocalized_sigma_*`` covariance; each
+        only when stamped within the clock policy's ``max_age_ms`` of ``stamp_ns``. ``None``:
+        no prediction, the robot takes no unnamed detections. One prediction serves the images
+        stamped within ``prediction_reuse_ns`` of it (the site's sync window: the images of one
+        frame-set share it, and so one projection of all the robots into every camera,
+        :class:`~backend_service.association.ViewCache`); its covariance grows by the motion
+        possible over that span."""
+        for cached_ns, cached in self._predictions:
+            if abs(cached_ns - stamp_ns) <= self._prediction_reuse_ns:
+                return cached
+        pred = self._predict(stamp_ns, config)
+        self._predictions.append((stamp_ns, pred))
+        return pred
+
+    def _predict(self, stamp_ns: int, config: AssociationConfig) -> RobotPrediction | None:
+        candidates: list[tuple[str, PoseEstimate | None]] = []
+        if self.fusion is not None and self.fusion.anchored:
+            candidates.append(("fused", self.fusion.pose_at(stamp_ns) or self.fusion.latest()))
+        candidates.append(("camera", self._camera_at(stamp_ns)))
+        candidates.append(("localization", self._localization_at(stamp_ns)))
+        for source, est in candidates:
+            if est is None or abs(stamp_ns - est.stamp_ns) > self._max_age_ns:
+                continue
+            dt_s = (stamp_ns - est.stamp_ns) * 1e-9
+            x, y, theta = est.x, est.y, est.theta
+            odom = self.last_odometry
+            if odom is not None and dt_s != 0.0:
+                # carried to the stamp with the body velocities of the last odometry
+                c, s = np.cos(theta), np.sin(theta)
+                x += (odom.vx * c - odom.vy * s) * dt_s
+                y += (odom.vx * s + odom.vy * c) * dt_s
+                theta += odom.wz * dt_s
+            cov = predicted_covariance(est.covariance,
+                                       abs(dt_s) + self._prediction_reuse_ns * 1e-9, source,
+                                       config)
+            return RobotPrediction(self.robot_id, PlanarPose(x, y, theta), cov, source)
+        return None
+
 
 class BackendPipeline:
     """Sync → prior → solve → averaging while static → pose graph, for every robot of a site.
@@ -291,10 +356,14 @@ class BackendPipeline:
                 return PoseGraphFusion(robot_id, fcfg, site.clock)
 
         self.sync = FrameSetSynchronizer(site)
+        #: several robots: unnamed detections go to robots by where each is expected to be
+        self.router: DetectionRouter | None = (
+            DetectionRouter(site, self.config.association) if len(site.robots) > 1 else None)
         self.tracks: dict[str, RobotTrack] = {
             rid: RobotTrack(rid, self.config,
                             fusion_factory(rid) if with_fusion and fusion_factory else None,
-                            site.world_frame, site.clock)
+                            site.world_frame, site.clock,
+                            round(site.thresholds.sync_window_ms * 1e6))
             for rid in site.robots
         }
         self.counters: collections.Counter[str] = collections.Counter()
@@ -338,7 +407,20 @@ class BackendPipeline:
         return out
 
     def on_detections(self, msg: RobotDetections, arrival_ns: int) -> PipelineOutput:
+        if self.router is not None and msg.detections:
+            msg = self._route(msg)
         return self._solve_all(self.sync.push(msg, arrival_ns), arrival_ns)
+
+    def _route(self, msg: RobotDetections) -> RobotDetections:
+        """``msg`` with its detections named after the robots they go to (several robots:
+        :class:`~backend_service.association.DetectionRouter`, each robot's
+        :meth:`RobotTrack.prediction` at the image's stamp on the common clock)."""
+        assert self.router is not None
+        cam = self.site.cameras.get(msg.camera_id)
+        stamp_ns = int(msg.stamp_ns) + (int(cam.clock_offset_ns) if cam is not None else 0)
+        cfg = self.config.association
+        predictions = {rid: t.prediction(stamp_ns, cfg) for rid, t in self.tracks.items()}
+        return self.router.route(msg, predictions)
 
     def poll(self, now_ns: int) -> PipelineOutput:
         """Emit the frame-sets whose wait is over at ``now_ns`` and solve them."""
@@ -501,6 +583,8 @@ class BackendPipeline:
     def counter_snapshot(self) -> Mapping[str, int]:
         """Pipeline, synchronizer and pose-graph counters (flat, dotted names)."""
         out: dict[str, int] = dict(self.counters)
+        if self.router is not None:
+            out.update({f"association.{k}": int(v) for k, v in self.router.counters.items()})
         out.update({f"sync.{k}": int(v) for k, v in self.sync.counters.items()})
         for cam, per in self.sync.camera_counters.items():
             out.update({f"sync.camera.{cam}.{k}": int(v) for k, v in per.items() if v})

@@ -71,6 +71,7 @@ class BackendNode(ServiceNode):
         self._delay_floor_ns = 0
         self._stale_run = 0
         self._shed_seen = 0
+        self._contradicted_seen = 0
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
@@ -155,6 +156,24 @@ class BackendNode(ServiceNode):
         detail = (f"cameras live: {','.join(live) or '-'}; "
                   f"robots localized: {','.join(anchored) or '-'}")
         problems = self.pipeline.problems(now) if now else []
+        router = self.pipeline.router
+        if router is not None:
+            # several robots: how the unnamed detections were matched to them (counters since
+            # the start; docs/pose_estimation.md, "Several robots")
+            c = router.counters
+            detail += (f"; detections assigned {c['detections_assigned']}, ambiguous "
+                       f"{c['detections_ambiguous']}, unassigned "
+                       f"{c['detections_unassigned'] + c['detections_no_prediction']}")
+            if router.unpredicted:
+                # neither tracked nor reporting its own localization: its detections, and
+                # those of its twins known only roughly, are not used
+                detail += f"; no prediction: {','.join(router.unpredicted)}"
+            contradicted = c["detections_id_contradicted"]
+            if contradicted > self._contradicted_seen:
+                problems.append(f"{contradicted - self._contradicted_seen} detections named a "
+                                f"robot whose predicted pose they contradict since the last "
+                                f"status")
+                self._contradicted_seen = contradicted
         if self._stale_run:
             problems.append(f"{self._stale_run} stale poses dropped (the worker stalled?)")
         shed = self.stats.snapshot_counters().get("shed", 0)

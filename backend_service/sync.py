@@ -81,7 +81,9 @@ class FrameSetSynchronizer:
     """Software synchronization of detections into :class:`FrameSet` s (paper Sec. III-B).
 
     ``robot_id``: synchronize only this robot; ``None``: every robot of the site (unidentified
-    detections, ``robot_id == ""``, are only attributed when the site has one robot).
+    detections, ``robot_id == ""``, are only attributed when the site has one robot; on a site
+    with several, :class:`~backend_service.pipeline.BackendPipeline` names them first by where
+    each robot is expected to be, :mod:`backend_service.association`).
     Thresholds come from ``site.thresholds`` and the clock policy from ``site.clock``. Not
     thread-safe: call from one worker loop.
     """

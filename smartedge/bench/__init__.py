@@ -23,6 +23,8 @@ BENCHES: Final[dict[str, Command]] = {
                              "single-camera treatments and covariance consistency (NEES)"),
     "sim": Command("smartedge.bench.sim", "main", "simulated seconds per wall second"),
     "fusion": Command("smartedge.bench.fusion", "main", "ISAM2 latency and memory over 1 h"),
+    "association": Command("smartedge.bench.association", "main",
+                           "CPU of matching detections to several robots per frame-set"),
     "backend": Command("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
     "render": Command("smartedge.bench.render", "main", "rendered images/s with exact labels"),
     "edge": Command("smartedge.bench.edge", "main",

@@ -1,0 +1,671 @@
+"""Detections to robots: which robot of the site each detection in one camera image is.
+
+The edge agent reports the robots it sees without an identity (identical robots look the same;
+``Detection.robot_id == ""``). On a site with several robots the backend tells them apart only by
+where each is expected to be: every robot with a **prediction** (its fused pose propagated with
+odometry to the image's stamp, else a recent camera estimate, else its own localization from
+its bridge with a wide covariance; :class:`RobotPrediction`) has its keypoints reprojected into
+the camera, and each (detection, robot) pair gets a cost (:func:`association_costs`):
+
+- the keypoints both visible at the predicted pose (in front of the camera, inside the image)
+  and confident in the detection (score ``>= min_keypoint_score``) are compared; each pixel
+  residual is normalised by its predicted uncertainty (the pose covariance propagated through
+  the projection's pinhole Jacobian, plus the detector's pixel noise: a Mahalanobis distance
+  per keypoint);
+- the cost is the mean of those distances, each clipped to ``clip_distance`` (an outlier, a
+  keypoint the robot's own body hides, moves it by at most ``clip_distance / n``); fewer than
+  ``min_keypoints`` shared keypoints, or a detection box that does not overlap the predicted
+  one (widened by ``box_margin_sigmas`` of the predicted uncertainty), mean no cost
+  (infinite).
+
+A pair whose cost is above ``gate`` is not a candidate. The optimal assignment (Hungarian,
+:func:`hungarian`, exact, written here so the backend needs no scipy) gives each robot at most
+one detection of the image and each detection at most one robot, assigning as many pairs as
+the gate allows with the least total ``cost² / 2`` (the negative log-likelihood of the
+assignment when the normalised distances are Gaussian). **Ambiguity**: for each assigned pair
+that has a rival within the gate (another robot for the detection, another detection for the
+robot) the best assignment without that pair is solved too; when it is at least
+``ambiguity_ratio`` times as likely as the best one (its total within ``-ln(ambiguity_ratio)``
+of the optimum) the detection is left unassigned and counted (``ambiguous``): two identical
+robots that meet while their predictions are too vague to tell them apart, or one robot whose
+prediction fits two nearby detections, get no detection rather than a guess. With the default
+ratio (1 %) two robots predicted with the same position sigma are told apart once their
+predictions differ by about 2 sigma along the line between them. **A robot with no
+prediction** could be anywhere: while one robot of a model has none, a robot of that model
+known only roughly (position sigma above ``vague_sigma_xy_m``, e.g. only by its own
+localization) takes no detection either (``ambiguous``): it might be the other one's. Robots
+tracked by the cameras (a few cm) keep theirs; the unknown one's detections are outside their
+gates.
+
+Detections that carry a robot id keep it: an id the site does not know is dropped
+(``unknown_robot``); a known id whose robot has a prediction that the detection contradicts
+(cost above the gate) is still routed to it and counted (``id_contradicted``); a named robot is
+not a candidate for the unnamed detections of the same image. Everything here is numpy and
+plain Python, transport-free; :class:`DetectionRouter` applies it to a
+:class:`~protocol.messages.RobotDetections` message and keeps the counters.
+"""
+
+from __future__ import annotations
+
+import collections
+import copy
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Final
+
+import numpy as np
+
+from backend_service.frame_set import PlanarPose, image_scale, scale_detection
+from backend_service.projection import project_planar, stacked_cameras
+from protocol.camera import CameraModel
+from protocol.messages import Detection, RobotDetections
+from protocol.site import Site
+
+#: why a detection went (or did not go) to a robot (the router counts ``detections_<reason>``)
+REASONS: Final = ("assigned", "named", "id_contradicted", "unknown_robot", "ambiguous",
+                  "unassigned", "no_prediction")
+#: where a prediction came from (:class:`RobotPrediction.source`)
+PREDICTION_SOURCES: Final = ("fused", "camera", "localization")
+#: a predicted keypoint this close to the camera (or behind it) is not visible, metres
+_MIN_DEPTH_M: Final = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class AssociationConfig:
+    """How detections are matched to robots (units in the names; costs are mean normalised
+    reprojection distances, i.e. "sigmas").
+
+    ``gate``: a pair costing more is not a candidate. ``ambiguity_ratio``: a pair is ambiguous
+    when the best assignment without it is at least this likely relative to the best one (see
+    the module doc). ``vague_sigma_xy_m``: a prediction with a larger position sigma (a robot
+    known only by its own localization) takes no detection while a robot of its model has no
+    prediction at all. ``min_keypoints``: shared visible, confident keypoints needed for a cost.
+    ``min_keypoint_score``: a keypoint below it is not compared. ``detector_sigma_px``: pixel
+    noise of a keypoint (floor of the detector's own ``keypoint_sigmas_px``).
+    ``clip_distance``: each keypoint's normalised distance is clipped to it before the mean
+    (>= ``gate``). ``box_margin_sigmas``: the predicted box is widened by this many pixel
+    sigmas before the overlap test. ``unlocalized_sigma_xy_m`` /
+    ``unlocalized_sigma_theta_rad``: the smallest covariance given to a prediction from the
+    robot's own localization (a robot not yet localized by the cameras). ``min_sigma_xy_m`` /
+    ``min_sigma_theta_rad``: the smallest covariance of any prediction. ``max_speed_mps`` /
+    ``max_yaw_rate_radps``: growth of the uncertainty per second a prediction is carried
+    beyond its stamp.
+    """
+
+    gate: float = 4.0
+    ambiguity_ratio: float = 0.01
+    vague_sigma_xy_m: float = 0.15
+    min_keypoints: int = 4
+    min_keypoint_score: float = 0.3
+    detector_sigma_px: float = 3.0
+    clip_distance: float = 6.0
+    box_margin_sigmas: float = 3.0
+    unlocalized_sigma_xy_m: float = 0.5
+    unlocalized_sigma_theta_rad: float = 0.35
+    min_sigma_xy_m: float = 0.02
+    min_sigma_theta_rad: float = 0.01
+    max_speed_mps: float = 1.0
+    max_yaw_rate_radps: float = 1.5
+
+    def __post_init__(self) -> None:
+        positive = ("gate", "detector_sigma_px", "unlocalized_sigma_xy_m", "vague_sigma_xy_m",
+                    "unlocalized_sigma_theta_rad", "min_sigma_xy_m", "min_sigma_theta_rad")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"AssociationConfig.{name} must be > 0")
+        for name in ("box_margin_sigmas", "max_speed_mps",
+                     "max_yaw_rate_radps", "min_keypoint_score"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"AssociationConfig.{name} must be >= 0")
+        if not 0 < self.ambiguity_ratio < 1:
+            raise ValueError("AssociationConfig.ambiguity_ratio must be in (0, 1)")
+        if not self.clip_distance >= self.gate:
+            raise ValueError("AssociationConfig.clip_distance must be >= gate")
+        if self.min_keypoints < 1:
+            raise ValueError("AssociationConfig.min_keypoints must be >= 1")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RobotPrediction:
+    """Where a robot is expected at some stamp: ``pose`` (world frame), ``covariance`` (3, 3)
+    of (x, y, theta) in m², rad², and what it came from (``source``: one of
+    :data:`PREDICTION_SOURCES`)."""
+
+    robot_id: str
+    pose: PlanarPose
+    covariance: np.ndarray
+    source: str
+
+    def __post_init__(self) -> None:
+        cov = np.asarray(self.covariance, dtype=np.float64)
+        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+            raise ValueError(f"RobotPrediction({self.robot_id!r}).covariance: expected a finite "
+                             f"(3, 3) array, got shape {cov.shape}")
+        if self.source not in PREDICTION_SOURCES:
+            raise ValueError(f"RobotPrediction.source {self.source!r} not in "
+                             f"{PREDICTION_SOURCES}")
+        object.__setattr__(self, "covariance", cov)
+
+    def sigma_xy_m(self) -> float:
+        """The largest position standard deviation (m): the square root of the largest
+        eigenvalue of the (x, y) covariance."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:2, :2])[-1]), 0.0))
+
+
+def predicted_covariance(covariance: np.ndarray | None, dt_s: float, source: str,
+                         config: AssociationConfig) -> np.ndarray:
+    """The covariance of a prediction: ``covariance`` (``None``, non-finite or not 3 x 3: zero)
+    made symmetric positive semi-definite (negative eigenvalues, which a faulty sender may
+    give, clipped to zero), grown by the motion possible over ``dt_s`` seconds
+    (``max_speed_mps``, ``max_yaw_rate_radps``), and floored (``min_sigma_*``; for
+    ``source == "localization"`` the ``unlocalized_sigma_*``)."""
+    cov = np.zeros((3, 3)) if covariance is None else np.asarray(covariance, np.float64)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        cov = np.zeros((3, 3))
+    cov = 0.5 * (cov + cov.T)
+    eigval, eigvec = np.linalg.eigh(cov)
+    if eigval[0] < 0.0:
+        cov = (eigvec * np.maximum(eigval, 0.0)) @ eigvec.T
+    dt = abs(float(dt_s))
+    grow = np.array([config.max_speed_mps * dt, config.max_speed_mps * dt,
+                     config.max_yaw_rate_radps * dt]) ** 2
+    cov = cov + np.diag(grow)
+    if source == "localization":
+        floor = np.array([config.unlocalized_sigma_xy_m, config.unlocalized_sigma_xy_m,
+                          config.unlocalized_sigma_theta_rad]) ** 2
+    else:
+        floor = np.array([config.min_sigma_xy_m, config.min_sigma_xy_m,
+                          config.min_sigma_theta_rad]) ** 2
+    diag = np.diag(cov)
+    return cov + np.diag(np.maximum(floor - diag, 0.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectionOutcome:
+    """What became of one detection: ``robot_id`` it goes to (``""``: none), ``reason`` (one of
+    :data:`REASONS`), ``cost`` to that robot (or to its best candidate when unassigned; ``inf``
+    when none could be computed)."""
+
+    robot_id: str
+    reason: str
+    cost: float
+
+    @property
+    def used(self) -> bool:
+        """Whether the detection goes to a robot's pipeline."""
+        return bool(self.robot_id)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Association:
+    """The association of one image: ``outcomes`` per detection (input order), ``robot_ids``
+    the robots costed (column order of ``costs``), ``costs`` (D, R) (``inf``: not computable),
+    ``by_robot`` robot id → index of its detection (robots without one are absent)."""
+
+    outcomes: tuple[DetectionOutcome, ...]
+    robot_ids: tuple[str, ...]
+    costs: np.ndarray
+    by_robot: Mapping[str, int]
+
+    def detection_of(self, robot_id: str) -> int | None:
+        """Index of the detection that goes to ``robot_id``, or ``None``."""
+        return self.by_robot.get(robot_id)
+
+    def count(self, reason: str) -> int:
+        return sum(1 for o in self.outcomes if o.reason == reason)
+
+
+# -- the assignment ---------------------------------------------------------------------------
+
+
+def hungarian(cost: np.ndarray) -> list[tuple[int, int]]:
+    """Minimum-cost assignment of a finite (n, m) cost matrix: ``min(n, m)`` (row, column)
+    pairs, each row and column at most once, least total cost (the Hungarian method with
+    potentials, O(n² m) for n <= m; the matrix is transposed otherwise). Exact."""
+    c = np.asarray(cost, dtype=np.float64)
+    if c.ndim != 2:
+        raise ValueError(f"hungarian: expected a 2-D cost matrix, got shape {c.shape}")
+    if c.size == 0:
+        return []
+    if not np.all(np.isfinite(c)):
+        raise ValueError("hungarian: costs must be finite (gate with a large finite cost)")
+    if c.shape[0] > c.shape[1]:
+        return [(i, j) for j, i in hungarian(c.T)]
+    n, m = c.shape
+    rows = c.tolist()
+    inf = math.inf
+    u = [0.0] * (n + 1)
+    v = [0.0] * (m + 1)
+    match = [0] * (m + 1)  # column j (1-based) -> row (1-based), 0 = free
+    way = [0] * (m + 1)
+    for i in range(1, n + 1):
+        match[0] = i
+        j0 = 0
+        minv = [inf] * (m + 1)
+        used = [False] * (m + 1)
+        while True:
+            used[j0] = True
+            i0 = match[j0]
+            row = rows[i0 - 1]
+            ui0 = u[i0]
+            delta = inf
+            j1 = 0
+            for j in range(1, m + 1):
+                if not used[j]:
+                    cur = row[j - 1] - ui0 - v[j]
+                    if cur < minv[j]:
+                        minv[j] = cur
+                        way[j] = j0
+                    if minv[j] < delta:
+                        delta = minv[j]
+                        j1 = j
+            for j in range(m + 1):
+                if used[j]:
+                    u[match[j]] += delta
+                    v[j] -= delta
+                else:
+                    minv[j] -= delta
+            j0 = j1
+            if match[j0] == 0:
+                break
+        while j0:
+            j1 = way[j0]
+            match[j0] = match[j1]
+            j0 = j1
+    return [(match[j] - 1, j - 1) for j in range(1, m + 1) if match[j]]
+
+
+def _gated_assignment(costs: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
+    """The gated optimal assignment of ``costs`` (D, R): pairs costing at most ``gate`` only,
+    as many pairs as possible, then the least total ``cost² / 2``. Returns the pairs and that
+    total plus ``big`` for each row left unassigned (comparable between calls on the same
+    shape)."""
+    d, r = costs.shape
+    nll = 0.5 * np.square(costs)
+    big = (0.5 * gate * gate + 1.0) * (min(d, r) + 1)
+    finite = np.where(costs <= gate, nll, big)
+    pairs = [(i, j) for i, j in hungarian(finite) if costs[i, j] <= gate]
+    total = sum(float(nll[i, j]) for i, j in pairs) + big * (d - len(pairs))
+    return pairs, total
+
+
+# -- the costs --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PredictedView:
+    """R predicted robots of one keypoint model (M keypoints) as one camera should see them:
+    ``uv`` (R, M, 2) pixels, ``visible`` (R, M) in front of the camera and inside the image,
+    ``sigma_uv`` (R, M, 2, 2) the pixel covariance the pose covariance gives each keypoint
+    (the pinhole Jacobian of the projection), ``box_lo`` / ``box_hi`` (R, 2) the box of the
+    visible keypoints widened by ``box_margin_sigmas`` pixel sigmas (pose and detector),
+    ``info`` (3, R, M) the entries (uu, uv, vv) of the inverse of ``sigma_uv`` plus the
+    detector's pixel noise ``detector_sigma_px`` (the common case's information matrix)."""
+
+    uv: np.ndarray
+    visible: np.ndarray
+    sigma_uv: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    info: np.ndarray
+
+    def rows(self, index: Sequence[int]) -> PredictedView:
+        idx = np.asarray(index, dtype=np.intp)
+        return PredictedView(self.uv[idx], self.visible[idx], self.sigma_uv[idx],
+                             self.box_lo[idx], self.box_hi[idx], self.info[:, idx])
+
+
+def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray,
+                    predictions: Sequence[RobotPrediction], config: AssociationConfig
+                    ) -> list[PredictedView]:
+    """:class:`PredictedView` of ``predictions`` (robots of one model, ``keypoints_base_m``
+    (M, 3)) in each of ``cameras``, vectorized over cameras, robots and keypoints. The pixels
+    are the solver's projection (:func:`~backend_service.projection.project_planar`, with
+    distortion); the pose covariance reaches the pixels through the pinhole Jacobian of the
+    projection (lens distortion, a few per cent of it at the image edges, left out of this
+    uncertainty)."""
+    cams = stacked_cameras(tuple(cameras))
+    q0 = np.array([[p.pose.x, p.pose.y, p.pose.theta] for p in predictions], dtype=np.float64)
+    uv, depth = project_planar(cams, keypoints_base_m, q0)  # (R, N, M, 2), (R, N, M)
+    uv0 = np.moveaxis(uv, 1, 0)  # (N, R, M, 2)
+    kp = np.asarray(keypoints_base_m, dtype=np.float64)
+    c, s = np.cos(q0[:, 2])[:, None], np.sin(q0[:, 2])[:, None]
+    # world points (R, M, 3) and their derivative by theta (x and y move them by unit vectors)
+    pw = np.stack([c * kp[:, 0] - s * kp[:, 1] + q0[:, 0, None],
+                   s * kp[:, 0] + c * kp[:, 1] + q0[:, 1, None],
+                   np.broadcast_to(kp[:, 2], c.shape[:1] + kp[:, 2].shape)], axis=-1)
+    dpw_dtheta = np.stack([-s * kp[:, 0] - c * kp[:, 1], c * kp[:, 0] - s * kp[:, 1],
+                           np.zeros(c.shape[:1] + kp[:, 2].shape)], axis=-1)
+    R_cw = cams.R_cw  # (N, 3, 3)
+    pc = np.einsum("nij,rmj->nrmi", R_cw, pw) + cams.t_cw[:, None, None, :]  # (N, R, M, 3)
+    # camera-frame derivatives (N, R, M, 3) by x, y (the world axes' images) and theta
+    d_by = (np.broadcast_to(R_cw[:, None, None, :, 0], pc.shape),
+            np.broadcast_to(R_cw[:, None, None, :, 1], pc.shape),
+            np.einsum("nij,rmj->nrmi", R_cw, dpw_dtheta))
+    z = np.maximum(pc[..., 2], _MIN_DEPTH_M)
+    fx = cams.K[:, 0, 0][:, None, None]
+    fy = cams.K[:, 1, 1][:, None, None]
+    xz, yz = pc[..., 0] / z, pc[..., 1] / z
+    J = np.empty((*pc.shape[:3], 2, 3))  # (N, R, M, 2, 3): pixels by (x, y, theta)
+    for k, d in enumerate(d_by):
+        J[..., 0, k] = fx * (d[..., 0] - xz * d[..., 2]) / z
+        J[..., 1, k] = fy * (d[..., 1] - yz * d[..., 2]) / z
+    cov = np.stack([p.covariance for p in predictions])[:, None, :, :]  # (R, 1, 3, 3)
+    # J cov J^T (N, R, M, 2, 2), written out: batched 2x3 matrix products are slower
+    JC = [[sum(J[..., i, q] * cov[..., q, k] for q in range(3)) for k in range(3)]
+          for i in range(2)]
+    sigma_uv = np.empty((*pc.shape[:3], 2, 2))
+    for i in range(2):
+        for j in range(i, 2):
+            sigma_uv[..., i, j] = sum(JC[i][k] * J[..., j, k] for k in range(3))
+    sigma_uv[..., 1, 0] = sigma_uv[..., 0, 1]
+    size = np.array([[cam.width - 1.0, cam.height - 1.0] for cam in cameras])[:, None, None, :]
+    visible = ((np.moveaxis(depth, 1, 0) > _MIN_DEPTH_M)
+               & np.all((uv0 >= 0.0) & (uv0 <= size), axis=-1)
+               & np.all(np.isfinite(uv0), axis=-1))
+    sig_px = np.sqrt(np.maximum(np.maximum(sigma_uv[..., 0, 0], sigma_uv[..., 1, 1]), 0.0)
+                     + config.detector_sigma_px ** 2)  # (N, R, M)
+    pad = config.box_margin_sigmas * sig_px[..., None]
+    lo = np.where(visible[..., None], uv0 - pad, np.inf).min(axis=2)  # (N, R, 2)
+    hi = np.where(visible[..., None], uv0 + pad, -np.inf).max(axis=2)
+    info = _information(sigma_uv, config.detector_sigma_px ** 2)  # (3, N, R, M)
+    return [PredictedView(uv0[i], visible[i], sigma_uv[i], lo[i], hi[i], info[:, i])
+            for i in range(len(cameras))]
+
+
+def _information(sigma_uv: np.ndarray, var_px2: float | np.ndarray) -> np.ndarray:
+    """Entries (uu, uv, vv) of the inverse of ``sigma_uv`` (..., 2, 2) plus ``var_px2`` times
+    the identity (positive definite: ``sigma_uv`` is semi-definite, ``var_px2`` > 0)."""
+    a = sigma_uv[..., 0, 0] + var_px2
+    b = sigma_uv[..., 0, 1]
+    c = sigma_uv[..., 1, 1] + var_px2
+    det = a * c - b * b
+    return np.stack([c / det, -b / det, a / det])
+
+
+class ViewCache:
+    """The predicted views of a set of predictions in every camera of a site, computed in one
+    projection when the predictions change (they are the same objects for all the images of a
+    frame-set: :meth:`~backend_service.pipeline.RobotTrack.prediction` reuses them) and
+    reused for each camera's image. The last ``keep`` sets are kept per keypoint model: the
+    images of neighbouring frame-sets may arrive interleaved."""
+
+    def __init__(self, cameras: Sequence[CameraModel], config: AssociationConfig,
+                 keep: int = 4) -> None:
+        self.cameras = tuple(cameras)
+        self.config = config
+        self._index = {c.camera_id: i for i, c in enumerate(self.cameras)}
+        #: keypoint model (by identity) -> recent (predictions, their row, views per camera)
+        self._entries: dict[int, collections.deque[tuple[
+            tuple[RobotPrediction, ...], dict[int, int], list[PredictedView]]]] = {}
+        self._keep = int(keep)
+        self.computed = 0  # projections made (for tests and benchmarks)
+
+    def view(self, camera: CameraModel, keypoints_base_m: np.ndarray,
+             predictions: Sequence[RobotPrediction]) -> PredictedView:
+        cam_i = self._index.get(camera.camera_id)
+        if cam_i is None or self.cameras[cam_i] is not camera:
+            return predicted_views([camera], keypoints_base_m, predictions, self.config)[0]
+        entries = self._entries.setdefault(id(keypoints_base_m),
+                                           collections.deque(maxlen=self._keep))
+        for preds, rows, views in entries:
+            idx = [rows.get(id(p), -1) for p in predictions]
+            if all(i >= 0 and preds[i] is p for i, p in zip(idx, predictions, strict=True)):
+                view = views[cam_i]
+                return view if len(idx) == len(preds) and idx == sorted(idx) else view.rows(idx)
+        preds = tuple(predictions)
+        views = predicted_views(self.cameras, keypoints_base_m, preds, self.config)
+        self.computed += 1
+        entries.append((preds, {id(p): i for i, p in enumerate(preds)}, views))
+        return views[cam_i]
+
+
+def association_costs(camera: CameraModel, detections: Sequence[Detection],
+                      predictions: Sequence[RobotPrediction],
+                      keypoints_base_m: Mapping[str, np.ndarray],
+                      config: AssociationConfig, views: ViewCache | None = None) -> np.ndarray:
+    """(D, R) cost of each detection (keypoints in ``camera``'s calibrated pixels) being each
+    predicted robot (``keypoints_base_m``: robot id → its model's (M, 3) keypoints); ``inf``
+    where the pair cannot be judged (keypoint count differs from the robot's model, too few
+    shared keypoints, boxes apart). ``views``: where the predicted views come from (default:
+    projected now). See the module doc."""
+    n_det, n_rob = len(detections), len(predictions)
+    costs = np.full((n_det, n_rob), np.inf)
+    if n_det == 0 or n_rob == 0:
+        return costs
+    # robots grouped by keypoint model (one projection per model)
+    groups: dict[int, list[int]] = collections.defaultdict(list)
+    models: dict[int, np.ndarray] = {}
+    for j, p in enumerate(predictions):
+        kp = keypoints_base_m[p.robot_id]
+        groups[id(kp)].append(j)
+        models[id(kp)] = kp
+    for key, cols in groups.items():
+        kp = models[key]
+        m = kp.shape[0]
+        dets = [i for i, d in enumerate(detections) if d.keypoints_px.shape[0] == m]
+        if not dets:
+            continue
+        group = [predictions[j] for j in cols]
+        view = (views.view(camera, kp, group) if views is not None
+                else predicted_views([camera], kp, group, config)[0])
+        chosen = [detections[i] for i in dets]
+        if len(chosen) == 1:  # the common case: no stacking
+            obs = chosen[0].keypoints_px[None]  # (D, M, 2)
+            scores = chosen[0].keypoint_scores[None]
+            boxes = chosen[0].bbox_xyxy[None]  # (D, 4)
+        else:
+            obs = np.stack([d.keypoints_px for d in chosen])
+            scores = np.stack([d.keypoint_scores for d in chosen])
+            boxes = np.stack([d.bbox_xyxy for d in chosen])
+        # the information matrix of each keypoint's residual: the pose-induced pixel covariance
+        # plus the detector's pixel noise (its own sigmas where it sends them)
+        info = view.info[:, None]  # (3, 1, R, M)
+        if any(d.keypoint_sigmas_px is not None for d in chosen):
+            var = np.full(scores.shape, config.detector_sigma_px ** 2)
+            for row, d in enumerate(chosen):
+                if d.keypoint_sigmas_px is not None:
+                    var[row] = np.maximum(d.keypoint_sigmas_px, config.detector_sigma_px) ** 2
+            info = _information(view.sigma_uv[None], var[:, None, :])  # (3, D, R, M)
+        # keypoints are finite (the message's validation); a dropped one has score 0
+        confident = scores >= config.min_keypoint_score
+        res = obs[:, None] - view.uv  # (D, R, M, 2)
+        rx, ry = res[..., 0], res[..., 1]
+        d2 = info[0] * rx * rx + 2.0 * info[1] * rx * ry + info[2] * ry * ry
+        shared = confident[:, None, :] & view.visible  # (D, R, M)
+        n_shared = np.count_nonzero(shared, axis=-1)
+        # robust mean: each keypoint's distance clipped, so one outlier moves it little
+        clipped = np.minimum(np.sqrt(np.maximum(d2, 0.0)), config.clip_distance)
+        mean = np.where(shared, clipped, 0.0).sum(axis=-1) / np.maximum(n_shared, 1)
+        # the box sanity gate: the detection's box overlaps the widened predicted one
+        lo, hi = view.box_lo, view.box_hi
+        overlap = ((boxes[:, None, 0] <= hi[..., 0]) & (boxes[:, None, 2] >= lo[..., 0])
+                   & (boxes[:, None, 1] <= hi[..., 1]) & (boxes[:, None, 3] >= lo[..., 1]))
+        block = np.where(overlap & (n_shared >= config.min_keypoints), mean, np.inf)
+        if len(dets) == n_det and len(cols) == n_rob:
+            costs = block
+        else:
+            costs[np.ix_(dets, cols)] = block
+    return costs
+
+
+# -- one image --------------------------------------------------------------------------------
+
+
+def associate(camera: CameraModel, detections: Sequence[Detection],
+              predictions: Sequence[RobotPrediction],
+              keypoints_base_m: Mapping[str, np.ndarray],
+              config: AssociationConfig | None = None,
+              site_robots: Sequence[str] | None = None,
+              views: ViewCache | None = None) -> Association:
+    """Assign the detections of one image of ``camera`` (calibrated pixels) to robots.
+
+    ``predictions``: the robots that may take unnamed detections (a robot with no prediction is
+    absent: it takes none). ``site_robots``: every robot id of the site (a named detection with
+    another id is ``unknown_robot``; default: the predicted robots). ``views``: a cache of the
+    predicted views (:class:`ViewCache`; default: projected now). See the module doc for the
+    rules; returns the outcome of every detection.
+    """
+    cfg = config or AssociationConfig()
+    known = set(site_robots) if site_robots is not None else {p.robot_id for p in predictions}
+    by_id = {p.robot_id: p for p in predictions}
+    outcomes: list[DetectionOutcome | None] = [None] * len(detections)
+    by_robot: dict[str, int] = {}
+    named_robots: set[str] = set()
+    for i, det in enumerate(detections):
+        rid = det.robot_id
+        if not rid:
+            continue
+        if rid not in known:
+            outcomes[i] = DetectionOutcome("", "unknown_robot", math.inf)
+        elif rid in named_robots:
+            # a robot is seen once per image: the higher-scored detection keeps the id
+            prev = by_robot[rid]
+            if det.score > detections[prev].score:
+                outcomes[prev] = DetectionOutcome("", "unassigned", math.inf)
+                by_robot[rid] = i
+                outcomes[i] = DetectionOutcome(rid, "named", math.nan)
+            else:
+                outcomes[i] = DetectionOutcome("", "unassigned", math.inf)
+        else:
+            named_robots.add(rid)
+            by_robot[rid] = i
+            outcomes[i] = DetectionOutcome(rid, "named", math.nan)
+    # named detections checked against their robot's prediction
+    named_idx = [i for i in by_robot.values()]
+    checked = [by_id[detections[i].robot_id] for i in named_idx
+               if detections[i].robot_id in by_id]
+    if checked:
+        rows = [i for i in named_idx if detections[i].robot_id in by_id]
+        cost_named = association_costs(camera, [detections[i] for i in rows], checked,
+                                       keypoints_base_m, cfg, views)
+        for k, i in enumerate(rows):
+            cost = float(cost_named[k, k])
+            reason = "named" if cost <= cfg.gate else "id_contradicted"
+            outcomes[i] = DetectionOutcome(detections[i].robot_id, reason, cost)
+    # the unnamed detections among the robots not named in this image
+    free = [i for i, o in enumerate(outcomes) if o is None]
+    candidates = [p for p in predictions if p.robot_id not in named_robots]
+    robot_ids = tuple(p.robot_id for p in candidates)
+    # robots of the site with no prediction (and not named here) could be anywhere: a
+    # detection near a robot known only roughly may be theirs (their model; None: unknown)
+    unpredicted_models = {id(kp) if (kp := keypoints_base_m.get(rid)) is not None else None
+                          for rid in known if rid not in by_id and rid not in named_robots}
+    costs = association_costs(camera, [detections[i] for i in free], candidates,
+                              keypoints_base_m, cfg, views)
+    if free and not candidates:
+        for i in free:
+            outcomes[i] = DetectionOutcome("", "no_prediction", math.inf)
+    elif free:
+        pairs, total = _gated_assignment(costs, cfg.gate)
+        threshold = -math.log(cfg.ambiguity_ratio)
+        # candidates per detection (row) and per robot (column): a pair has a rival when either
+        # has another one; only then can the assignment without it be as good
+        gated = costs <= cfg.gate
+        per_row = gated.sum(axis=1).tolist()
+        per_col = gated.sum(axis=0).tolist()
+        for row, col in pairs:
+            c1 = float(costs[row, col])
+            reason = "assigned"
+            pred = candidates[col]
+            if (None in unpredicted_models
+                    or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
+                    pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
+                # an identical robot without a prediction may be the one seen here
+                reason = "ambiguous"
+            elif per_row[row] > 1 or per_col[col] > 1:
+                blocked = costs.copy()
+                blocked[row, col] = np.inf
+                _, alt_total = _gated_assignment(blocked, cfg.gate)
+                if alt_total - total < threshold:
+                    reason = "ambiguous"
+            i = free[row]
+            if reason == "assigned":
+                by_robot[robot_ids[col]] = i
+                outcomes[i] = DetectionOutcome(robot_ids[col], "assigned", c1)
+            else:
+                outcomes[i] = DetectionOutcome("", "ambiguous", c1)
+        for row, i in enumerate(free):
+            if outcomes[i] is None:
+                best = float(costs[row].min()) if costs.shape[1] else math.inf
+                outcomes[i] = DetectionOutcome("", "unassigned", best)
+    final = tuple(o if o is not None else DetectionOutcome("", "unassigned", math.inf)
+                  for o in outcomes)
+    return Association(final, robot_ids, costs, by_robot)
+
+
+# -- on the wire ------------------------------------------------------------------------------
+
+
+class DetectionRouter:
+    """Applies :func:`associate` to camera messages of a site: each message comes back with
+    the detections that go to a robot carrying that robot's id and the others removed (so the
+    synchronizer sees only named detections). Messages of unknown cameras or image sizes that
+    are no exact scale of the calibration pass unchanged (the synchronizer counts them).
+
+    ``counters``: ``detections_<reason>`` for every reason of :data:`REASONS`, and
+    ``detections_routed.<robot>``; :attr:`last` is the latest :class:`Association` (tests,
+    viewer). Not thread-safe: one worker loop.
+    """
+
+    def __init__(self, site: Site, config: AssociationConfig | None = None) -> None:
+        self.site = site
+        self.config = config or AssociationConfig()
+        self.robot_ids: tuple[str, ...] = tuple(site.robots)
+        self.keypoints_base_m: dict[str, np.ndarray] = {
+            rid: site.robot_model(rid).keypoints_base_m for rid in self.robot_ids}
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.last: Association | None = None
+        #: the robots that had no prediction for the latest routed image
+        self.unpredicted: tuple[str, ...] = ()
+        self.views = ViewCache(tuple(site.cameras.values()), self.config)
+
+    def route(self, msg: RobotDetections,
+              predictions: Mapping[str, RobotPrediction | None]) -> RobotDetections:
+        """``msg`` with each detection named after the robot it goes to, the rest removed."""
+        if not msg.detections:
+            return msg
+        cam = self.site.cameras.get(msg.camera_id)
+        if cam is None:
+            return msg
+        scale = image_scale(msg.image_width, msg.image_height, cam.width, cam.height)
+        if scale is None:
+            return msg
+        dets = msg.detections if scale == 1.0 else tuple(scale_detection(d, scale)
+                                                         for d in msg.detections)
+        preds = [p for rid in self.robot_ids
+                 if (p := predictions.get(rid)) is not None]
+        if len(preds) < len(self.robot_ids):
+            self.unpredicted = tuple(r for r in self.robot_ids if predictions.get(r) is None)
+        else:
+            self.unpredicted = ()
+        result = associate(cam, dets, preds, self.keypoints_base_m, self.config,
+                           self.robot_ids, self.views)
+        self.last = result
+        kept: list[Detection] = []
+        for det, outcome in zip(msg.detections, result.outcomes, strict=True):
+            self.counters[f"detections_{outcome.reason}"] += 1
+            if not outcome.used:
+                continue
+            self.counters[f"detections_routed.{outcome.robot_id}"] += 1
+            kept.append(det if det.robot_id == outcome.robot_id
+                        else _renamed(det, outcome.robot_id))
+        return _with_detections(msg, tuple(kept))
+
+
+def _renamed(det: Detection, robot_id: str) -> Detection:
+    """``det`` named ``robot_id`` (a robot of the site, so a valid id): a shallow copy, the
+    validated arrays shared (they are read-only), without validating them again."""
+    out = copy.copy(det)
+    object.__setattr__(out, "robot_id", robot_id)
+    return out
+
+
+def _with_detections(msg: RobotDetections, detections: tuple[Detection, ...]
+                     ) -> RobotDetections:
+    """``msg`` with ``detections`` (a subset of its own, validated ones, renamed): a shallow
+    copy, not validated again."""
+    out = copy.copy(msg)
+    object.__setattr__(out, "detections", detections)
+    return out
