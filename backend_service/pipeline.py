@@ -145,8 +145,9 @@ class PipelineConfig:
         :class:`SolverConfig`'s, in one flat mapping) and ``multi_frame`` section
         (:class:`MultiFrameConfig`), with the static-detection thresholds of ``thresholds``;
         ``camera_health`` section (:class:`~backend_service.camera_health.
-        CameraHealthConfig`); ``overrides`` (e.g. from command-line flags) win. Errors name the
-        file and key."""
+        CameraHealthConfig`); ``association`` section (:class:`~backend_service.association.
+        AssociationConfig`, a site with several robots); ``overrides`` (e.g. from command-line
+        flags) win. Errors name the file and key."""
         th = site.thresholds
         reader = site.section_reader()
         pose = site.section("pose")
@@ -162,6 +163,8 @@ class PipelineConfig:
             "pose", {k: v for k, v in pose.items() if k in own}, cls,
             base=cls(solver=solver, multi_frame=multi_frame,
                      camera_health=CameraHealthConfig.from_site(site),
+                     association=reader.section("association", site.section("association"),
+                                                AssociationConfig, int_lo=1),
                      static_max_speed_mps=th.static_max_speed_mps,
                      static_max_yaw_rate_radps=th.static_max_yaw_rate_radps,
                      static_dwell_s=th.static_dwell_s))

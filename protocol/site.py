@@ -423,12 +423,13 @@ _CAMERA_KEYS: Final = {
     "clock_offset_ns",
 }
 #: Sections owned by a service package: the site file holds them, the package parses them into
-#: its own dataclass (``backend_service``: pose, multi_frame, fusion, camera_health;
+#: its own dataclass (``backend_service``: pose, multi_frame, fusion, camera_health,
+#: association;
 #: ``robot_bridge``: bridge, pose_output, map_output, ros; map and edge are reserved for the
 #: semantic map and the edge pipeline).
 PACKAGE_SECTIONS: Final = (
-    "pose", "multi_frame", "fusion", "camera_health", "bridge", "pose_output", "map_output",
-    "ros", "map", "edge")
+    "pose", "multi_frame", "fusion", "camera_health", "association", "bridge", "pose_output",
+    "map_output", "ros", "map", "edge")
 _TOP_KEYS: Final = {
     "site", "world_frame", "cameras", "robot_models", "robots", "thresholds", "clock",
     *PACKAGE_SECTIONS,

@@ -70,6 +70,7 @@ class Section:
 
 
 def sections() -> list[Section]:
+    from backend_service.association import AssociationConfig
     from backend_service.camera_health import CameraHealthConfig
     from backend_service.estimate import SolverConfig
     from backend_service.fusion import FusionConfig
@@ -107,6 +108,10 @@ def sections() -> list[Section]:
         Section("multi_frame", "backend_service", ((MultiFrameConfig, None),),
                 "`count` defaults to `thresholds.multi_frame_count`."),
         Section("fusion", "backend_service (pose graph)", ((FusionConfig, None),)),
+        Section("association", "backend_service: which detection is which robot (a site with "
+                "several robots)", ((AssociationConfig, None),),
+                "Unused on a site with one robot (its unnamed detections are its own); "
+                "docs/pose_estimation.md, \"Several robots\"."),
         Section("camera_health", "backend_service: is every camera where its calibration says",
                 ((CameraHealthConfig, None),),
                 "A camera named moved shows in the backend's status (`degraded: cam3 moved "
