@@ -37,8 +37,10 @@ class HeadCamera:
     ``width``, ``height`` in pixels; ``K`` (3, 3) intrinsics in pixels; ``dist`` OpenCV
     distortion coefficients (0, 4, 5 or 8); ``T_base_cam`` (4, 4) maps the camera's optical
     frame (z forward, x right, y down) into the robot base frame (x forward, y left, z up, origin
-    on the ground at the rotation centre), metres. Depth is aligned to the colour image. A head
-    that pans or tilts is not modelled: the mounting is the camera's pose while mapping.
+    on the ground at the rotation centre), metres, with the head at rest (pan = tilt = 0). Depth
+    is aligned to the colour image. A head that pans or tilts publishes the camera's pose on
+    ``/tf``; ``smartedge robot-camera --source ros`` looks it up at each image's stamp and uses
+    this block only to check the robot's ``CameraInfo``.
     """
 
     width: int
