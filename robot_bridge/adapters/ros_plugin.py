@@ -56,7 +56,8 @@ def ros_config(args: argparse.Namespace, site: Site | None) -> RosConfig:
         raise UsageError(f"--site is required with --adapter {args.adapter}")
     config = RosConfig.from_site(site, getattr(args, "robot", None))
     if len(site.robots) > 1:  # two bridges on one robot's topics would correct each other's
-        conflicts = acl.ros_conflicts(acl.site_ros_keys(site, ros1=getattr(args, "adapter", "") == "ros1"))
+        ros1 = getattr(args, "adapter", "") == "ros1"
+        conflicts = acl.ros_conflicts(acl.site_ros_keys(site, ros1=ros1))
         if conflicts:
             raise UsageError(f"{site.source_path}: " + "; ".join(conflicts))
     overrides = {
