@@ -23,11 +23,23 @@ named in the status until a matching ``CameraInfo`` arrives.
 
 Zenoh callbacks only keep the newest raw sample (replaced ones are counted ``frames_skipped``);
 decoding and conversion to RGB happen in the service's worker loop (:meth:`RosImageSource.poll`).
+
+Depth and RGB-D: ``sensor_msgs/Image`` depth in ``16UC1`` (millimetres, 0 = no depth) or
+``32FC1`` (metres; NaN, inf, 0 or negative = no depth), either byte order, decodes to (H, W)
+float32 metres with NaN where there is no depth (:func:`decode_depth_image`,
+:func:`depth_to_m`). With a depth topic (``--ros-depth-topic``) the source pairs each colour
+image with the aligned depth image of the same header stamp (exactly, or within
+:attr:`RosTopicConfig.sync_tolerance_ns`, 5 ms by default): both streams are kept in bounded
+buffers of :data:`RGBD_QUEUE` messages, a message that can no longer find its partner is
+counted ``rgbd_unmatched``, a depth image of another size than its colour image
+``depth_size_mismatch`` (the colour frame still gives detections). The frames then carry
+``depth_m`` and the edge agent makes semantic clouds of them.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import itertools
 import logging
@@ -35,12 +47,13 @@ import re
 import struct
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, Final
 
 import numpy as np
 
 from edge_agent.frames import Frame
-from edge_agent.sources import PipelineSource, register_source
+from edge_agent.sources import PipelineSource, execution_providers_from_args, register_source
 from protocol.errors import SmartedgeError, UsageError
 from protocol.site import Site
 
@@ -87,6 +100,14 @@ _RAW_BPP: Final = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1,
                    "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1, "bayer_grbg8": 1}
 #: the encodings :func:`image_to_rgb` converts
 SUPPORTED_ENCODINGS: Final = tuple(_RAW_BPP)
+#: depth encodings (lower case): numpy element type and units per metre
+_DEPTH_TYPES: Final = {"16uc1": ("u2", 1000.0), "32fc1": ("f4", 1.0)}
+#: the encodings :func:`depth_to_m` converts, as ROS spells them
+DEPTH_ENCODINGS: Final = ("16UC1", "32FC1")
+#: messages kept per stream while an RGB-D pair is waiting for its partner
+RGBD_QUEUE: Final = 4
+#: default largest stamp difference of a colour image and its depth image
+DEFAULT_SYNC_TOLERANCE_NS: Final = 5_000_000
 
 
 class RosImageError(SmartedgeError):
@@ -103,7 +124,7 @@ class RosImageError(SmartedgeError):
 # --------------------------------------------------------------------------------------------
 
 
-class _Cdr:
+class CdrReader:
     """Sequential reader of one CDR payload (4-byte encapsulation header, then the message;
     alignment counted from the end of the header, as DDS and rmw_zenoh write it)."""
 
@@ -227,7 +248,7 @@ class RosCameraInfo:
     P: np.ndarray
 
 
-def _size(cdr: _Cdr) -> tuple[int, int]:
+def _size(cdr: CdrReader) -> tuple[int, int]:
     height, width = cdr.u32("height"), cdr.u32("width")
     if not (0 < height <= MAX_SIDE_PX and 0 < width <= MAX_SIDE_PX):
         raise RosImageError("ros_bad_size", f"{cdr.what}: size {width}x{height} (sides 1 to "
@@ -238,7 +259,7 @@ def _size(cdr: _Cdr) -> tuple[int, int]:
 def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
     """``sensor_msgs/Image`` from its CDR bytes; :class:`RosImageError` when truncated or
     inconsistent (``step`` too small for the encoding, data shorter than ``step * height``)."""
-    cdr = _Cdr(payload, what)
+    cdr = CdrReader(payload, what)
     stamp_ns, frame_id = cdr.header()
     height, width = _size(cdr)
     encoding = cdr.string("encoding")
@@ -246,6 +267,10 @@ def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
     step = cdr.u32("step")
     data = cdr.octets("data")
     bpp = _RAW_BPP.get(encoding.lower())
+    if bpp is None and encoding.lower() in _DEPTH_TYPES:
+        raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is a depth "
+                            "image, not a colour image (a depth topic is read with "
+                            "--ros-depth-topic)")
     if bpp is None:
         raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not "
                             f"supported (one of {', '.join(SUPPORTED_ENCODINGS)})")
@@ -259,10 +284,68 @@ def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
                     data)
 
 
+def decode_depth_image(payload: bytes | memoryview, what: str = "depth Image") -> RosImage:
+    """A depth ``sensor_msgs/Image`` (``16UC1`` or ``32FC1``, either byte order) from its CDR
+    bytes; :class:`RosImageError` for another encoding (``ros_bad_encoding``), a ``step``
+    shorter than a row (``ros_bad_size``) and data shorter than ``step * height``
+    (``ros_truncated``). Row padding of any length, also not a whole number of pixels, is
+    handled. Convert with :func:`depth_to_m`."""
+    cdr = CdrReader(payload, what)
+    stamp_ns, frame_id = cdr.header()
+    height, width = _size(cdr)
+    encoding = cdr.string("encoding")
+    is_bigendian = bool(cdr.u8("is_bigendian"))
+    step = cdr.u32("step")
+    data = cdr.octets("data")
+    kind = _DEPTH_TYPES.get(encoding.lower())
+    if kind is None:
+        raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not a depth "
+                            f"encoding (one of {', '.join(DEPTH_ENCODINGS)})")
+    bpp = int(kind[0][1])
+    if step < width * bpp:
+        raise RosImageError("ros_bad_size", f"{what}: step {step} < width {width} x {bpp} "
+                            f"bytes ({encoding})")
+    if len(data) < step * height:
+        raise RosImageError("ros_truncated", f"{what}: {len(data)} data bytes for "
+                            f"{height} rows of {step} ({width}x{height} {encoding})")
+    return RosImage(stamp_ns, frame_id, height, width, encoding.upper(), is_bigendian, step,
+                    data)
+
+
+def depth_to_m(image: RosImage) -> np.ndarray:
+    """(H, W) float32 depth in metres of a decoded depth image, NaN where there is none
+    (``16UC1`` 0; ``32FC1`` NaN, inf, 0 or negative); row padding dropped, the message's byte
+    order honoured."""
+    kind = _DEPTH_TYPES.get(image.encoding.lower())
+    if kind is None:
+        raise RosImageError("ros_bad_encoding", f"depth image: encoding {image.encoding!r} is "
+                            f"not a depth encoding (one of {', '.join(DEPTH_ENCODINGS)})")
+    code, per_metre = kind
+    bpp = int(code[1])
+    dtype = np.dtype((">" if image.is_bigendian else "<") + code)
+    rows = np.frombuffer(image.data, np.uint8, count=image.step * image.height)
+    raw = rows.reshape(image.height, image.step)[:, :image.width * bpp]
+    values = np.ascontiguousarray(raw).view(dtype)  # a copy only with row padding
+    out = values.astype(np.float32)
+    if per_metre != 1.0:
+        out /= np.float32(per_metre)  # correctly rounded: 1500 mm is exactly 1.5 m
+        out[values == 0] = np.nan
+    else:
+        with np.errstate(invalid="ignore"):
+            out[~(np.isfinite(out) & (out > 0.0))] = np.nan
+    return out
+
+
+def decode_header(payload: bytes | memoryview, what: str = "message") -> tuple[int, str]:
+    """(header stamp ns, frame id) of any message that starts with a ``std_msgs/Header``
+    (Image, CompressedImage, CameraInfo), without reading the rest."""
+    return CdrReader(payload, what).header()
+
+
 def decode_compressed_image(payload: bytes | memoryview,
                             what: str = "CompressedImage") -> RosCompressedImage:
     """``sensor_msgs/CompressedImage`` from its CDR bytes."""
-    cdr = _Cdr(payload, what)
+    cdr = CdrReader(payload, what)
     stamp_ns, frame_id = cdr.header()
     fmt = cdr.string("format")
     data = cdr.octets("data")
@@ -273,7 +356,7 @@ def decode_compressed_image(payload: bytes | memoryview,
 
 def decode_camera_info(payload: bytes | memoryview, what: str = "CameraInfo") -> RosCameraInfo:
     """``sensor_msgs/CameraInfo`` from its CDR bytes (binning and ROI are read, not kept)."""
-    cdr = _Cdr(payload, what)
+    cdr = CdrReader(payload, what)
     stamp_ns, frame_id = cdr.header()
     height, width = _size(cdr)
     model = cdr.string("distortion_model")
@@ -503,7 +586,9 @@ def attachment_sequence(attachment: bytes | None) -> tuple[bytes, int] | None:
 class RosTopicConfig:
     """Where the images are: ``transport`` (rmw_zenoh or ros2dds), the image ``topic``,
     ``compressed`` (CompressedImage instead of Image), the ``info_topic`` (``None``: no
-    calibration check), rmw_zenoh's ``domain_id`` and the ros2dds bridge's ``namespace``."""
+    calibration check), rmw_zenoh's ``domain_id`` and the ros2dds bridge's ``namespace``;
+    ``depth_topic``: an aligned depth ``Image`` topic (``None``: colour only) paired with the
+    colour images when their stamps differ by at most ``sync_tolerance_ns``."""
 
     transport: str
     topic: str
@@ -511,6 +596,13 @@ class RosTopicConfig:
     info_topic: str | None = None
     domain_id: int = 0
     namespace: str = ""
+    depth_topic: str | None = None
+    sync_tolerance_ns: int = DEFAULT_SYNC_TOLERANCE_NS
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.sync_tolerance_ns) <= 1_000_000_000:
+            raise UsageError(f"RGB-D sync tolerance {self.sync_tolerance_ns} ns: expected 0 to "
+                             "1 s")
 
     @property
     def image_key(self) -> str:
@@ -525,13 +617,25 @@ class RosTopicConfig:
         return topic_key(self.transport, self.info_topic, CAMERA_INFO_TYPE,
                          domain_id=self.domain_id, namespace=self.namespace)
 
+    @property
+    def depth_key(self) -> str | None:
+        if self.depth_topic is None:
+            return None
+        return topic_key(self.transport, self.depth_topic, IMAGE_TYPE,
+                         domain_id=self.domain_id, namespace=self.namespace)
+
 
 class _Slot:
-    """The newest sample of one key, handed from a Zenoh thread to the worker."""
+    """The newest ``capacity`` samples of one key, handed from a Zenoh thread to the worker
+    (capacity 1: newest only). ``replaced``: samples pushed out before the worker took them."""
 
-    def __init__(self) -> None:
+    def __init__(self, capacity: int = 1) -> None:
         self.lock = threading.Lock()
-        self.item: tuple[bytes, bytes | None] | None = None
+        self.items: collections.deque[tuple[bytes, bytes | None]] = collections.deque()
+        #: attachments of the samples pushed out (their sequence numbers are not losses)
+        self.replaced_attachments: collections.deque[bytes | None] = collections.deque(
+            maxlen=256)
+        self.capacity = max(1, int(capacity))
         self.received = 0
         self.replaced = 0
         self.oversized = 0
@@ -544,31 +648,78 @@ class _Slot:
         att = sample.attachment
         item = (sample.payload.to_bytes(), None if att is None else att.to_bytes())
         with self.lock:
-            if self.item is not None:
+            if len(self.items) >= self.capacity:
+                self.replaced_attachments.append(self.items.popleft()[1])
                 self.replaced += 1
-            self.item = item
+            self.items.append(item)
             self.received += 1
 
     def take(self) -> tuple[bytes, bytes | None] | None:
+        """The newest sample (older ones still held are counted ``replaced``)."""
         with self.lock:
-            item, self.item = self.item, None
+            if not self.items:
+                return None
+            self.replaced += len(self.items) - 1
+            self.replaced_attachments.extend(att for _, att in list(self.items)[:-1])
+            item = self.items[-1]
+            self.items.clear()
             return item
+
+    def take_replaced_attachments(self) -> list[bytes | None]:
+        """The attachments of the samples replaced since the last call, oldest first."""
+        with self.lock:
+            out = list(self.replaced_attachments)
+            self.replaced_attachments.clear()
+            return out
+
+    def take_all(self) -> list[tuple[bytes, bytes | None]]:
+        """Every sample held, oldest first."""
+        with self.lock:
+            out = list(self.items)
+            self.items.clear()
+            return out
+
+
+@dataclasses.dataclass
+class _Pending:
+    """A colour or depth message waiting for its RGB-D partner (header already read)."""
+
+    stamp_ns: int
+    payload: bytes
+    attachment: bytes | None
+
+
+@dataclasses.dataclass(frozen=True)
+class RosFrame:
+    """One decoded frame: the :class:`Frame` (RGB, header stamp, ``depth_m`` when paired)
+    and the colour image's ``frame_id`` (the optical frame TF knows it by)."""
+
+    frame: Frame
+    frame_id: str
 
 
 class RosImageSource(PipelineSource):
     """Frames from a ROS 2 image topic through the edge pipeline (see the module docstring).
 
     ``camera``: the site's calibration of this camera (the ``CameraInfo`` is checked against
-    it). :meth:`attach` subscribes on the service's Zenoh session; :meth:`poll` decodes the
-    newest image (and camera info), converts it to RGB and runs the pipeline."""
+    it; ``None``: no check, e.g. a robot's camera known only from its ``CameraInfo``).
+    :meth:`attach` subscribes on the service's Zenoh session; :meth:`poll` decodes the
+    newest image (and camera info, and with a depth topic the newest RGB-D pair), converts it
+    to RGB and runs the pipeline; :meth:`take_frame` does the same without the pipeline."""
 
     def __init__(self, config: RosTopicConfig, pipeline: Any, camera: Any) -> None:
         super().__init__(pipeline)
         self.config = config
         self.camera = camera
         self.label = f"ros:{config.transport}:{config.topic}"
-        self._image = _Slot()
+        self.provides_depth = config.depth_topic is not None
+        self._image = _Slot(RGBD_QUEUE if self.provides_depth else 1)
+        self._depth = _Slot(RGBD_QUEUE)
         self._info = _Slot()
+        self._colour_pending: list[_Pending] = []
+        self._depth_pending: list[_Pending] = []
+        self._rgbd_skipped = 0
+        self._seen_depth_replaced = 0
         self._subscribers: list[Any] = []
         #: the rmw_zenoh liveliness keys declared by :meth:`attach`
         self.token_keys: list[str] = []
@@ -583,7 +734,9 @@ class RosImageSource(PipelineSource):
         self._last_frame_s: float | None = None
         self.calibration_mismatch = ""
         self.info_checked = False
-        #: seconds spent decoding + converting the last image (for benchmarks)
+        #: the newest ``CameraInfo`` that decoded (``None`` before the first)
+        self.latest_info: RosCameraInfo | None = None
+        #: seconds spent decoding + converting the last image (and depth) (for benchmarks)
         self.last_decode_s = 0.0
 
     # -- transport ---------------------------------------------------------------------------
@@ -595,17 +748,25 @@ class RosImageSource(PipelineSource):
         self._subscribers.append(session.declare_subscriber(cfg.image_key, self._image.put))
         if cfg.info_key is not None:
             self._subscribers.append(session.declare_subscriber(cfg.info_key, self._info.put))
+        if cfg.depth_key is not None:
+            self._subscribers.append(session.declare_subscriber(cfg.depth_key, self._depth.put))
         if cfg.transport == "rmw_zenoh":
             subs = [(cfg.topic, COMPRESSED_IMAGE_TYPE if cfg.compressed else IMAGE_TYPE)]
             if cfg.info_topic is not None:
                 subs.append((cfg.info_topic, CAMERA_INFO_TYPE))
+            if cfg.depth_topic is not None:
+                subs.append((cfg.depth_topic, IMAGE_TYPE))
+            name = self.camera.camera_id if self.camera is not None else \
+                "_".join(_topic_tokens(cfg.topic))
             self.token_keys = liveliness_tokens(cfg.domain_id, str(session.info.zid()),
-                                                f"smartedge_edge_{self.camera.camera_id}", subs)
+                                                f"smartedge_edge_{name}", subs)
             tokens = [session.liveliness().declare_token(key) for key in self.token_keys]
             # entity tokens undeclared first, the node's last (as rmw_zenoh shuts down)
             self._subscribers = tokens[1:] + self._subscribers + tokens[:1]
-        log.info("%s: images on %s, camera info on %s", self.label, self.config.image_key,
-                 self.config.info_key or "(none: no calibration check)")
+        log.info("%s: images on %s, camera info on %s%s", self.label, cfg.image_key,
+                 cfg.info_key or "(none: no calibration check)",
+                 f", depth on {cfg.depth_key} (paired within "
+                 f"{cfg.sync_tolerance_ns / 1e6:g} ms)" if cfg.depth_key else "")
 
     def close(self) -> None:
         for sub in self._subscribers:
@@ -645,6 +806,9 @@ class RosImageSource(PipelineSource):
             self._fail(exc)
             return
         self.info_checked = True
+        self.latest_info = info
+        if self.camera is None:
+            return
         diffs = check_camera_info(info, self.camera)
         text = "; ".join(diffs)
         if text and text != self.calibration_mismatch:
@@ -656,12 +820,20 @@ class RosImageSource(PipelineSource):
         self.calibration_mismatch = text
 
     def _sequence(self, attachment: bytes | None) -> None:
+        """Count sequence gaps per publisher (rmw_zenoh): the colour images replaced before
+        the worker took them first (skipped, not lost), then ``attachment``."""
         if self.config.transport != "rmw_zenoh":
             return
+        for replaced in self._image.take_replaced_attachments():
+            self._sequence_one(replaced, count_missing=False)
+        self._sequence_one(attachment)
+
+    def _sequence_one(self, attachment: bytes | None, count_missing: bool = True) -> None:
         parsed = attachment_sequence(attachment)
         if parsed is None:
-            self._count("ros_missing_attachment" if attachment is None
-                        else "ros_invalid_attachment")
+            if count_missing:
+                self._count("ros_missing_attachment" if attachment is None
+                            else "ros_invalid_attachment")
             return
         gid, seq = parsed
         last = self._last_gid_seq.get(gid)
@@ -669,52 +841,182 @@ class RosImageSource(PipelineSource):
         if last is not None and seq > last + 1:
             self._count("ros_messages_lost", seq - last - 1)
 
-    def decode(self, payload: bytes) -> tuple[np.ndarray, int]:
-        """(RGB image, header stamp ns) of one image payload; :class:`RosImageError`."""
+    def _decode_colour(self, payload: bytes) -> tuple[np.ndarray, int, str]:
         what = f"{'CompressedImage' if self.config.compressed else 'Image'} on " \
             f"{self.config.image_key}"
         if self.config.compressed:
             msg_c = decode_compressed_image(payload, what)
-            return compressed_to_rgb(msg_c), msg_c.stamp_ns
+            return compressed_to_rgb(msg_c), msg_c.stamp_ns, msg_c.frame_id
         msg = decode_image(payload, what)
-        return image_to_rgb(msg), msg.stamp_ns
+        return image_to_rgb(msg), msg.stamp_ns, msg.frame_id
 
-    def poll(self, now_ns: int) -> list[Any]:
+    def decode(self, payload: bytes) -> tuple[np.ndarray, int]:
+        """(RGB image, header stamp ns) of one image payload; :class:`RosImageError`."""
+        rgb, stamp_ns, _ = self._decode_colour(payload)
+        return rgb, stamp_ns
+
+    def decode_depth(self, payload: bytes) -> tuple[np.ndarray, int]:
+        """(depth (H, W) float32 metres, NaN = none; header stamp ns) of one depth image
+        payload; :class:`RosImageError`."""
+        msg = decode_depth_image(payload, f"depth Image on {self.config.depth_key}")
+        return depth_to_m(msg), msg.stamp_ns
+
+    # -- RGB-D pairing -----------------------------------------------------------------------
+
+    def _pend(self, slot: _Slot, pending: list[_Pending], what: str) -> None:
+        for payload, attachment in slot.take_all():
+            if slot is self._image:
+                self._sequence(attachment)
+            try:
+                stamp_ns, _ = decode_header(payload, what)
+            except RosImageError as exc:
+                self._fail(exc)
+                continue
+            pending.append(_Pending(stamp_ns, payload, attachment))
+        pending.sort(key=lambda p: p.stamp_ns)
+
+    def _unmatched(self, n: int = 1) -> None:
+        if n > 0:
+            self._count("rgbd_unmatched", n)
+
+    def _take_pair(self) -> tuple[_Pending, _Pending] | None:
+        """The newest colour message with a depth message within the tolerance, removed with
+        everything older; messages that can no longer be paired are counted
+        ``rgbd_unmatched``, older colour messages that had a partner ``frames_skipped``."""
+        cfg = self.config
+        tol = int(cfg.sync_tolerance_ns)
+        self._pend(self._image, self._colour_pending, f"Image on {cfg.image_key}")
+        self._pend(self._depth, self._depth_pending, f"depth Image on {cfg.depth_key}")
+        with self._depth.lock:
+            lost = self._depth.replaced - self._seen_depth_replaced
+            self._seen_depth_replaced = self._depth.replaced
+        self._unmatched(lost)
+        colours, depths = self._colour_pending, self._depth_pending
+
+        def partner(c: _Pending) -> _Pending | None:
+            best = min(depths, key=lambda d: abs(d.stamp_ns - c.stamp_ns), default=None)
+            return best if best is not None and abs(best.stamp_ns - c.stamp_ns) <= tol else None
+
+        pair = None
+        for colour in reversed(colours):
+            depth = partner(colour)
+            if depth is not None:
+                pair = (colour, depth)
+                break
+        if pair is None:
+            # streams arrive in stamp order: a message older (beyond the tolerance) than the
+            # other stream's newest will never find its partner
+            if depths:
+                stale = [c for c in colours if c.stamp_ns + tol < depths[-1].stamp_ns]
+                self._unmatched(len(stale))
+                colours[:] = [c for c in colours if c not in stale]
+            if colours:
+                stale = [d for d in depths if d.stamp_ns + tol < colours[-1].stamp_ns]
+                self._unmatched(len(stale))
+                depths[:] = [d for d in depths if d not in stale]
+            for queue in (colours, depths):
+                while len(queue) > RGBD_QUEUE:
+                    queue.pop(0)
+                    self._unmatched()
+            return None
+        colour, depth = pair
+        older = [c for c in colours if c.stamp_ns < colour.stamp_ns]
+        matched_older = [c for c in older if partner(c) is not None]
+        self._rgbd_skipped += len(matched_older)
+        self._unmatched(len(older) - len(matched_older))
+        older_depths = [d for d in depths if d.stamp_ns <= depth.stamp_ns and d is not depth]
+        self._unmatched(sum(1 for d in older_depths
+                            if not any(abs(d.stamp_ns - c.stamp_ns) <= tol
+                                       for c in matched_older)))
+        colours[:] = [c for c in colours if c.stamp_ns > colour.stamp_ns]
+        depths[:] = [d for d in depths if d.stamp_ns > depth.stamp_ns]
+        return colour, depth
+
+    def skipped_total(self) -> int:
+        """Colour images never processed because a newer one was (``frames_skipped``)."""
+        return self._image.replaced + self._rgbd_skipped
+
+    # -- frames ------------------------------------------------------------------------------
+
+    def take_frame(self, want: Callable[[int], bool] | None = None) -> RosFrame | None:
+        """The newest frame (with depth when the source pairs RGB-D) decoded, or ``None``;
+        bad messages are counted and named (:meth:`health`), never raised. ``want``: called
+        with the newest image's header stamp first; when it says ``False`` the image is
+        dropped undecoded (a node that uses one frame a second decodes only that one)."""
         info = self._info.take()
         if info is not None:
             self._check_info(info[0])
         with self._image.lock:
-            oversized = self._image.oversized + self._info.oversized
+            oversized = self._image.oversized + self._info.oversized + self._depth.oversized
         if oversized > self._seen_oversized:
             self._fail(RosImageError("ros_oversized", f"{oversized - self._seen_oversized} "
                                      f"sample(s) over {MAX_PAYLOAD_BYTES} bytes refused"))
             self._seen_oversized = oversized
-        item = self._image.take()
-        if item is None:
-            return []
-        payload, attachment = item
-        self._sequence(attachment)
+        depth_payload: bytes | None = None
+        if self.provides_depth:
+            pair = self._take_pair()
+            if pair is None:
+                return None
+            payload = pair[0].payload
+            depth_payload = pair[1].payload
+            if want is not None and not want(pair[0].stamp_ns):
+                return None
+        else:
+            item = self._image.take()
+            if item is None:
+                return None
+            payload, attachment = item
+            self._sequence(attachment)
+        if want is not None and depth_payload is None:
+            try:
+                stamp_ns, _ = decode_header(payload, f"Image on {self.config.image_key}")
+            except RosImageError as exc:
+                self._fail(exc)
+                return None
+            if not want(stamp_ns):
+                return None
         t0 = time.perf_counter()
         try:
-            rgb, stamp_ns = self.decode(payload)
+            rgb, stamp_ns, frame_id = self._decode_colour(payload)
         except RosImageError as exc:
             self._fail(exc)
-            return []
+            return None
+        depth_m = None
+        if depth_payload is not None:
+            try:
+                depth_m, _ = self.decode_depth(depth_payload)
+            except RosImageError as exc:
+                self._fail(exc, dropped=False)
+            if depth_m is not None and depth_m.shape != rgb.shape[:2]:
+                self._fail(RosImageError(
+                    "depth_size_mismatch", f"{self.label}: depth image "
+                    f"{depth_m.shape[1]}x{depth_m.shape[0]} on {self.config.depth_key}, the "
+                    f"colour image is {rgb.shape[1]}x{rgb.shape[0]} (depth must be aligned to "
+                    "colour: a depth_registered topic)"), dropped=False)
+                depth_m = None
         self.last_decode_s = time.perf_counter() - t0
         if self._stats is not None:
             self._stats.latency("decode", self.last_decode_s)
         h, w = rgb.shape[:2]
-        if (w, h) != (self.camera.width, self.camera.height):
+        if self.camera is not None and (w, h) != (self.camera.width, self.camera.height):
             self._fail(RosImageError("ros_image_size_mismatch", f"{self.label}: image "
                                      f"{w}x{h}, the site's calibration is "
                                      f"{self.camera.width}x{self.camera.height}"),
                        dropped=False)  # still processed: keypoints in the frame's pixels
         self._seq += 1
         self._last_frame_s = time.monotonic()
-        return [self.process(Frame(rgb, stamp_ns, self._seq), now_ns, self._image.replaced)]
+        return RosFrame(Frame(rgb, stamp_ns, self._seq, depth_m), frame_id)
+
+    def poll(self, now_ns: int) -> list[Any]:
+        got = self.take_frame()
+        if got is None:
+            return []
+        return [self.process(got.frame, now_ns, self.skipped_total())]
 
     def health(self) -> tuple[str, str]:
-        detail = f"source={self.label} frames={self._seq} skipped={self._image.replaced}"
+        detail = f"source={self.label} frames={self._seq} skipped={self.skipped_total()}"
+        if self.provides_depth:
+            detail += f" rgbd_unmatched={self._errors.get('rgbd_unmatched', 0)}"
         if self.calibration_mismatch:
             return "degraded", f"{detail}; CameraInfo differs from the site's calibration: " \
                 f"{self.calibration_mismatch}"
@@ -722,6 +1024,9 @@ class RosImageSource(PipelineSource):
         if self.last_error and now - self._last_error_s < STALE_AFTER_S:
             return "degraded", f"{detail}; {self.last_error}"
         if self._last_frame_s is None:
+            if self.provides_depth and self._image.received:
+                return "starting", f"{detail}; colour images arrive, waiting for depth " \
+                    f"images of the same stamps on {self.config.depth_key}"
             return "starting", f"{detail}; waiting for images on {self.config.image_key}"
         if now - self._last_frame_s > STALE_AFTER_S:
             return "degraded", f"{detail}; no image for {now - self._last_frame_s:.0f} s on " \
@@ -750,11 +1055,19 @@ class RosSourcePlugin:
                        help="rmw_zenoh: the ROS domain id (default: $ROS_DOMAIN_ID, else 0)")
         g.add_argument("--ros-namespace", default="", metavar="NS",
                        help="ros2dds: the bridge's namespace prefixed to its keys")
+        g.add_argument("--ros-depth-topic", metavar="TOPIC",
+                       help="aligned depth sensor_msgs/Image (16UC1 mm or 32FC1 m, e.g. "
+                       "/camera/aligned_depth_to_color/image_raw): frames are colour + depth "
+                       "pairs of the same stamp and become semantic clouds (--cloud-rate)")
+        g.add_argument("--ros-sync-tolerance-ms", type=float,
+                       default=DEFAULT_SYNC_TOLERANCE_NS / 1e6, metavar="MS",
+                       help="largest stamp difference of a colour image and its depth image "
+                       f"(default {DEFAULT_SYNC_TOLERANCE_NS / 1e6:g} ms)")
 
     def build(self, args: argparse.Namespace, site: Site | None) -> RosImageSource:
         import os
 
-        from edge_agent.models import RobotKeypointPipeline, providers_available
+        from edge_agent.models import RobotKeypointPipeline
         from edge_agent.pipeline import EdgePipeline
 
         if site is None:
@@ -774,15 +1087,17 @@ class RosSourcePlugin:
         topic = args.ros_image_topic
         info = args.ros_camera_info_topic
         info_topic = None if info == "none" else (info or camera_info_topic(topic))
+        tolerance_ms = args.ros_sync_tolerance_ms
+        if not 0.0 <= tolerance_ms <= 1000.0:
+            raise UsageError(f"--ros-sync-tolerance-ms {tolerance_ms}: expected 0 to 1000")
         config = RosTopicConfig(args.ros_transport, topic,
                                 compressed=_topic_tokens(topic)[-1] == "compressed",
                                 info_topic=info_topic, domain_id=domain,
-                                namespace=args.ros_namespace)
-        config.image_key, config.info_key  # noqa: B018 (names checked before models load)
-        if args.providers == "auto":
-            providers = providers_available()
-        else:
-            providers = [p.strip() for p in args.providers.split(",") if p.strip()]
+                                namespace=args.ros_namespace,
+                                depth_topic=args.ros_depth_topic or None,
+                                sync_tolerance_ns=round(tolerance_ms * 1e6))
+        config.image_key, config.info_key, config.depth_key  # noqa: B018 (names checked early)
+        providers = execution_providers_from_args(args)  # --providers, --fp16, --trt-cache
         models = RobotKeypointPipeline.for_robot(site.robot_model(), args.model,
                                                  threads=args.threads, providers=providers)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,

@@ -16,6 +16,7 @@ import dataclasses
 import heapq
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from protocol.messages import RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
 from simulation.site_cameras import DepthNoise, SensorNoise, SiteCameraRenderer
+
+if TYPE_CHECKING:
+    from simulation.head import SimulatedHead
 
 
 @dataclasses.dataclass(frozen=True)
@@ -240,22 +244,27 @@ class HeadCameraFeed:
     """The robot's head RGB-D camera (the site file's ``head_camera`` of the robot model),
     rendered from the robot's *true* pose at ``rate_hz`` (frames at t = k / rate_hz), with
     sensor and depth noise. A caller that falls behind gets the newest due frame
-    (:attr:`skipped` counts the others). The GL renderer is created on first use."""
+    (:attr:`skipped` counts the others). The GL renderer is created on first use.
+
+    ``head``: a :class:`simulation.head.SimulatedHead` that pans and tilts; each frame is
+    rendered with its true ``T_base_cam`` at the capture stamp (:meth:`T_base_cam`).
+    ``None``: the fixed mounting of the site file."""
 
     def __init__(self, live: LiveSimulation, rate_hz: float = 1.0, texture_seed: int = 0,
-                 noise: SensorNoise | None = None, depth_noise: DepthNoise | None = None
-                 ) -> None:
-        head = live.site.robot_model(live.robot_id).head_camera
-        if head is None:
+                 noise: SensorNoise | None = None, depth_noise: DepthNoise | None = None,
+                 head: SimulatedHead | None = None) -> None:
+        head_camera = live.site.robot_model(live.robot_id).head_camera
+        if head_camera is None:
             raise UnknownIdError(
                 f"robot model of {live.robot_id!r} has no head_camera in "
                 f"{live.site.source_path}")
         if not rate_hz > 0:
             raise ValueError(f"head camera rate {rate_hz} Hz: must be > 0")
         self.live = live
-        self.head = head
+        self.head = head_camera
+        self.moving_head = head
         self.camera_id = f"{live.robot_id}_head"
-        self.camera = head.camera_model(self.camera_id)
+        self.camera = head_camera.camera_model(self.camera_id)
         self.images = SiteCameraRenderer(live.scenario, texture_seed=texture_seed, noise=noise,
                                          depth_noise=depth_noise)
         self.rate_hz = float(rate_hz)
@@ -279,12 +288,20 @@ class HeadCameraFeed:
         self.seq += 1
         return self.live.spec.epoch_ns + int(newest) * self._period_ns
 
+    def T_base_cam(self, capture_ns: int) -> np.ndarray:
+        """The camera's true (4, 4) pose in the robot base at ``capture_ns`` (the fixed
+        mounting, or the moving head's)."""
+        if self.moving_head is None:
+            return np.array(self.head.T_base_cam, np.float64)
+        return self.moving_head.T_base_cam(capture_ns)
+
     def render(self, capture_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The frame at ``capture_ns``: (H, W, 3) uint8 RGB with sensor noise, (H, W) float32
         depth (optical-frame z, metres, 0 = none) with depth noise, and the renderer's exact
         (H, W) int32 class ids (for tests and ground-truth segmentation)."""
-        out = self.images.render_head(self.head, self.live.ground_truth(capture_ns),
-                                      self.camera_id)
+        out = self.images.render_head(
+            self.head, self.live.ground_truth(capture_ns), self.camera_id,
+            None if self.moving_head is None else self.moving_head.T_base_cam(capture_ns))
         image = self.images.add_noise(out.color_rgb, self._rng) \
             if self.images.noise.sigma_dn > 0 else out.color_rgb
         depth = self.images.depth_noise.apply(out.depth_m, self._rng)

@@ -166,13 +166,19 @@ class SiteCameraRenderer:
         return self.depth_noise.apply(self.render_output(camera_id, robot_pose).depth_m, rng)
 
     def render_head(self, head: HeadCamera, robot_pose: np.ndarray,
-                    camera_id: str = "head") -> RenderOutput:
+                    camera_id: str = "head", T_base_cam: np.ndarray | None = None
+                    ) -> RenderOutput:
         """What the robot's head camera sees with the robot at (true) ``robot_pose`` (x, y,
         theta in the world frame): the site without the robot itself (the camera sits inside
-        its body mesh). Noise-free; add :meth:`add_noise` and :attr:`depth_noise` per frame."""
+        its body mesh). ``T_base_cam``: the camera's pose in the base at this instant (a head
+        that pans and tilts, :mod:`simulation.head`); ``None``: the fixed mounting
+        ``head.T_base_cam``. Noise-free; add :meth:`add_noise` and :attr:`depth_noise` per
+        frame."""
         from simulation.mesh import Scene
 
         pose = np.asarray(robot_pose, dtype=np.float64).reshape(-1)[:3]
+        if T_base_cam is not None:
+            head = dataclasses.replace(head, T_base_cam=np.asarray(T_base_cam, np.float64))
         cam = head.camera_model(camera_id, se3_from_planar(*(float(v) for v in pose)))
         scene = Scene(self._geometry.objects)
         self.renders += 1

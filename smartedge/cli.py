@@ -39,6 +39,9 @@ COMMANDS: Final[dict[str, Command]] = {
     "robot-camera": Command("smartedge.sim.robot_camera", "main",
                             "the simulated robot's head RGB-D camera: semantic clouds in "
                             "base_link"),
+    "sim-head": Command("smartedge.sim.head_ros", "main",
+                        "the simulated robot's panning head as ROS 2 topics: /tf, /tf_static, "
+                        "RGB-D images, camera info"),
     "viewer": Command("smartedge.viewer", "main",
                       "watch a running system in Rerun (a sink of the keys)"),
     "evaluate": Command("smartedge.evaluate", "main",

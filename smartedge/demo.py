@@ -3,8 +3,12 @@
 Four edge agents (simulated cameras), the backend (sync, pose solve, pose graph), the viewer
 (Rerun recording, with the simulator's ground truth), the robot bridge (simulated HSR with
 drifting localization that accepts corrections while static) and the robot's head camera
-(semantic clouds in base_link; ``--no-clouds`` leaves it and the edge clouds out) talk over
-real Zenoh sessions on 127.0.0.1 (no router, no multicast).
+talk over real Zenoh sessions on 127.0.0.1 (no router, no multicast). The head looks around
+while the robot drives, as a ROS 2 robot: ``smartedge sim-head`` publishes its pan and tilt on
+``/tf`` and its RGB-D frames on the HSR's topics the rmw_zenoh way, and ``smartedge
+robot-camera --source ros`` (the node a real robot runs) makes the semantic clouds in
+base_link, the camera's pose looked up in TF at each image stamp (``--no-clouds`` leaves both
+and the edge clouds out).
 By default they run as threads of this process, each with its own Zenoh session; with
 ``--processes`` each is its own OS process started with the same command a deployment uses.
 A monitor session listens to everything, prints progress, and at the end prints the accuracy
@@ -204,9 +208,11 @@ class Services:
              *listen_any]
             for c in self.camera_ids
         ]
-        # the robot's head camera: its clouds in base_link, made on the (simulated) robot
-        robot_camera = ["robot-camera", *site, "--cloud-rate", f"{DEMO_CLOUD_RATE_HZ:g}",
-                        "--threads", "1", *sim, *listen_any]
+        # the robot's head camera: the simulated robot publishes its panning head as ROS 2
+        # topics (/tf, RGB-D); the real robot's node makes the clouds in base_link from them
+        sim_head = ["sim-head", "--rate", f"{DEMO_HEAD_RATE_HZ:g}", *sim, *listen_any]
+        robot_camera = ["robot-camera", "--source", "ros", *site, "--cloud-rate",
+                        f"{DEMO_CLOUD_RATE_HZ:g}", "--threads", "1", *listen_any]
         # the semantic map, from the empty room's prior model, kept in the output folder (only
         # with one: run_demo writes the prior model there)
         mapper = [] if self.out_dir is None else [
@@ -216,7 +222,7 @@ class Services:
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
             ("robot-bridge", bridge),
-            *([("robot-camera", robot_camera)] if clouds else []),
+            *([("sim-head", sim_head), ("robot-camera", robot_camera)] if clouds else []),
             *([("mapper", mapper)] if clouds and mapper else []),
             *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
@@ -274,9 +280,13 @@ def _build_in_process(argv: list[str]) -> tuple[Any, Any]:
         "robot-bridge": "robot_bridge.service",
         "edge-agent": "edge_agent.service",
         "robot-camera": "smartedge.sim.robot_camera",
+        "sim-head": "smartedge.sim.head_ros",
         "mapper": "mapper.service",
         "viewer": "smartedge.viewer",
     }[command]
+    source = rest[rest.index("--source") + 1] if "--source" in rest[:-1] else "sim"
+    if command == "robot-camera" and source == "ros":
+        module = "edge_agent.robot_camera"  # the real robot's node (what --source ros runs)
     svc = importlib.import_module(module)
     args = svc.build_parser().parse_args(rest)
     return svc.build_node(args), make_config(options_from_args(args))
@@ -291,6 +301,8 @@ DEMO_PREVIEW_RATE_HZ = 1.0
 #: semantic clouds per second from each edge camera (with --detections cnn) and from the
 #: robot's head camera
 DEMO_CLOUD_RATE_HZ = 1.0
+#: RGB-D frames per second the simulated head publishes (the robot camera takes one a second)
+DEMO_HEAD_RATE_HZ = 2.0
 #: in the output folder: the empty room's prior model (PLY) the mapper starts from, and the map
 PRIOR_MODEL_FILE = "room_prior.ply"
 MAP_FILE = "semantic_map.npz"
@@ -340,8 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--no-clouds", action="store_true",
-        help="no semantic clouds: the edge agents make none and the robot's head camera "
-        f"(smartedge robot-camera, {DEMO_CLOUD_RATE_HZ:g} Hz) does not run",
+        help="no semantic clouds: the edge agents make none, and neither the simulated head "
+        f"(smartedge sim-head) nor the robot camera (smartedge robot-camera --source ros, "
+        f"{DEMO_CLOUD_RATE_HZ:g} Hz) runs",
     )
     parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
     return parser

@@ -93,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--source", choices=("sim", "ros"), default="sim",
+                        help="sim: the simulated head camera (default); ros: the real robot's "
+                        "RGB-D topics and TF (see smartedge robot-camera --source ros --help)")
     parser.add_argument("--site", help="site file (default: the simulation's own); the head "
                         "camera's calibration comes from its robot model")
     parser.add_argument("--robot", help="robot id (default: the simulation's robot)")
@@ -146,4 +149,10 @@ def build_node(args: argparse.Namespace, segmenter: Any = None) -> RobotCameraNo
 
 
 def main(argv: Sequence[str]) -> int:
+    argv = list(argv)
+    if "--source=ros" in argv or any(a == "--source" and argv[i + 1:i + 2] == ["ros"]
+                                     for i, a in enumerate(argv)):
+        from edge_agent.robot_camera import main as ros_main  # the real head camera
+
+        return ros_main(argv)
     return service_main("robot-camera", argv, build_parser, build_node)

@@ -36,8 +36,8 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     )
     seen = result.seen
     # every service ran as a process and stopped cleanly on SIGTERM
-    # 4 edge agents, backend, bridge, robot camera, mapper, viewer
-    assert result.exit_codes == [0] * 9, result.exit_codes
+    # 4 edge agents, backend, bridge, simulated head (ROS topics), robot camera, mapper, viewer
+    assert result.exit_codes == [0] * 10, result.exit_codes
     assert {"backend/main", "robot-bridge/hsr"} <= set(seen.status)
     assert sum(k.startswith("edge-agent/") for k in seen.status) == 4
     # the default closed loop: rendered images through the shipped ONNX models, keeping up
