@@ -7,6 +7,14 @@ t = 0): the ground-truth motion is deterministic, so edge agents in separate pro
 same robot the robot bridge drives, without exchanging ground truth. Stamps are wall-clock
 nanoseconds (the scenario's start stamp is set to the epoch), so live services can compare them
 with their own clock.
+
+A fleet (``robots`` > 1, ``--sim-robots N``): N identical robots of the scenario's model on the
+crossing routes of :mod:`simulation.fleet` (the trajectory option is not used), on the
+scenario's site with its robots replaced by the fleet (each in its own ROS namespace:
+:func:`simulation.fleet.fleet_site`); a camera's detections of all robots in one image are
+merged, in random order and without robot ids; each robot bridge drives one robot
+(``--robot``). The rendered camera feeds draw one robot: a fleet takes its detections from the
+noise model.
 """
 
 from __future__ import annotations
@@ -41,6 +49,8 @@ class LiveSimSpec:
     epoch_ns: int = 0
     stop_s: float | None = None
     max_speed_mps: float | None = None
+    #: robots in the simulation (more than one: a fleet on the crossing routes)
+    robots: int = 1
 
     def to_argv(self) -> list[str]:
         out = [
@@ -57,6 +67,8 @@ class LiveSimSpec:
             out += ["--sim-stop-s", repr(self.stop_s)]
         if self.max_speed_mps is not None:
             out += ["--sim-max-speed", repr(self.max_speed_mps)]
+        if self.robots != 1:
+            out += ["--sim-robots", str(self.robots)]
         return out + (["--sim-reverse"] if self.reverse else [])
 
 
@@ -82,6 +94,9 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGrou
     )
     group.add_argument("--sim-stop-s", type=float, help="override the dwell at each waypoint")
     group.add_argument("--sim-max-speed", type=float, help="override the robot's top speed (m/s)")
+    group.add_argument("--sim-robots", type=int, default=1, metavar="N",
+                       help="identical robots on crossing routes (default 1: the scenario's "
+                       "robot on --sim-trajectory)")
     return group
 
 
@@ -95,6 +110,7 @@ def spec_from_args(args: argparse.Namespace) -> LiveSimSpec:
         int(epoch),
         args.sim_stop_s,
         args.sim_max_speed,
+        int(getattr(args, "sim_robots", 1) or 1),
     )
 
 
@@ -110,22 +126,58 @@ class LiveSimulation:
         if spec.max_speed_mps is not None:
             motion = dataclasses.replace(motion, max_speed_mps=float(spec.max_speed_mps))
         self.scenario = base.with_overrides(start_stamp_ns=spec.epoch_ns, motion=motion)
-        self.run = SimulationRun(self.scenario, spec.trajectory, spec.reverse, seed=spec.seed)
+        #: every robot's run, by robot id (one, unless a fleet)
+        self.runs: dict[str, SimulationRun] = {}
+        if spec.robots == 1:
+            self.runs[self.scenario.robot_id] = SimulationRun(
+                self.scenario, spec.trajectory, spec.reverse, seed=spec.seed)
+        else:
+            self._build_fleet(spec)
+        self.robot_id = next(iter(self.runs))
+        self.run = self.runs[self.robot_id]
         self.site = self.scenario.site
-        self.robot_id = self.scenario.robot_id
+
+    def _build_fleet(self, spec: LiveSimSpec) -> None:
+        from simulation.fleet import (
+            fleet_robot_ids,
+            fleet_routes,
+            fleet_site,
+            robot_scenario,
+            robot_seed,
+            route_waypoints,
+        )
+
+        ids = fleet_robot_ids(spec.robots)
+        site = fleet_site(ids, self.scenario.site.source_path)
+        self.scenario = self.scenario.with_overrides(site=site, robot_id=ids[0])
+        routes = fleet_routes(ids)
+        for k, rid in enumerate(ids):
+            self.runs[rid] = SimulationRun(
+                robot_scenario(self.scenario, site, rid, route_waypoints(rid, routes[rid])),
+                "route", seed=robot_seed(spec.seed, k))
+        first = self.runs[ids[0]]
+        for rid in ids[1:]:
+            self.runs[rid].camera_phase_s = dict(first.camera_phase_s)
+
+    @property
+    def robot_ids(self) -> tuple[str, ...]:
+        return tuple(self.runs)
 
     @property
     def duration_s(self) -> float:
-        return self.run.duration_s
+        """Until the last robot ends its route."""
+        return max(r.duration_s for r in self.runs.values())
 
     def t_s(self, now_ns: int) -> float:
         """Simulated time at wall-clock ``now_ns`` (negative before the start)."""
         return (now_ns - self.spec.epoch_ns) * 1e-9
 
-    def ground_truth(self, stamp_ns: int) -> np.ndarray:
-        """(3,) true planar pose at ``stamp_ns`` (before the start / after the end: held)."""
-        t = min(max(self.t_s(stamp_ns), 0.0), self.duration_s)
-        return self.run.plan.pose_at(t).reshape(-1, 3)[0]
+    def ground_truth(self, stamp_ns: int, robot_id: str | None = None) -> np.ndarray:
+        """(3,) true planar pose of ``robot_id`` (default: the first robot) at ``stamp_ns``
+        (before the start / after the end of its route: held)."""
+        run = self.runs[robot_id] if robot_id is not None else self.run
+        t = min(max(self.t_s(stamp_ns), 0.0), run.duration_s)
+        return run.plan.pose_at(t).reshape(-1, 3)[0]
 
     def finished(self, now_ns: int) -> bool:
         return self.t_s(now_ns) > self.duration_s
@@ -148,6 +200,10 @@ class CameraFeed:
         self.camera_id = camera_id
         index = sorted(live.site.cameras).index(camera_id)
         self._rng = np.random.default_rng([live.spec.seed, 1000 + index])
+        #: a fleet: each further robot's detection noise and the merge order, their own streams
+        self._robot_rngs = {rid: np.random.default_rng([live.spec.seed, 1000 + index, k])
+                            for k, rid in enumerate(live.robot_ids) if k > 0}
+        self._merge_rng = np.random.default_rng([live.spec.seed, 5000 + index])
         self._period_ns = round(1e9 / live.scenario.cameras.rate_hz)
         self._phase_ns = round(live.run.camera_phase_s[camera_id] * 1e9)
         self._next_frame = 0
@@ -166,6 +222,8 @@ class CameraFeed:
             capture_ns = self._capture_ns(self._next_frame)
             pose = self.live.ground_truth(capture_ns)
             msg = detector.detect(self.camera_id, capture_ns, pose, self._seq, self._rng)
+            if self._robot_rngs:
+                msg = self._with_fleet(msg, capture_ns)
             arrival = capture_ns + detector.arrival_delay_ns(self._rng)
             heapq.heappush(self._pending, (arrival, self._seq, msg))
             self._seq += 1
@@ -174,6 +232,19 @@ class CameraFeed:
         while self._pending and self._pending[0][0] <= now_ns:
             out.append(heapq.heappop(self._pending)[2])
         return out
+
+    def _with_fleet(self, msg: RobotDetections, capture_ns: int) -> RobotDetections:
+        """``msg`` (the first robot's detection) with every other robot's in the same image,
+        in random order, unnamed (the detection model's robots never occlude each other)."""
+        dets = list(msg.detections)
+        for rid, rng in self._robot_rngs.items():
+            other = self.live.runs[rid].detector.detect(
+                self.camera_id, capture_ns, self.live.ground_truth(capture_ns, rid), self._seq,
+                rng)
+            dets.extend(other.detections)
+        order = self._merge_rng.permutation(len(dets))
+        return dataclasses.replace(msg, detections=tuple(
+            dataclasses.replace(dets[i], robot_id="") for i in order))
 
 
 class RenderedCameraFeed:

@@ -13,6 +13,13 @@ By default they run as threads of this process, each with its own Zenoh session;
 ``--processes`` each is its own OS process started with the same command a deployment uses.
 A monitor session listens to everything, prints progress, and at the end prints the accuracy
 summary against the simulator's ground truth.
+
+``--robots N`` (N > 1): a fleet of N identical HSR-like robots on crossing routes that pass
+within 0.5 m of each other (:mod:`simulation.fleet`), one robot bridge per robot
+(``--adapter sim --robot <id>``), the site written to the output folder with every robot in its
+own ROS namespace, and the backend assigning the edge agents' unnamed detections to the robots.
+The rendered cameras draw one robot, so a fleet's edge agents take their detections from the
+noise model (``--detections noise``), and the head camera's clouds are left out.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from protocol import decode, keys
 from protocol.geometry import wrap_angle_array
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
+from protocol.site import Site
 from smartedge.processes import free_port, stop_processes
 
 STARTUP_S: Final = 4.0
@@ -55,21 +63,26 @@ class Observed:
     corrections: list[PoseCorrection] = dataclasses.field(default_factory=list)
     status: dict[str, ServiceStatus] = dataclasses.field(default_factory=dict)
     status_count: int = 0
+    #: the robot each correction's key was for (same order as ``corrections``)
+    correction_keys: list[str] = dataclasses.field(default_factory=list)
 
 
 class Monitor:
     """A Zenoh session that records camera/fused/robot poses, corrections and statuses."""
 
-    def __init__(self, site: str, robot_id: str, endpoint: str) -> None:
+    def __init__(self, site: str, robot_id: str | Sequence[str], endpoint: str) -> None:
         import zenoh
 
         self._raw: collections.deque[tuple[str, bytes]] = collections.deque()
         self.seen = Observed()
         self.session = zenoh.open(loopback_config(listen=["tcp/127.0.0.1:0"], connect=[endpoint]))
         topics = ("camera_pose", "pose", "localization", "correction")
+        robots = [robot_id] if isinstance(robot_id, str) else list(robot_id)
+        #: correction key → the robot it is for
+        self._correction_keys = {keys.robot_key(site, r, "correction"): r for r in robots}
         self._subs = [
-            self.session.declare_subscriber(keys.robot_key(site, robot_id, t), self._on)
-            for t in topics
+            self.session.declare_subscriber(keys.robot_key(site, r, t), self._on)
+            for r in robots for t in topics
         ] + [self.session.declare_subscriber(keys.status_key(site, "*", "*"), self._on)]
 
     def _on(self, sample: Any) -> None:  # Zenoh thread: hand over only
@@ -85,6 +98,7 @@ class Monitor:
                 seen.status_count += 1
             elif isinstance(msg, PoseCorrection):
                 seen.corrections.append(msg)
+                seen.correction_keys.append(self._correction_keys.get(key, ""))
             elif key.endswith("/camera_pose"):
                 seen.camera.append(msg)
             elif key.endswith("/pose"):
@@ -103,10 +117,18 @@ def _errors(estimates: list[PoseEstimate], live: Any) -> tuple[np.ndarray, np.nd
     if not estimates:
         return np.zeros(0), np.zeros(0)
     est = np.array([[e.x, e.y, e.theta] for e in estimates])
-    truth = np.array([live.ground_truth(e.stamp_ns) for e in estimates])
+    truth = np.array([_truth(live, e) for e in estimates])
     dt = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
     dth = np.abs(wrap_angle_array(est[:, 2] - truth[:, 2]))
     return dt, dth
+
+
+def _truth(live: Any, est: PoseEstimate) -> np.ndarray:
+    """The true pose of the estimate's robot at its stamp (a fleet: that robot's)."""
+    runs = getattr(live, "runs", None)
+    if runs and len(runs) > 1 and est.robot_id in runs:
+        return live.ground_truth(est.stamp_ns, est.robot_id)
+    return live.ground_truth(est.stamp_ns)
 
 
 def _fmt(values_m: np.ndarray) -> str:
@@ -151,7 +173,62 @@ def summarize(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[str, flo
         file=out,
     )
     figures["corrections"] = float(len(seen.corrections))
+    robot_ids = list(getattr(live, "robot_ids", ()))
+    if len(robot_ids) > 1:
+        figures.update(summarize_fleet(seen, live, out))
     return figures
+
+
+def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[str, float]:
+    """Per robot of a fleet: estimates and RMS errors, corrections, and the corrections that
+    went to the wrong robot (on another robot's key, or placing it nearer another robot's
+    true pose than its own); figures by name (``<robot> fused``, ``wrong_corrections``)."""
+    figures: dict[str, float] = {}
+    print("\nper robot (fleet)", file=out)
+    print(f"  {'robot':<10}{'camera n':>9}{'RMS':>9}{'fused n':>9}{'RMS':>9}"
+          f"{'corrections':>13}", file=out)
+    for rid in live.robot_ids:
+        single = [e for e in seen.camera if e.robot_id == rid and "multi_frame" not in e.flags]
+        fused = [e for e in seen.fused if e.robot_id == rid]
+        dc, _ = _errors(single, live)
+        df, _ = _errors(fused, live)
+        rc = float(np.sqrt(np.mean(dc ** 2))) if dc.size else math.nan
+        rf = float(np.sqrt(np.mean(df ** 2))) if df.size else math.nan
+        n_corr = sum(c.robot_id == rid for c in seen.corrections)
+        print(f"  {rid:<10}{dc.size:>9}{100 * rc:>6.1f} cm{df.size:>9}{100 * rf:>6.1f} cm"
+              f"{n_corr:>13}", file=out)
+        figures[f"{rid} cameras"] = rc
+        figures[f"{rid} fused"] = rf
+        figures[f"{rid} fused n"] = float(df.size)
+    wrong = wrong_robot_corrections(seen, live)
+    print(f"  corrections to the wrong robot: {wrong}", file=out)
+    figures["wrong_corrections"] = float(wrong)
+    backend = next((st for name, st in sorted(seen.status.items())
+                    if name.startswith("backend/")), None)
+    if backend is not None:
+        counts = {k: int(backend.counters.get(f"association.detections_{k}", 0))
+                  for k in ("assigned", "ambiguous", "unassigned", "no_prediction")}
+        print("  the backend's assignment of unnamed detections (last status): "
+              + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items()), file=out)
+        figures.update({f"detections_{k}": float(v) for k, v in counts.items()})
+    return figures
+
+
+def wrong_robot_corrections(seen: Observed, live: Any) -> int:
+    """Corrections that went to the wrong robot: sent on another robot's key, or placing the
+    robot nearer another robot's true position than its own."""
+    wrong = 0
+    keyed = seen.correction_keys or [c.robot_id for c in seen.corrections]
+    for corr, key_robot in zip(seen.corrections, keyed, strict=True):
+        if key_robot and key_robot != corr.robot_id:
+            wrong += 1
+            continue
+        xy = np.array([corr.x, corr.y])
+        own = float(np.hypot(*(live.ground_truth(corr.stamp_ns, corr.robot_id)[:2] - xy)))
+        if any(float(np.hypot(*(live.ground_truth(corr.stamp_ns, r)[:2] - xy))) < own
+               for r in live.robot_ids if r != corr.robot_id):
+            wrong += 1
+    return wrong
 
 
 class Services:
@@ -190,6 +267,10 @@ class Services:
             bridge.append("--no-feedback")
         if self.args.kidnapped:
             bridge.append("--kidnapped")
+        robots = self.robot_ids()
+        # a fleet: one bridge per robot, each driving its own simulated robot
+        bridges = ([("robot-bridge", bridge)] if len(robots) == 1 else
+                   [(f"robot-bridge/{r}", [*bridge, "--robot", r]) for r in robots])
         mode = getattr(self.args, "detections", DEFAULT_DETECTIONS)
         detections = ["--detections", mode]
         if mode == "cnn":
@@ -221,11 +302,20 @@ class Services:
         return [
             ("backend", backend),
             *((f"edge-agent/{c}", e) for c, e in zip(self.camera_ids, edges, strict=True)),
-            ("robot-bridge", bridge),
+            *bridges,
             *([("sim-head", sim_head), ("robot-camera", robot_camera)] if clouds else []),
             *([("mapper", mapper)] if clouds and mapper else []),
             *([("viewer", viewer)] if self.rrd != "none" else []),
         ]
+
+    def robot_ids(self) -> list[str]:
+        """The robots of the simulation (one unless the spec is a fleet)."""
+        count = int(getattr(self.spec, "robots", 1) or 1)
+        if count == 1:
+            return [""]
+        from simulation.fleet import fleet_robot_ids
+
+        return fleet_robot_ids(count)
 
     def start(self, log_dir: Path) -> None:
         if self.args.processes:
@@ -356,6 +446,11 @@ def build_parser() -> argparse.ArgumentParser:
         f"(smartedge sim-head) nor the robot camera (smartedge robot-camera --source ros, "
         f"{DEMO_CLOUD_RATE_HZ:g} Hz) runs",
     )
+    parser.add_argument(
+        "--robots", type=int, default=1, metavar="N",
+        help="identical robots (default 1); more than one: a fleet on crossing routes, one "
+        "robot bridge each, detections from the noise model, no clouds",
+    )
     parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
     return parser
 
@@ -387,12 +482,17 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     from simulation.live import LiveSimSpec, LiveSimulation
     from simulation.scenario import load_scenario
 
-    args = build_parser().parse_args(list(argv))
+    parser = build_parser()
+    args = parser.parse_args(list(argv))
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     rrd = args.rerun or f"save:{out_dir / 'smartedge.rrd'}"
     scenario = load_scenario()
     site_path = Path(scenario.site.source_path)
+    if args.robots < 1:
+        parser.error("--robots must be >= 1")
+    if args.robots > 1:
+        site_path = _fleet_setup(args, parser, scenario.site, out_dir)
     startup_s = STARTUP_PROCESSES_S if args.processes else STARTUP_S
     spec = LiveSimSpec(
         trajectory=args.trajectory,
@@ -400,15 +500,20 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         epoch_ns=time.time_ns() + round(startup_s * 1e9),
         stop_s=DEMO_STOP_S,
         max_speed_mps=DEMO_MAX_SPEED_MPS,
+        robots=args.robots,
     )
     live = LiveSimulation(spec, scenario)
     duration_s = args.duration if args.duration else live.duration_s + 1.0
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     mode = "separate processes" if args.processes else "threads of one process"
+    what = (f"robot {live.robot_id!r}, {args.trajectory} "
+            f"({live.run.plan.path_length_m:.1f} m, {live.duration_s:.0f} s)"
+            if args.robots == 1 else
+            f"{args.robots} identical robots {', '.join(live.robot_ids)} on crossing routes "
+            f"({live.duration_s:.0f} s), site {site_path}")
     print(
         f"smartedge demo: site {scenario.site.name!r}, {len(scenario.site.cameras)} cameras, "
-        f"robot {live.robot_id!r}, {args.trajectory} ({live.run.plan.path_length_m:.1f} m, "
-        f"{live.duration_s:.0f} s), services as {mode}, Zenoh on {endpoint}, correction "
+        f"{what}, services as {mode}, Zenoh on {endpoint}, correction "
         f"feedback {'off' if args.no_feedback else 'on'}"
     )
     if not args.no_clouds:
@@ -422,7 +527,7 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     monitor = None
     try:
-        monitor = Monitor(scenario.site.name, live.robot_id, endpoint)
+        monitor = Monitor(scenario.site.name, list(live.robot_ids), endpoint)
         services.start(out_dir)
         end_ns = spec.epoch_ns + round(duration_s * 1e9)
         next_progress = time.monotonic() + args.progress_s
@@ -452,9 +557,10 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     tum = write_trajectories(seen, live, out_dir / "tum")
     rrd_path = Path(rrd[5:]) if rrd.startswith("save:") else None
     if tum:
+        one = out_dir / "tum" / (live.robot_id if args.robots > 1 else "")
         print(f"\ntrajectories (TUM): {out_dir / 'tum'}/{{{','.join(tum)}}}.tum  (e.g. "
-              f"evo_ape tum {out_dir / 'tum' / 'ground_truth.tum'} "
-              f"{out_dir / 'tum' / 'fused.tum'}, or smartedge evaluate ate ...)")
+              f"evo_ape tum {one / 'ground_truth.tum'} "
+              f"{one / 'fused.tum'}, or smartedge evaluate ate ...)")
     if not args.no_clouds:
         figures.update(summarize_map(scenario, out_dir))
     if rrd_path is not None:
@@ -462,6 +568,35 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     if args.processes:
         print(f"service logs: {out_dir}/*.log; exit codes {codes}")
     return DemoResult(seen, figures, codes, rrd_path, out_dir, live)
+
+
+#: the fleet's site file in the demo's output folder
+FLEET_SITE_FILE = "fleet_site.yaml"
+
+
+def _fleet_setup(args: argparse.Namespace, parser: argparse.ArgumentParser, site: Site,
+                 out_dir: Path) -> Path:
+    """``--robots N`` > 1: the noise-model detections and no clouds (said so), and the
+    fleet's site file (every robot in its own ROS namespace) written to ``out_dir``."""
+    import yaml
+
+    from simulation.fleet import fleet_robot_ids, fleet_site_document
+
+    try:
+        ids = fleet_robot_ids(args.robots)  # 1..3: the crossing routes
+    except ValueError as exc:
+        parser.error(f"--robots: {exc}")
+    if args.detections == "cnn":
+        print("smartedge demo: --robots > 1: the rendered cameras draw one robot; the edge "
+              "agents use the detection noise model (--detections noise)")
+        args.detections = "noise"
+    if not args.no_clouds:
+        print("smartedge demo: --robots > 1: no semantic clouds (the head camera and the "
+              "rendered cameras follow one robot)")
+        args.no_clouds = True
+    path = out_dir / FLEET_SITE_FILE
+    path.write_text(yaml.safe_dump(fleet_site_document(site, ids), sort_keys=False))
+    return path
 
 
 def summarize_map(scenario: Any, out_dir: Path, out: Any = sys.stdout) -> dict[str, float]:
@@ -487,9 +622,27 @@ def summarize_map(scenario: Any, out_dir: Path, out: Any = sys.stdout) -> dict[s
 def write_trajectories(seen: Observed, live: Any, folder: Path) -> list[str]:
     """TUM files of every pose source the demo saw (``camera`` = single-frame camera
     estimates, ``camera_averaged``, ``fused``, ``localization``) and ``ground_truth`` at the
-    fused stamps (the densest source). Returns the names written."""
+    fused stamps (the densest source). Returns the names written. A fleet: the same per
+    robot, in ``folder/<robot>/`` (names ``<robot>/<source>``)."""
     from smartedge.evaluation.trajectory_io import write_estimates_tum
 
+    robot_ids = list(getattr(live, "robot_ids", ()))
+    if len(robot_ids) > 1:
+        written_all: list[str] = []
+        for rid in robot_ids:
+            mine = Observed(
+                camera=[e for e in seen.camera if e.robot_id == rid],
+                fused=[e for e in seen.fused if e.robot_id == rid],
+                localization=[e for e in seen.localization if e.robot_id == rid])
+            written_all += [f"{rid}/{n}" for n in _write_robot_trajectories(
+                mine, live, folder / rid, write_estimates_tum)]
+        return written_all
+    return _write_robot_trajectories(seen, live, folder, write_estimates_tum)
+
+
+def _write_robot_trajectories(seen: Observed, live: Any, folder: Path, write: Any
+                              ) -> list[str]:
+    write_estimates_tum = write
     sources = {
         "camera": [e for e in seen.camera if "multi_frame" not in e.flags],
         "camera_averaged": [e for e in seen.camera if "multi_frame" in e.flags],
@@ -505,7 +658,7 @@ def write_trajectories(seen: Observed, live: Any, folder: Path) -> list[str]:
     if reference:
         truth = [dataclasses.replace(e, x=float(g[0]), y=float(g[1]), theta=float(g[2]))
                  for e in reference
-                 for g in [live.ground_truth(e.stamp_ns)]]
+                 for g in [_truth(live, e)]]
         write_estimates_tum(folder / "ground_truth.tum", truth)
         written.append("ground_truth")
     return written
@@ -517,13 +670,16 @@ def _progress(seen: Observed, live: Any, epoch_ns: int) -> None:
         print(f"  t={t:6.1f} s  waiting for the start")
         return
     truth = live.ground_truth(time.time_ns())
-    recent = [e for e in seen.camera[-30:] if "multi_frame" not in e.flags]
+    recent = [e for e in seen.camera[-30:] if "multi_frame" not in e.flags
+              and e.robot_id == live.robot_id]
     cams = len(recent[-1].camera_ids) if recent else 0
     dt_cam, _ = _errors(recent, live)
-    dt_fused, _ = _errors(seen.fused[-30:], live)
-    dt_loc, _ = _errors(seen.localization[-10:], live)
+    dt_fused, _ = _errors([e for e in seen.fused[-90:] if e.robot_id == live.robot_id], live)
+    dt_loc, _ = _errors([e for e in seen.localization[-30:] if e.robot_id == live.robot_id],
+                        live)
+    who = "robot" if len(getattr(live, "robot_ids", ())) <= 1 else live.robot_id
     print(
-        f"  t={t:6.1f}/{live.duration_s:.0f} s  robot at ({truth[0]:5.2f}, {truth[1]:5.2f})  "
+        f"  t={t:6.1f}/{live.duration_s:.0f} s  {who} at ({truth[0]:5.2f}, {truth[1]:5.2f})  "
         f"seen by {cams} cam  error: cameras {_fmt(dt_cam)}, fused {_fmt(dt_fused)}, "
         f"robot's own {_fmt(dt_loc)}  corrections {len(seen.corrections)}",
         flush=True,

@@ -10,6 +10,8 @@
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
                                  [--breakdown]
     smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
+    smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
+                             [--no-feedback] [--min-sigma-m M]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
     smartedge evaluate calibration --out DIR [--quick] [--runs N] [--drive-s S] [--no-table]
 
@@ -25,6 +27,10 @@ route, label accuracy, consistency with and without feedback, a top-down map), a
 ``keypoints`` renders a fresh held-out set (seed S, N views each of randomized scenes and of the
 site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the ONNX models
 (default: the shipped ones), one figure per line with its name.
+``fleet`` drives N identical robots on crossing routes through the backend's pipeline (unnamed
+detections assigned to robots) with correction feedback, and each robot alone with the same
+seed (:mod:`smartedge.experiments.fleet`): identity switches, wrong-robot detections and
+corrections, unassigned/ambiguous detections, per-robot ATE against the robot alone.
 """
 
 from __future__ import annotations
@@ -309,6 +315,20 @@ def build_parser() -> argparse.ArgumentParser:
                       help="pixel noise per keypoint (default 0.5, the shipped network's "
                       "held-out median error)")
     p_kc.add_argument("--add", type=int, default=4, help="candidates to add (default 4)")
+    p_fl = sub.add_parser("fleet", help="identical robots crossing paths: identity switches, "
+                          "wrong-robot corrections, per-robot ATE against the robot alone")
+    p_fl.add_argument("--robots", type=int, default=3, help="robots (1-3, default 3)")
+    p_fl.add_argument("--runs", type=int, default=3, help="seeds (default 3)")
+    p_fl.add_argument("--seed", type=int, default=3, help="first seed (default 3)")
+    p_fl.add_argument("--out", default=None, help="folder for report.md, fleet_results.json "
+                      "and fleet_routes.png (default: print only)")
+    p_fl.add_argument("--quick", action="store_true", help="one seed, the first 12 simulated "
+                      "seconds (the robots' closest approaches)")
+    p_fl.add_argument("--no-feedback", action="store_true",
+                      help="no correction feedback through the robot bridges")
+    p_fl.add_argument("--min-sigma-m", type=float, default=None, metavar="M",
+                      help="floor on every robot's predicted position uncertainty (a stress "
+                      "test: vaguer predictions leave more detections ambiguous)")
     p_cmp = sub.add_parser("compare", help="side-by-side headline figures of finished "
                            "`evaluate paper` runs (Markdown)")
     p_cmp.add_argument("runs", nargs="+", metavar="NAME=DIR",
@@ -350,6 +370,43 @@ def _keypoint_choice(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fleet(args: argparse.Namespace) -> int:
+    import time
+    from pathlib import Path
+
+    from simulation.scenario import load_scenario
+    from smartedge.experiments.fleet import (
+        QUICK_UNTIL_S,
+        FleetConfig,
+        fleet_table,
+        run_fleet,
+        write_report,
+    )
+
+    try:
+        config = FleetConfig(robots=args.robots, runs=1 if args.quick else args.runs,
+                             seed=args.seed, until_s=QUICK_UNTIL_S if args.quick else None,
+                             feedback=not args.no_feedback,
+                             min_sigma_xy_m=args.min_sigma_m)
+    except ValueError as exc:
+        print(f"smartedge evaluate fleet: {exc}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    try:
+        scenario = load_scenario()
+        results = run_fleet(config, scenario, say=lambda line: print(line, flush=True))
+    except (SmartedgeError, ValueError) as exc:
+        print(f"smartedge evaluate fleet: {exc}", file=sys.stderr)
+        return 1
+    table, _numbers = fleet_table(results)
+    print(table)
+    if args.out:
+        report, _ = write_report(results, scenario, Path(args.out), config)
+        print(f"wrote {report}")
+    print(f"{time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     if args.what == "ate":
@@ -360,6 +417,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _compare(args)
     if args.what == "keypoint-choice":
         return _keypoint_choice(args)
+    if args.what == "fleet":
+        return _fleet(args)
     if args.what == "calibration":
         from smartedge.experiments.calibration import main as calibration_main
 

@@ -8,7 +8,8 @@ into the services:
 - ``--source sim`` of the edge agent: one camera of :class:`simulation.live.LiveSimulation`
   (:class:`simulation.live.CameraFeed`);
 - ``--adapter sim`` of the robot bridge: the simulated robot of the same live simulation,
-  through :class:`robot_bridge.adapters.sim.SimRobotAdapter`, stepped by the bridge's loop.
+  through :class:`robot_bridge.adapters.sim.SimRobotAdapter`, stepped by the bridge's loop
+  (a fleet, ``--sim-robots N``: the robot named by the bridge's ``--robot``, one bridge each).
 
 ``smartedge edge-agent`` and ``smartedge robot-bridge`` run :func:`edge_agent_main` and
 :func:`robot_bridge_main`, which register the plug-ins before the service parses its options.
@@ -115,6 +116,11 @@ class SimSourcePlugin:
 
         live = LiveSimulation(spec_from_args(args))
         if getattr(args, "detections", "noise") == "cnn":
+            if len(live.robot_ids) > 1:
+                from protocol.errors import UsageError
+
+                raise UsageError("--sim-robots > 1: the rendered cameras draw one robot; use "
+                                 "--detections noise for a fleet")
             return self._build_rendered(args, live)
         feed = CameraFeed(live, args.camera)
         log.info(
@@ -165,21 +171,29 @@ class SimAdapterPlugin:
         from simulation.live import LiveSimulation, spec_from_args
 
         live = LiveSimulation(spec_from_args(args))
-        adapter = SimRobotAdapter(live.run.robot, localized=not args.kidnapped)
+        robot_id = getattr(args, "robot", None) or live.robot_id
+        if robot_id not in live.runs:
+            from protocol.errors import UnknownIdError
+
+            raise UnknownIdError(f"--robot {robot_id!r} is not in the simulation; its robots: "
+                                 f"{list(live.robot_ids)}")
+        run = live.runs[robot_id]
+        adapter = SimRobotAdapter(run.robot, localized=not args.kidnapped)
 
         def advance(now_ns: int) -> None:
             adapter.advance_to(live.t_s(now_ns))
 
         log.info(
-            "robot bridge %s: SIMULATED robot (scenario %s, trajectory %s, t0 in %.1f s)",
-            live.robot_id,
+            "robot bridge %s: SIMULATED robot (scenario %s, %s, t0 in %.1f s)",
+            robot_id,
             live.scenario.name,
-            live.spec.trajectory,
+            f"trajectory {live.spec.trajectory}" if len(live.robot_ids) == 1
+            else f"crossing route of a fleet of {len(live.robot_ids)}",
             (live.spec.epoch_ns - time.time_ns()) * 1e-9,
         )
         return AdapterSetup(
             factory=lambda session: adapter, advance=advance, site=live.site,
-            robot_id=live.robot_id,
+            robot_id=robot_id,
         )
 
 

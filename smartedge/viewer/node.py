@@ -203,10 +203,10 @@ def build_node(args: argparse.Namespace) -> ViewerNode:
 
 
 def truth_from_live(live: Any) -> TruthSource:
-    """Ground truth of a :class:`simulation.live.LiveSimulation` (its one robot)."""
+    """Ground truth of a :class:`simulation.live.LiveSimulation` (every robot of it)."""
 
     def truth(robot_id: str, stamp_ns: int) -> np.ndarray | None:
-        return live.ground_truth(stamp_ns) if robot_id == live.robot_id else None
+        return live.ground_truth(stamp_ns, robot_id) if robot_id in live.runs else None
 
     return truth
 
