@@ -40,7 +40,13 @@ gates.
 Detections that carry a robot id keep it: an id the site does not know is dropped
 (``unknown_robot``); a known id whose robot has a prediction that the detection contradicts
 (cost above the gate) is still routed to it and counted (``id_contradicted``); a named robot is
-not a candidate for the unnamed detections of the same image. Everything here is numpy and
+not a candidate for the unnamed detections of the same image.
+
+**Several robot types**: a detection that names its robot model (``Detection.robot_model``, set
+by an edge that runs one detector per type) is a candidate only for robots of that model, however
+close another type's prediction is; a model no robot of the site has is dropped and counted
+(``unknown_model``). A detection without a model (``""``) is costed against every robot whose
+model has its keypoint count, as before. Everything here is numpy and
 plain Python, transport-free; :class:`DetectionRouter` applies it to a
 :class:`~protocol.messages.RobotDetections` message and keeps the counters.
 """
@@ -64,7 +70,7 @@ from protocol.site import Site
 
 #: why a detection went (or did not go) to a robot (the router counts ``detections_<reason>``)
 REASONS: Final = ("assigned", "named", "id_contradicted", "unknown_robot", "ambiguous",
-                  "unassigned", "no_prediction")
+                  "unassigned", "no_prediction", "unknown_model")
 #: where a prediction came from (:class:`RobotPrediction.source`)
 PREDICTION_SOURCES: Final = ("fused", "camera", "localization")
 #: a predicted keypoint this close to the camera (or behind it) is not visible, metres
@@ -498,14 +504,17 @@ def associate(camera: CameraModel, detections: Sequence[Detection],
               keypoints_base_m: Mapping[str, np.ndarray],
               config: AssociationConfig | None = None,
               site_robots: Sequence[str] | None = None,
-              views: ViewCache | None = None) -> Association:
+              views: ViewCache | None = None,
+              robot_models: Mapping[str, str] | None = None) -> Association:
     """Assign the detections of one image of ``camera`` (calibrated pixels) to robots.
 
     ``predictions``: the robots that may take unnamed detections (a robot with no prediction is
     absent: it takes none). ``site_robots``: every robot id of the site (a named detection with
     another id is ``unknown_robot``; default: the predicted robots). ``views``: a cache of the
-    predicted views (:class:`ViewCache`; default: projected now). See the module doc for the
-    rules; returns the outcome of every detection.
+    predicted views (:class:`ViewCache`; default: projected now). ``robot_models``: robot id →
+    its model's name; when given, a detection that names a model goes only to robots of that
+    model, and one naming a model none of them has is ``unknown_model`` (default: models are
+    not checked). See the module doc for the rules; returns the outcome of every detection.
     """
     cfg = config or AssociationConfig()
     known = set(site_robots) if site_robots is not None else {p.robot_id for p in predictions}
@@ -513,7 +522,11 @@ def associate(camera: CameraModel, detections: Sequence[Detection],
     outcomes: list[DetectionOutcome | None] = [None] * len(detections)
     by_robot: dict[str, int] = {}
     named_robots: set[str] = set()
+    site_models = set(robot_models.values()) if robot_models is not None else None
     for i, det in enumerate(detections):
+        if site_models is not None and det.robot_model and det.robot_model not in site_models:
+            outcomes[i] = DetectionOutcome("", "unknown_model", math.inf)
+            continue
         rid = det.robot_id
         if not rid:
             continue
@@ -554,6 +567,13 @@ def associate(camera: CameraModel, detections: Sequence[Detection],
                           for rid in known if rid not in by_id and rid not in named_robots}
     costs = association_costs(camera, [detections[i] for i in free], candidates,
                               keypoints_base_m, cfg, views)
+    if robot_models is not None and candidates:
+        # a typed detection is no candidate for a robot of another model
+        cand_models = np.array([robot_models.get(r, "") for r in robot_ids])
+        for row, i in enumerate(free):
+            model = detections[i].robot_model
+            if model:
+                costs[row, cand_models != model] = np.inf
     if free and not candidates:
         for i in free:
             outcomes[i] = DetectionOutcome("", "no_prediction", math.inf)
@@ -604,7 +624,8 @@ class DetectionRouter:
     synchronizer sees only named detections). Messages of unknown cameras or image sizes that
     are no exact scale of the calibration pass unchanged (the synchronizer counts them).
 
-    ``counters``: ``detections_<reason>`` for every reason of :data:`REASONS`, and
+    ``counters``: ``detections_<reason>`` for every reason of :data:`REASONS` (a detection
+    of a robot model the site has no robot of: ``detections_unknown_model``), and
     ``detections_routed.<robot>``; :attr:`last` is the latest :class:`Association` (tests,
     viewer). Not thread-safe: one worker loop.
     """
@@ -615,6 +636,8 @@ class DetectionRouter:
         self.robot_ids: tuple[str, ...] = tuple(site.robots)
         self.keypoints_base_m: dict[str, np.ndarray] = {
             rid: site.robot_model(rid).keypoints_base_m for rid in self.robot_ids}
+        #: robot id → its model's name (typed detections go to robots of their model only)
+        self.robot_models: dict[str, str] = {rid: site.robots[rid] for rid in self.robot_ids}
         self.counters: collections.Counter[str] = collections.Counter()
         self.last: Association | None = None
         #: the robots that had no prediction for the latest routed image
@@ -641,7 +664,7 @@ class DetectionRouter:
         else:
             self.unpredicted = ()
         result = associate(cam, dets, preds, self.keypoints_base_m, self.config,
-                           self.robot_ids, self.views)
+                           self.robot_ids, self.views, self.robot_models)
         self.last = result
         kept: list[Detection] = []
         for det, outcome in zip(msg.detections, result.outcomes, strict=True):

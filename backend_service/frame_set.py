@@ -125,7 +125,8 @@ def scale_detection(det: Detection, scale: float) -> Detection:
     sig = det.keypoint_sigmas_px
     return Detection(to_cal(det.bbox_xyxy), det.score, to_cal(det.keypoints_px),
                      np.asarray(det.keypoint_scores, np.float64), det.robot_id,
-                     None if sig is None else np.asarray(sig, np.float64) * scale)
+                     None if sig is None else np.asarray(sig, np.float64) * scale,
+                     det.robot_model)
 
 
 def observation_for_robot(msg: RobotDetections, robot_id: str, num_keypoints: int,

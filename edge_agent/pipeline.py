@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from edge_agent.frames import Frame
-from edge_agent.models import RobotKeypointPipeline, RobotObservation
+from edge_agent.models import RobotKeypointPipeline, RobotObservation, RobotTypesPipeline
 from protocol.messages import Detection, RobotDetections
 
 log = logging.getLogger(__name__)
@@ -41,9 +41,12 @@ class EdgePipeline:
     id to put on detections (``""``: the detector cannot tell robots apart; the backend
     attributes them when the site has one robot); ``expected_size``: the camera's calibrated
     (width, height): a frame of another size is logged once (the backend then scales or rejects
-    by the message's image size)."""
+    by the message's image size). ``models``: one robot model's networks, or every model's of
+    a site with several robot types (:class:`RobotTypesPipeline`); each detection carries the
+    robot model whose networks found it (``Detection.robot_model``)."""
 
-    def __init__(self, camera_id: str, models: RobotKeypointPipeline, *, min_score: float = 0.3,
+    def __init__(self, camera_id: str, models: RobotKeypointPipeline | RobotTypesPipeline, *,
+                 min_score: float = 0.3,
                  max_robots: int = 4, robot_id: str = "",
                  expected_size: tuple[int, int] | None = None) -> None:
         self.camera_id = camera_id
@@ -98,7 +101,7 @@ class EdgePipeline:
                 kp[bad] = 0.0
                 scores[bad] = 0.0
             detections.append(Detection(box, float(np.clip(obs.score, 0.0, 1.0)), kp, scores,
-                                        self.robot_id, sigma))
+                                        self.robot_id, sigma, obs.robot_model))
         msg = RobotDetections(self.camera_id, frame.stamp_ns, frame.seq, w, h, self.model_id,
                               tuple(detections))
         return msg, StageLatency(detector_s, keypoints_s, time.perf_counter() - t1)

@@ -1067,7 +1067,7 @@ class RosSourcePlugin:
     def build(self, args: argparse.Namespace, site: Site | None) -> RosImageSource:
         import os
 
-        from edge_agent.models import RobotKeypointPipeline
+        from edge_agent.models import models_for_site
         from edge_agent.pipeline import EdgePipeline
 
         if site is None:
@@ -1098,8 +1098,8 @@ class RosSourcePlugin:
                                 sync_tolerance_ns=round(tolerance_ms * 1e6))
         config.image_key, config.info_key, config.depth_key  # noqa: B018 (names checked early)
         providers = execution_providers_from_args(args)  # --providers, --fp16, --trt-cache
-        models = RobotKeypointPipeline.for_robot(site.robot_model(), args.model,
-                                                 threads=args.threads, providers=providers)
+        # every robot model (type) of the site, one set of networks each
+        models = models_for_site(site, args.model, threads=args.threads, providers=providers)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
                                 expected_size=(camera.width, camera.height))
         return RosImageSource(config, pipeline, camera)

@@ -83,9 +83,10 @@ def add_source_arguments(parser: argparse.ArgumentParser, default: str) -> None:
 
 class PipelineSource:
     """What every image source shares: frames through the ONNX pipeline
-    (:class:`edge_agent.pipeline.EdgePipeline`), per-stage latencies and skipped frames recorded
-    in the service's stats, and the last processed frame kept for the viewer's preview
-    (:attr:`last_frame`, the frame of the last message :meth:`process` returned)."""
+    (:class:`edge_agent.pipeline.EdgePipeline`), per-stage latencies, skipped frames and (several
+    robot types) duplicate boxes dropped across types recorded in the service's stats, and the
+    last processed frame kept for the viewer's preview (:attr:`last_frame`, the frame of the
+    last message :meth:`process` returned)."""
 
     label = "camera"
     #: whether the frames carry depth (:meth:`rgbd_frame`)
@@ -96,6 +97,7 @@ class PipelineSource:
         self.last_frame: Any = None
         self._stats: Any = None
         self._skipped_seen = 0
+        self._duplicates_seen = 0
 
     def rgbd_frame(self) -> Any:
         """The last processed frame if it has depth (``Frame.depth_m``), else ``None``."""
@@ -123,6 +125,11 @@ class PipelineSource:
             if skipped_total > self._skipped_seen:
                 stats.count("frames_skipped", skipped_total - self._skipped_seen)
                 self._skipped_seen = skipped_total
+            # several robot types: boxes of two types' detectors on one robot, the weaker dropped
+            dropped = getattr(getattr(self.pipeline, "models", None), "duplicates_dropped", 0)
+            if dropped > self._duplicates_seen:
+                stats.count("duplicate_boxes_dropped", dropped - self._duplicates_seen)
+                self._duplicates_seen = dropped
         return msg
 
 
@@ -261,7 +268,7 @@ class CameraSourcePlugin:
             check_gstreamer,
             expand_device_uri,
         )
-        from edge_agent.models import RobotKeypointPipeline
+        from edge_agent.models import RobotTypesPipeline, models_for_site
         from edge_agent.pipeline import EdgePipeline
 
         if site is None:
@@ -285,11 +292,13 @@ class CameraSourcePlugin:
         else:
             raise UsageError("--source camera needs --device URI, --images DIR or --realsense")
         providers = execution_providers_from_args(args)
-        model = site.robot_model()  # the site's robot (one robot per edge model for now)
-        models = RobotKeypointPipeline.for_robot(model, args.model, threads=args.threads,
-                                                 providers=providers)
-        log.info("%s: models %s and %s on %s, %d thread(s)", args.camera, models.detector.path,
-                 models.keypoints.path, models.providers_note(), args.threads)
+        # the networks of every robot model (type) of the site, one set per model (a
+        # ModelError names the model and its files)
+        models = models_for_site(site, args.model, threads=args.threads, providers=providers)
+        files = (models.describe() if isinstance(models, RobotTypesPipeline)
+                 else f"{models.detector.path} and {models.keypoints.path}")
+        log.info("%s: models %s on %s, %d thread(s)", args.camera, files,
+                 models.providers_note(), args.threads)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
                                 expected_size=(camera.width, camera.height))
         lossless = bool(args.images) and args.rate <= 0

@@ -7,11 +7,11 @@ of bytes on one sample (docs/protocol.md, "Limits"):
 
 - :data:`PAYLOAD_CAPS`: the largest payload of each message type, in bytes. Each cap admits every
   message the count limits allow (the largest valid ``RobotDetections`` — 64 detections of 256
-  float64 keypoints with sigmas and 64-character ids — packs to 531 KiB; the largest valid
-  ``SemanticCloud`` — 2 000 000 points with ``uint16`` classes — to 34.3 MiB) and rejects
-  anything bigger before it is parsed. Realistic messages are far smaller: two detections of 12
-  keypoints pack to about 1 KiB, an edge cloud of 50 000 points (5 cm voxels) to 0.9 MB, a map of
-  357 000 voxels to 6.4 MB.
+  float64 keypoints with sigmas, 64-character ids and model names — packs to 536 KiB; the
+  largest valid ``SemanticCloud`` — 2 000 000 points with ``uint16`` classes — to 34.3 MiB)
+  and rejects anything bigger before it is parsed. Realistic messages are far smaller: two
+  detections of 12 keypoints pack to about 1 KiB, an edge cloud of 50 000 points (5 cm voxels)
+  to 0.9 MB, a map of 357 000 voxels to 6.4 MB.
 - the unknown-key rule: a receiver ignores keys it does not know (a producer may add a field
   within a version), but each unknown value may pack to at most :data:`MAX_UNKNOWN_VALUE_BYTES`
   and a record may carry at most :data:`MAX_UNKNOWN_KEYS` of them, so padding is refused.

@@ -145,6 +145,10 @@ class Detection(_Record):
     held-out renders). The backend then weights keypoints by 1/sigma^2 instead of by score.
     Optional on the wire (added without a version change: older senders omit it, older
     receivers ignore it).
+    ``robot_model``: the robot model (type) the detector saw, a name of the site file's
+    ``robot_models`` (same characters and length as an id), or ``""`` when unknown (one-type
+    detectors, older senders). On a site with several robot types the backend assigns the
+    detection only to robots of that model. Optional on the wire like ``keypoint_sigmas_px``.
     """
 
     bbox_xyxy: np.ndarray
@@ -153,6 +157,7 @@ class Detection(_Record):
     keypoint_scores: np.ndarray
     robot_id: str = ""
     keypoint_sigmas_px: np.ndarray | None = None
+    robot_model: str = ""
 
     def __post_init__(self) -> None:
         bbox = check_array("bbox_xyxy", self.bbox_xyxy, dtypes=("float64", "float32"), shape=(4,))
@@ -184,6 +189,7 @@ class Detection(_Record):
                 raise_field("keypoint_sigmas_px",
                             f"sigmas must be finite, > 0 and <= {MAX_KEYPOINT_SIGMA_PX:g} px")
             _freeze(self, "keypoint_sigmas_px", _readonly_f64(sig))
+        _freeze(self, "robot_model", check_id("robot_model", self.robot_model, allow_empty=True))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

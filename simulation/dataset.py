@@ -217,9 +217,9 @@ class SampleGenerator:
         self.robot_id = scenario.robot_id
         self.model = robot_model or scenario.site.robot_model(self.robot_id)
         if robot_mesh is None:
-            from simulation.robot_mesh import hsr_like_mesh
+            from simulation.robot_mesh import builtin_robot_mesh
 
-            robot_mesh = hsr_like_mesh(self.model)
+            robot_mesh = builtin_robot_mesh(self.model)
         self.robot_mesh = robot_mesh
         self.randomization = randomization or RandomizationConfig()
         self.camera_ids = tuple(sorted(scenario.site.cameras))

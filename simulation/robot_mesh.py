@@ -468,3 +468,100 @@ def robot_model_from_mesh(name: str, mesh: Mesh, keypoint_names: Sequence[str],
     v = mesh.vertices.astype(np.float64)
     radius = float(np.hypot(v[:, 0], v[:, 1]).max())
     return RobotModel(name, tuple(keypoint_names), kp, radius, float(v[:, 2].max()))
+
+
+# --------------------------------------------------------------------------------------------
+# the second built-in robot: a box-shaped base
+# --------------------------------------------------------------------------------------------
+
+#: name of the box-shaped base robot model (:func:`box_base_model`, :func:`box_base_mesh`)
+BOX_BASE_MODEL: Final = "box_base"
+#: the box base's body: length (x), width (y), height (z) in metres, ground clearance (m)
+BOX_BASE_SIZE_M: Final = (0.5, 0.4, 0.3)
+BOX_BASE_CLEARANCE_M: Final = 0.04
+
+_BOX_ORANGE: Final = (0.93, 0.52, 0.12)
+_BOX_YELLOW: Final = (0.95, 0.82, 0.20)
+
+
+def box_base_keypoints(size_m: Sequence[float] = BOX_BASE_SIZE_M,
+                       clearance_m: float = BOX_BASE_CLEARANCE_M
+                       ) -> tuple[tuple[str, ...], np.ndarray]:
+    """(names, (12, 3) base-frame positions in metres) of the box base's keypoints: the body's
+    8 corners (``front_left_top`` ... ``rear_right_bottom``) and the midpoints of its 4 top
+    edges (``front_top``, ``left_top``, ``rear_top``, ``right_top``): all on rigid edges."""
+    lx, ly, h = (float(v) for v in size_m)
+    hx, hy = lx / 2.0, ly / 2.0
+    z0, z1 = float(clearance_m), float(clearance_m) + h
+    names: list[str] = []
+    pts: list[tuple[float, float, float]] = []
+    for zname, z in (("top", z1), ("bottom", z0)):
+        for xname, x in (("front", hx), ("rear", -hx)):
+            for yname, y in (("left", hy), ("right", -hy)):
+                names.append(f"{xname}_{yname}_{zname}")
+                pts.append((x, y, z))
+    for name, xy in (("front_top", (hx, 0.0)), ("left_top", (0.0, hy)),
+                     ("rear_top", (-hx, 0.0)), ("right_top", (0.0, -hy))):
+        names.append(name)
+        pts.append((xy[0], xy[1], z1))
+    return tuple(names), np.array(pts)
+
+
+def box_base_parts(model: RobotModel) -> dict[str, Mesh]:
+    """The parts of the box base in the base frame, sized by ``model``'s keypoints (the body is
+    their bounding box, so a site file may scale it); see :func:`box_base_mesh`."""
+    kp = np.asarray(model.keypoints_base_m, dtype=np.float64).reshape(-1, 3)
+    lo, hi = kp.min(axis=0), kp.max(axis=0)
+    size = hi - lo
+    if np.any(size <= 0.0):
+        raise ValueError(f"robot model {model.name!r}: the box base's keypoints span no volume")
+    center = (lo + hi) / 2.0
+    parts: dict[str, Mesh] = {}
+    # body: orange sides, a dark front face with a yellow stripe, a light-grey lid
+    parts["body"] = box(size, center, _BOX_ORANGE,
+                        face_colors={"+z": _LIGHT_GREY, "+x": _DARK_GREY, "-x": _WHITE})
+    stripe_h = 0.2 * size[2]
+    parts["front_stripe"] = box((0.006, 0.9 * size[1], stripe_h),
+                                (hi[0] + 0.003, center[1], hi[2] - 1.5 * stripe_h), _BOX_YELLOW)
+    # four wheels under the body (dark, inside the footprint)
+    wheel_r = max(0.01, float(lo[2]))
+    axle_T = transform(_rotation_z_to(np.array([0.0, 1.0, 0.0])))
+    for xname, x in (("front", lo[0] + 0.25 * size[0]), ("rear", hi[0] - 0.25 * size[0])):
+        for yname, y in (("left", hi[1] - 0.04), ("right", lo[1] + 0.04)):
+            wheel = cylinder(wheel_r, -0.015, 0.015, _BLACK, 24).transformed(axle_T)
+            parts[f"wheel_{xname}_{yname}"] = wheel.transformed(translation((x, y, wheel_r)))
+    # a lidar puck on the lid, towards the front
+    lidar = cylinder(0.045, 0.0, 0.07, _BLACK, 32)
+    parts["lidar"] = lidar.transformed(translation((center[0] + 0.25 * size[0], center[1],
+                                                    hi[2])))
+    return parts
+
+
+def box_base_mesh(model: RobotModel) -> Mesh:
+    """The box-shaped base (one mesh, vertex colours): the body is the bounding box of
+    ``model``'s keypoints (default 0.5 x 0.4 x 0.3 m, 4 cm above the floor) with orange sides,
+    a dark front face with a yellow stripe, a white rear face and a light-grey lid; four dark
+    wheels under it and a lidar puck on the lid's front half. Every keypoint of
+    :func:`box_base_keypoints` lies on a body corner or edge."""
+    return concatenate(list(box_base_parts(model).values()))
+
+
+def box_base_model(name: str = BOX_BASE_MODEL) -> RobotModel:
+    """The :class:`RobotModel` of the default box base (12 keypoints, :func:`box_base_keypoints`):
+    the footprint radius is the body's half diagonal, the height the lidar's top."""
+    names, kp = box_base_keypoints()
+    kp.setflags(write=False)
+    lx, ly, h = BOX_BASE_SIZE_M
+    return RobotModel(name, names, kp, float(math.hypot(lx / 2, ly / 2)),
+                      BOX_BASE_CLEARANCE_M + h + 0.07)
+
+
+#: the built-in meshes by robot model name (any other name: the HSR-like robot)
+BUILTIN_MESHES: Final = {BOX_BASE_MODEL: box_base_mesh}
+
+
+def builtin_robot_mesh(model: RobotModel) -> Mesh:
+    """The built-in mesh of ``model``: the box base for a model named ``box_base``
+    (:data:`BUILTIN_MESHES`), the HSR-like robot (:func:`hsr_like_mesh`) for any other."""
+    make = BUILTIN_MESHES.get(model.name)
+    return make(model) if make is not None else hsr_like_mesh(model)

@@ -97,7 +97,7 @@ class SiteCameraRenderer:
                  noise: SensorNoise | None = None,
                  depth_noise: DepthNoise | None = None) -> None:
         from simulation.detections import true_cameras
-        from simulation.robot_mesh import hsr_like_mesh
+        from simulation.robot_mesh import builtin_robot_mesh
         from simulation.scenes import site_geometry
 
         self.scenario = scenario
@@ -107,7 +107,7 @@ class SiteCameraRenderer:
         self.noise = noise if noise is not None else SensorNoise()
         self.depth_noise = depth_noise if depth_noise is not None else DepthNoise()
         self._geometry = site_geometry(scenario, seed=texture_seed)
-        self._robot_mesh = hsr_like_mesh(self.robot_model)
+        self._robot_mesh = builtin_robot_mesh(self.robot_model)
         self._renderers: dict[tuple[int, int], object] = {}
         self._clean: dict[str, tuple[bytes, RenderOutput]] = {}
         self._noise_bank: dict[tuple[int, int], np.ndarray] = {}

@@ -141,7 +141,9 @@ def main(argv: Sequence[str]) -> int:
                           workers=args.workers, init_from=args.init_from,
                           device=args.device, amp=False if args.no_amp else None,
                           leg_steps=args.leg_steps, mirror=args.mirror)
-        mesh_name = Path(args.robot_mesh).name if args.robot_mesh else "built-in HSR-like mesh"
+        mesh_name = (Path(args.robot_mesh).name if args.robot_mesh else
+                     "built-in box base" if model.name == "box_base" else
+                     "built-in HSR-like mesh")  # simulation.robot_mesh.builtin_robot_mesh
         views = SimulationViews(str(scenario.source_path), model, mesh)
         path = train(cfg, views, Path(args.out), robot_mesh_name=mesh_name,
                      say=lambda line: print(line, flush=True))

@@ -54,6 +54,7 @@ def detections(draw) -> Detection:
         robot_id=draw(st.one_of(st.just(""), ids)),
         keypoint_sigmas_px=draw(st.one_of(
             st.none(), _float_arrays("float64", (m,), 0.5, 500.0))),
+        robot_model=draw(st.one_of(st.just(""), ids)),
     )
 
 

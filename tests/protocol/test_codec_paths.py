@@ -86,7 +86,7 @@ def test_valid_messages_take_the_native_path(msg: Message) -> None:
 
 def test_the_largest_valid_detections_take_the_native_path() -> None:
     det = Detection(np.zeros(4), 0.5, np.zeros((MAX_KEYPOINTS, 2)), np.zeros(MAX_KEYPOINTS),
-                    "r" * 64, np.ones(MAX_KEYPOINTS))
+                    "r" * 64, np.ones(MAX_KEYPOINTS), "k" * 64)
     msg = RobotDetections("c" * 64, 1, 1, 10, 10, "m" * 128, (det,) * MAX_DETECTIONS)
     assert C._decode_native(encode(msg), RobotDetections) == msg
 
