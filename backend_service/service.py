@@ -15,10 +15,12 @@ import argparse
 import collections
 import dataclasses
 import logging
+import time
 from collections.abc import Iterable, Sequence
 from typing import Final
 
 from backend_service.fusion import FusionConfig, fusion_config_from_site
+from backend_service.ownership import BackendOwnership
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
 from protocol import keys
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
@@ -43,6 +45,12 @@ class BackendNode(ServiceNode):
     (never below 0): on a live site, where sensors share the backend's time base, that floor is the
     transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is the
     replay's offset, so replayed poses are not all stale.
+
+    Several backends: every backend runs the pipeline of every robot (a warm standby) and
+    publishes the estimates of the robots it owns (:class:`~backend_service.ownership.
+    BackendOwnership`: liveliness tokens ``owner/<robot>/<id>``, rendezvous hashing over the
+    live backends); the others are counted ``ownership.withheld``. Without a bus
+    (:class:`~protocol.runtime.ScriptedRunner`) every robot is published.
 
     Load shedding: detections that waited in the input queue longer than ``max_input_delay_s``
     are dropped by the runner before they are decoded (``shed``, ``shed.<key>``), oldest first,
@@ -72,6 +80,8 @@ class BackendNode(ServiceNode):
         self._stale_run = 0
         self._shed_seen = 0
         self._contradicted_seen = 0
+        self.ownership = BackendOwnership(site.name, instance_id, sorted(site.robots),
+                                          started_ns=time.time_ns())
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
@@ -81,14 +91,20 @@ class BackendNode(ServiceNode):
             Subscription(keys.odom_key(s, "*"), Odometry, capacity=4096, drop_oldest=False),
             Subscription(keys.localization_key(s, "*"), PoseEstimate, capacity=256),
             Subscription(keys.alive_key(s, "*", "*"), liveliness=True),
+            *self.ownership.subscriptions(members=False),
         ]
+
+    def attach(self, session: object) -> None:
+        self.ownership.attach(session, self.clock)
 
     def alive(self, key: str, present: bool) -> None:
         try:
             parsed = keys.parse_key(key)
         except ValueError:
             return
-        self._peers[f"{parsed.topic}.{parsed.source_id}"] = present
+        self.ownership.alive(key, present, self.clock())
+        if parsed.scope == "alive":
+            self._peers[f"{parsed.topic}.{parsed.source_id}"] = present
 
     def peers_alive(self) -> Sequence[str]:
         return sorted(k for k, v in self._peers.items() if v)
@@ -111,6 +127,7 @@ class BackendNode(ServiceNode):
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         self._last_now_ns = max(self._last_now_ns, now_ns)
+        self.ownership.tick(now_ns)
         return self._publish(self.pipeline.poll(now_ns), now_ns)
 
     def _publish(self, out: PipelineOutput, now_ns: int) -> list[Outgoing]:
@@ -123,13 +140,20 @@ class BackendNode(ServiceNode):
         for est in out.camera:
             self.stats.event("camera_estimates")
             self.stats.latency("stamp_to_pose", max(0, now_ns - est.stamp_ns) * 1e-9)
-            if self._fresh(est, publish_ns, "camera_pose"):
+            if self._owned(est, publish_ns) and self._fresh(est, publish_ns, "camera_pose"):
                 msgs.append(Outgoing(keys.camera_pose_key(self.site, est.robot_id), est))
         for fused in out.fused:
             self.stats.event("fused")
-            if self._fresh(fused, publish_ns, "pose"):
+            if self._owned(fused, publish_ns) and self._fresh(fused, publish_ns, "pose"):
                 msgs.append(Outgoing(keys.pose_key(self.site, fused.robot_id), fused))
         return msgs
+
+    def _owned(self, est: PoseEstimate, publish_ns: int) -> bool:
+        """Whether this backend publishes ``est``'s robot now (its owner on a shared site)."""
+        if self.ownership.may_publish(est.robot_id, publish_ns):
+            return True
+        self.stats.count("ownership.withheld")
+        return False
 
     def _fresh(self, est: PoseEstimate, publish_ns: int, topic: str) -> bool:
         """Whether ``est`` is young enough to publish at ``publish_ns``; counts and logs the
@@ -182,6 +206,11 @@ class BackendNode(ServiceNode):
             problems.append(f"shedding load: {shed - self._shed_seen} detections waited more "
                             f"than {limit_ms:.0f} ms and were dropped since the last status")
             self._shed_seen = shed
+        owners = self.ownership.detail(self.clock())
+        if self.ownership.duplicate:  # publishes nothing: a person must rename one backend
+            problems.append(owners)
+        elif owners:
+            detail += f"; {owners}"
         if problems:
             shown = "; ".join(problems[:6]) + (f"; +{len(problems) - 6} more"
                                                if len(problems) > 6 else "")
@@ -191,7 +220,11 @@ class BackendNode(ServiceNode):
     def counters(self) -> dict[str, int]:
         out = self.stats.snapshot_counters()
         out.update(self.pipeline.counter_snapshot())
+        out.update(self.ownership.counters())
         return out
+
+    def close(self) -> None:
+        self.ownership.close()
 
 
 def build_parser() -> argparse.ArgumentParser:

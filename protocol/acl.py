@@ -6,7 +6,8 @@ One identity per service, named by the common name (CN) of its TLS client certif
 ``edge-<camera>``   an edge agent: its camera's detections, cloud, preview image,
                     status and liveliness token
 ``backend``         the backend host's services (backend, mapper, viewer): fused and
-                    camera-only poses, the semantic map, their statuses and tokens
+                    camera-only poses, the semantic map, their statuses and tokens, and
+                    the backends' robot owner tokens
 ``bridge-<robot>``  a robot bridge: the robot's odometry, localization, corrections,
                     cloud, its status and token, and the ROS topics it drives on the
                     robot (corrections, pose outputs, tf)
@@ -298,7 +299,8 @@ def grants(
         BACKEND_IDENTITY, "backend", "",
         put=(keys.pose_key(s, "*"), keys.camera_pose_key(s, "*"), keys.map_voxels_key(s, "*"),
              *(keys.status_key(s, svc, "*") for svc in BACKEND_SERVICES)),
-        tokens=tuple(keys.alive_key(s, svc, "*") for svc in BACKEND_SERVICES),
+        tokens=(*(keys.alive_key(s, svc, "*") for svc in BACKEND_SERVICES),
+                keys.owner_key(s, "*", "*")),
         read=(prefix,),
     ))  # fmt: skip
     if isinstance(ros_keys, Mapping) and len(site.robots) > 1:

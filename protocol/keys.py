@@ -15,6 +15,8 @@
     smartedge/<site>/map/<map_id>/voxels             SemanticCloud (the semantic map's voxels)
     smartedge/<site>/status/<service>/<id>           ServiceStatus
     smartedge/<site>/alive/<service>/<id>            liveliness token (no payload)
+    smartedge/<site>/owner/<robot_id>/<id>           liveliness token: backend <id> publishes
+                                                     the robot's estimates
 """
 
 from __future__ import annotations
@@ -136,11 +138,21 @@ def alive_key(site: str, service: str, instance_id: str) -> str:
     )
 
 
+def owner_key(site: str, robot_id: str, instance_id: str) -> str:
+    """Liveliness token key ``smartedge/<site>/owner/<robot_id>/<id>``: backend ``<id>`` holds
+    the robot (backend_service/ownership.py); ``'*'`` allowed for both ids."""
+    return (
+        f"{ROOT}/{check_id('site', site)}/owner/{_chunk('robot_id', robot_id, True)}/"
+        f"{_chunk('instance_id', instance_id, True)}"
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class ParsedKey:
-    """A key split into its parts. ``scope`` is ``edge``, ``robot``, ``map``, ``status`` or
-    ``alive``; ``source_id`` the camera/robot/map/instance id; ``topic`` the last chunk (for
-    status/alive: the service name); ``message_type`` the type carried (``None`` for liveliness)."""
+    """A key split into its parts. ``scope`` is ``edge``, ``robot``, ``map``, ``status``,
+    ``alive`` or ``owner``; ``source_id`` the camera/robot/map/instance id (for owner: the
+    robot); ``topic`` the last chunk (for status/alive: the service name; for owner: the
+    backend instance); ``message_type`` the type carried (``None`` for liveliness)."""
 
     site: str
     scope: str
@@ -167,4 +179,6 @@ def parse_key(key: str) -> ParsedKey:
         )
     if scope == "alive":
         return ParsedKey(site, scope, check_id("key.id", b), check_id("key.service", a), None)
+    if scope == "owner":
+        return ParsedKey(site, scope, check_id("key.robot_id", a), check_id("key.id", b), None)
     raise ValidationError("key", f"unknown scope {scope!r} in {key!r}")

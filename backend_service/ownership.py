@@ -1,0 +1,625 @@
+"""Which backend publishes which robot, when several ``smartedge backend`` processes share a site.
+
+Zenoh is the distributed engine (docs/architecture.md, "Several robots, several machines"): the
+membership is the backends' liveliness tokens, the ownership their owner tokens; nothing here
+sends a message of its own.
+
+- **Membership**: the live backends of the site are the liveliness tokens
+  ``smartedge/<site>/alive/backend/<instance>`` that every backend's runner declares
+  (:class:`~protocol.runtime.ZenohRunner`). A backend that appeared counts after
+  ``join_delay_s`` (a flapping backend moves no robot); one that vanished stops counting at once.
+- **Assignment**: each robot goes to the counted backend of highest rendezvous
+  (highest-random-weight) score ``blake2b(robot, instance)``: every backend computes the same
+  choice from the same members, and a backend joining or leaving moves only the robots it takes
+  or held. The site file may pin a robot to an instance (``backend: {owners: {robot:
+  instance}}``); a pinned robot goes to its instance whenever that one is live, else by score.
+- **Exclusive publishing**: a backend publishes estimates of robot R only while it holds R's
+  owner token ``smartedge/<site>/owner/<R>/<instance>`` (:func:`protocol.keys.owner_key`). The
+  handover rules:
+
+  1. it claims R (declares the token) only when it is R's choice, has synced the tokens that
+     already exist (a liveliness get at start), and sees no other owner token for R;
+  2. it publishes R only once the token is ``confirm_s`` old and still no other owner token of R
+     is in sight;
+  3. a backend that stops being R's choice stops publishing R at once and then undeclares;
+  4. two backends that claimed at once both see the other's token within the bus's propagation
+     delay: the lower-ranked one (pin, then score, then instance name) withdraws at once, the
+     higher one publishes after the withdrawn token vanished.
+
+  Rule 3 orders a handover (the old owner stops before its token goes, the new one claims after
+  seeing it go); rule 2 covers simultaneous claims as long as a token reaches every backend within
+  ``confirm_s / 2`` (milliseconds through a router; ``confirm_s`` defaults to 0.2 s). When an owner
+  dies, Zenoh drops its tokens as soon as the router sees its session go (a SIGKILL closes the TCP
+  link at once; a frozen host is noticed at the session lease), and the next backend by score
+  claims and publishes ``confirm_s`` later.
+- **Stalls and lost links**: a backend whose worker did not decide for ``stall_s`` (frozen,
+  swapped out, SIGSTOP), or whose session has no link left, drops every claim (and its tokens)
+  and its view of the others, and starts over from a liveliness get like a new one. A frozen
+  backend's session may re-declare its old tokens when it reconnects, before its worker runs:
+  the other backend stops publishing at the sight of them, and the thawed one withdraws them
+  on its first decision.
+- **Missed events**: a synced backend runs the liveliness get again every ``resync_s`` and
+  adds what its subscriptions missed (they do not replay what happened while a session was cut
+  off); it removes nothing on a get's word, only on a vanishing token.
+
+:class:`OwnershipTable` is the pure part (injected time, no Zenoh): feed it members and owner
+tokens, call :meth:`~OwnershipTable.decide` on the tick and apply what it returns with
+:class:`OwnershipTokens`, the thin Zenoh adapter (declares and undeclares the owner tokens, runs
+the start-up liveliness get). Gate every published estimate on
+:meth:`~OwnershipTable.may_publish`. :class:`BackendOwnership` bundles both for a
+:class:`~protocol.runtime.ServiceNode` (its liveliness subscriptions, ``attach``, ``alive``,
+``tick`` and status calls).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import hashlib
+import logging
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, Final
+
+from protocol import keys
+from protocol.errors import ValidationError
+from protocol.runtime import Subscription
+from protocol.validation import check_id
+
+log = logging.getLogger(__name__)
+
+#: the liveliness service name of a backend (``alive/backend/<instance>``)
+BACKEND_SERVICE: Final = "backend"
+#: how long a claimed owner token must stand, with no other owner token of the robot in sight,
+#: before the backend publishes the robot: at least twice the time a token takes to reach every
+#: backend (rule 2 of the module docstring)
+DEFAULT_CONFIRM_S: Final = 0.2
+#: how long a backend that appeared must stay before it counts (damps a flapping backend)
+DEFAULT_JOIN_DELAY_S: Final = 0.5
+#: a worker that did not decide for this long stalled: it publishes nothing until it has
+#: re-synced the tokens and re-confirmed its claims (keep it below the session lease, so that
+#: a stall long enough for the router to drop the session always trips it)
+DEFAULT_STALL_S: Final = 1.0
+#: how long the start-up liveliness get waits for the router's replies
+DEFAULT_SYNC_TIMEOUT_S: Final = 2.0
+#: how long after a failed start-up liveliness get the next one is tried
+SYNC_RETRY_S: Final = 1.0
+#: how often a synced backend re-reads the tokens on the bus anyway: a liveliness subscription
+#: does not replay what happened while the session was cut off (seen with zenoh 1.10 after a
+#: frozen backend reconnected: it missed the other backends), and a get over a link that has
+#: died unnoticed answers nothing
+DEFAULT_RESYNC_S: Final = 1.0
+NS: Final = 1_000_000_000
+
+
+@functools.lru_cache(maxsize=4096)
+def hrw_score(robot_id: str, instance_id: str) -> int:
+    """Rendezvous (highest-random-weight) score of ``instance_id`` for ``robot_id``: 64 bits of
+    BLAKE2b over both ids, the same on every machine and Python version (not ``hash()``)."""
+    digest = hashlib.blake2b(f"{robot_id}\0{instance_id}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big")
+
+
+def rank(robot_id: str, instance_id: str, pinned: Mapping[str, str]) -> tuple[bool, int, str]:
+    """Sort key of ``instance_id`` for ``robot_id``, highest first: the pinned instance, then
+    the rendezvous score, then the name (a tie of 64-bit scores is still deterministic)."""
+    return (pinned.get(robot_id) == instance_id, hrw_score(robot_id, instance_id), instance_id)
+
+
+def choose_owner(robot_id: str, members: Iterable[str],
+                 pinned: Mapping[str, str] | None = None) -> str | None:
+    """The backend among ``members`` that should own ``robot_id`` (``None`` without members)."""
+    pins = pinned or {}
+    return max(members, key=lambda inst: rank(robot_id, inst, pins), default=None)
+
+
+def pinned_owners(section: Mapping[str, Any] | None, robots: Iterable[str],
+                  source: str = "site file") -> dict[str, str]:
+    """The ``owners`` map of a site file's ``backend`` section (``{robot: instance}``),
+    validated: every robot must be one of ``robots``, every instance a valid id. Raises
+    :class:`~protocol.errors.ValidationError` naming ``source`` and the key."""
+    if not section:
+        return {}
+    if not isinstance(section, Mapping):
+        raise ValidationError("backend", f"{source}: expected a map, got "
+                              f"{type(section).__name__}")
+    owners = section.get("owners") or {}
+    if not isinstance(owners, Mapping):
+        raise ValidationError("backend.owners", f"{source}: expected a map robot: instance, "
+                              f"got {type(owners).__name__}")
+    known = set(robots)
+    out: dict[str, str] = {}
+    for robot, instance in owners.items():
+        if robot not in known:
+            raise ValidationError(f"backend.owners.{robot}", f"{source}: no robot {robot!r} "
+                                  f"in the site (robots: {', '.join(sorted(known)) or '-'})")
+        out[str(robot)] = check_id(f"backend.owners.{robot}", instance)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision:
+    """What :meth:`OwnershipTable.decide` asks the adapter to do now: declare the owner tokens
+    of ``claim``, undeclare those of ``release`` (robot ids, sorted)."""
+
+    claim: tuple[str, ...] = ()
+    release: tuple[str, ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.claim or self.release)
+
+
+class OwnershipTable:
+    """One backend's view of who owns which robot; pure (time is passed in, ns).
+
+    Feed it the backends' liveliness (:meth:`on_member`) and the owner tokens
+    (:meth:`on_owner_token`), mark it :meth:`synced` once the tokens that existed at start are
+    in, call :meth:`decide` on every tick and apply its :class:`Decision`; publish robot R only
+    while :meth:`may_publish` (R, now) is true. Own tokens echoed back by the bus are ignored:
+    what this backend holds is what :meth:`decide` claimed.
+
+    Counters (:attr:`counters`): ``ownership.claims``, ``ownership.releases`` (handed to the
+    robot's new choice), ``ownership.withdrawals`` (a simultaneous claim lost),
+    ``ownership.takeovers`` (a robot another backend had held is published here),
+    ``ownership.owner_lost`` (another backend's owner token vanished while it was the only one),
+    ``ownership.member_joined``, ``ownership.member_left``, ``ownership.stalls`` (claims
+    re-confirmed after the worker stalled), ``ownership.disconnects`` (every claim dropped: the
+    session lost its links).
+    """
+
+    def __init__(
+        self,
+        instance_id: str,
+        robots: Sequence[str],
+        *,
+        started_ns: int,
+        pinned: Mapping[str, str] | None = None,
+        confirm_s: float = DEFAULT_CONFIRM_S,
+        join_delay_s: float = DEFAULT_JOIN_DELAY_S,
+        stall_s: float = DEFAULT_STALL_S,
+    ) -> None:
+        if not confirm_s >= 0 or not join_delay_s >= 0 or not stall_s > 0:
+            raise ValueError(f"confirm_s and join_delay_s must be >= 0 and stall_s > 0, got "
+                             f"{confirm_s}, {join_delay_s}, {stall_s}")
+        self.instance_id = check_id("instance_id", instance_id)
+        self.robots: tuple[str, ...] = tuple(dict.fromkeys(robots))
+        self.pinned = dict(pinned or {})
+        self.confirm_ns = round(confirm_s * NS)
+        self.join_delay_ns = round(join_delay_s * NS)
+        self.stall_ns = round(stall_s * NS)
+        self._last_decide_ns: int | None = None
+        #: live backends -> when this table first saw them (self: from ``started_ns``)
+        self._members: dict[str, int] = {self.instance_id: started_ns}
+        #: robot -> other backends whose owner token for it is in sight
+        self._tokens: dict[str, set[str]] = {r: set() for r in self.robots}
+        #: robots whose owner token this backend holds -> when it claimed them
+        self._held: dict[str, int] = {}
+        #: robots another backend held since this one last published them (for takeovers)
+        self._held_elsewhere: set[str] = set()
+        self._publishing: set[str] = set()
+        self._synced = False
+        self.counters: collections.Counter[str] = collections.Counter()
+
+    # ---------------------------------------------------------------- inputs
+
+    def resync(self, members: Iterable[str], owner_tokens: Iterable[tuple[str, str]],
+               now_ns: int) -> None:
+        """The answer of a liveliness get: backends (``members``) and owner tokens
+        (``(robot, instance)``) on the bus. It adds what the events missed and removes nothing:
+        a get's answer can lack tokens that stand (seen with zenoh 1.10 under load), so only a
+        vanishing token (an event) or :meth:`forget` removes one. Backends it adds while the
+        table is not synced yet (at start, after :meth:`forget`) were there before: they count
+        at once; later ones are new and count after the join delay. This backend's own tokens
+        are ignored. Claims may begin."""
+        established = not self._synced
+        for inst in sorted(set(members) - {self.instance_id}):
+            if inst not in self._members:
+                self.on_member(inst, True, now_ns - (self.join_delay_ns if established else 0))
+        for robot, inst in owner_tokens:
+            if robot in self._tokens and inst not in self._tokens[robot]:
+                self.on_owner_token(robot, inst, True)
+        self._synced = True
+
+    @property
+    def is_synced(self) -> bool:
+        return self._synced
+
+    def forget(self, now_ns: int) -> Decision:
+        """Stop publishing, drop every claim (undeclare the returned robots' tokens) and forget
+        the other backends and their tokens: the view can no longer be trusted (the session
+        lost its links, or this worker stood still for ``stall_s`` while events may have been
+        lost). The next liveliness get starts over."""
+        release = tuple(sorted(self._held))
+        self._held.clear()
+        self._publishing.clear()
+        for holders in self._tokens.values():
+            holders.clear()
+        self._members = {self.instance_id: now_ns - self.join_delay_ns}
+        self._synced = False
+        return Decision(release=release)
+
+    def on_disconnected(self, now_ns: int) -> Decision:
+        """The session has no link left: :meth:`forget` (its tokens must go too: the session
+        would re-declare them on reconnection)."""
+        decision = self.forget(now_ns)
+        self.counters["ownership.disconnects"] += 1
+        log.warning("backend %s: the session lost its links; dropped %s", self.instance_id,
+                    ", ".join(decision.release) or "no robot")
+        return decision
+
+    def on_member(self, instance_id: str, present: bool, now_ns: int) -> None:
+        """A backend's liveliness token ``alive/backend/<instance_id>`` appeared or vanished."""
+        if instance_id == self.instance_id:
+            return  # this backend counts itself from its start
+        if present:
+            if instance_id not in self._members:
+                self._members[instance_id] = now_ns
+                self.counters["ownership.member_joined"] += 1
+                log.info("backend %s: backend %s joined", self.instance_id, instance_id)
+        elif self._members.pop(instance_id, None) is not None:
+            self.counters["ownership.member_left"] += 1
+            log.info("backend %s: backend %s left", self.instance_id, instance_id)
+
+    def on_owner_token(self, robot_id: str, instance_id: str, present: bool) -> None:
+        """Backend ``instance_id``'s owner token of ``robot_id`` appeared or vanished. Tokens of
+        robots this backend does not know are ignored (and counted)."""
+        if instance_id == self.instance_id:
+            return
+        holders = self._tokens.get(robot_id)
+        if holders is None:
+            self.counters["ownership.unknown_robot_tokens"] += 1
+            return
+        if present:
+            holders.add(instance_id)
+            self._held_elsewhere.add(robot_id)
+            if robot_id in self._publishing:
+                # rule 4: a claim this backend did not see coming; stop at once, decide() sorts
+                # out who withdraws
+                self._publishing.discard(robot_id)
+                log.warning("backend %s: %s also claims %s; publishing of it stopped",
+                            self.instance_id, instance_id, robot_id)
+        elif instance_id in holders:
+            holders.discard(instance_id)
+            if not holders:
+                self.counters["ownership.owner_lost"] += 1
+
+    # ---------------------------------------------------------------- decisions
+
+    def members(self, now_ns: int) -> list[str]:
+        """The backends that count now (appeared at least ``join_delay_s`` ago), sorted."""
+        return sorted(inst for inst, since in self._members.items()
+                      if now_ns - since >= self.join_delay_ns)
+
+    def owner_of(self, robot_id: str, now_ns: int) -> str | None:
+        """The backend that should own ``robot_id`` now, in this table's view."""
+        return choose_owner(robot_id, self.members(now_ns), self.pinned)
+
+    def _outranks(self, robot_id: str, a: str, b: str) -> bool:
+        return rank(robot_id, a, self.pinned) > rank(robot_id, b, self.pinned)
+
+    def decide(self, now_ns: int) -> Decision:
+        """The claims and releases due now (the table counts them held or released already:
+        apply the decision before publishing anything else)."""
+        last, self._last_decide_ns = self._last_decide_ns, now_ns
+        if last is not None and now_ns - last > self.stall_ns:
+            # the bus may have moved on while this worker stood still, and its session may
+            # have been cut off and back unnoticed: start over from a liveliness get
+            self.counters["ownership.stalls"] += 1
+            decision = self.forget(now_ns)
+            log.warning("backend %s: no decision for %.1f s; dropped %s, re-syncing",
+                        self.instance_id, (now_ns - last) / NS,
+                        ", ".join(decision.release) or "no robot")
+            return decision
+        claim: list[str] = []
+        release: list[str] = []
+        for robot in self.robots:
+            others = self._tokens[robot]
+            mine = self.owner_of(robot, now_ns) == self.instance_id
+            if robot in self._held:
+                higher = [o for o in others if self._outranks(robot, o, self.instance_id)]
+                if not mine or higher:
+                    del self._held[robot]
+                    self._publishing.discard(robot)
+                    release.append(robot)
+                    self.counters["ownership.withdrawals" if mine else "ownership.releases"] += 1
+                    log.info("backend %s releases %s (%s)", self.instance_id, robot,
+                             f"{', '.join(sorted(higher))} claimed it too" if mine
+                             else f"now {self.owner_of(robot, now_ns)}'s")
+            elif mine and self._synced and not others:
+                self._held[robot] = now_ns
+                claim.append(robot)
+                self.counters["ownership.claims"] += 1
+                log.info("backend %s claims %s", self.instance_id, robot)
+        for robot in self.robots:  # publishing starts here, after the decision is known
+            if robot not in self._publishing and self.may_publish(robot, now_ns):
+                self._publishing.add(robot)
+                if robot in self._held_elsewhere:
+                    self.counters["ownership.takeovers"] += 1
+                    self._held_elsewhere.discard(robot)
+                log.info("backend %s publishes %s", self.instance_id, robot)
+        return Decision(tuple(claim), tuple(release))
+
+    def may_publish(self, robot_id: str, now_ns: int) -> bool:
+        """Whether this backend may publish estimates of ``robot_id`` at ``now_ns``: it holds
+        the robot's owner token since at least ``confirm_s``, sees no other owner token of it,
+        is still its choice, is synced and decided less than ``stall_s`` ago."""
+        claimed_ns = self._held.get(robot_id)
+        return (claimed_ns is not None and now_ns - claimed_ns >= self.confirm_ns
+                and self._synced and self._last_decide_ns is not None
+                and now_ns - self._last_decide_ns <= self.stall_ns
+                and not self._tokens[robot_id]
+                and self.owner_of(robot_id, now_ns) == self.instance_id)
+
+    # ---------------------------------------------------------------- status
+
+    def owned(self) -> list[str]:
+        """Robots whose owner token this backend holds, sorted."""
+        return sorted(self._held)
+
+    def pending(self, now_ns: int) -> dict[str, str]:
+        """Robots this backend should own but does not publish yet, and why."""
+        out: dict[str, str] = {}
+        for robot in self.robots:
+            if self.owner_of(robot, now_ns) != self.instance_id or \
+                    self.may_publish(robot, now_ns):
+                continue
+            others = sorted(self._tokens[robot])
+            if not self._synced:
+                out[robot] = "waiting for the liveliness sync"
+            elif others:
+                out[robot] = f"waiting for the owner token of {', '.join(others)} to vanish"
+            elif robot in self._held:
+                left_ms = (self.confirm_ns - (now_ns - self._held[robot])) / 1e6
+                out[robot] = f"confirming the claim ({max(0.0, left_ms):.0f} ms left)"
+            else:
+                out[robot] = "claim due at the next decision"
+        return out
+
+    def summary(self, now_ns: int) -> str:
+        """One line for the status detail: members, owned robots, pending claims."""
+        pending = self.pending(now_ns)
+        text = (f"backends: {','.join(self.members(now_ns)) or '-'}; "
+                f"owns: {','.join(self.owned()) or '-'}")
+        if pending:
+            text += "; pending: " + ", ".join(f"{r} ({why})" for r, why in sorted(pending.items()))
+        return text
+
+    def on_liveliness(self, site: str, key: str, present: bool, now_ns: int) -> bool:
+        """Feed one liveliness event of the bus (``alive/backend/<id>`` or
+        ``owner/<robot>/<id>`` of ``site``); returns whether it was one of those. Keys of other
+        services, sites or shapes are ignored (a foreign or malformed key is counted
+        ``ownership.foreign_keys``)."""
+        parsed = parse_liveliness(key)
+        if parsed is None or parsed[0] != site:
+            self.counters["ownership.foreign_keys"] += 1
+            return False
+        _, kind, a, b = parsed
+        if kind == "alive":
+            if a != BACKEND_SERVICE:
+                return False
+            self.on_member(b, present, now_ns)
+        else:
+            self.on_owner_token(a, b, present)
+        return True
+
+
+def parse_liveliness(key: str) -> tuple[str, str, str, str] | None:
+    """``(site, 'alive', service, instance)`` or ``(site, 'owner', robot, instance)`` of a
+    liveliness key, ``None`` when it is neither."""
+    try:
+        parsed = keys.parse_key(key)
+    except ValidationError:
+        return None
+    if parsed.scope == "alive":
+        return parsed.site, "alive", parsed.topic, parsed.source_id
+    if parsed.scope == "owner":
+        return parsed.site, "owner", parsed.source_id, parsed.topic
+    return None
+
+
+class OwnershipTokens:
+    """The Zenoh side of :class:`OwnershipTable`: this backend's owner tokens on ``session``.
+
+    :meth:`sync` runs the start-up liveliness get (backends and owner tokens already on the
+    bus) into the table and marks it synced; :meth:`apply` declares and undeclares the tokens
+    of a :class:`Decision`; :meth:`close` undeclares them all. Call them from one thread (the
+    service's worker); the liveliness subscriptions themselves are the runner's
+    (``Subscription(..., liveliness=True)`` feeding :meth:`OwnershipTable.on_liveliness`).
+    """
+
+    def __init__(self, session: Any, site: str, table: OwnershipTable) -> None:
+        self.session = session
+        self.site = site
+        self.table = table
+        self._tokens: dict[str, Any] = {}
+
+    def sync(self, now_ns: Callable[[], int], timeout_s: float = DEFAULT_SYNC_TIMEOUT_S) -> int:
+        """Ask the bus for the backends and owner tokens that exist and hand them to
+        :meth:`OwnershipTable.resync`; returns how many tokens came back. A failed get (or an
+        error reply) leaves the table unsynced (no claims) and raises."""
+        members: list[str] = []
+        owners: list[tuple[str, str]] = []
+        started = time.monotonic()
+        for key_expr in (keys.alive_key(self.site, BACKEND_SERVICE, "*"),
+                         keys.owner_key(self.site, "*", "*")):
+            for reply in self.session.liveliness().get(key_expr, timeout=timeout_s):
+                if reply.ok is None:
+                    raise RuntimeError(f"liveliness get {key_expr}: error reply {reply.err}")
+                parsed = parse_liveliness(str(reply.ok.key_expr))
+                if parsed is None or parsed[0] != self.site:
+                    continue
+                if parsed[1] == "alive":
+                    members.append(parsed[3])
+                else:
+                    owners.append((parsed[2], parsed[3]))
+        if time.monotonic() - started >= 0.9 * timeout_s:  # cut short: maybe not all
+            raise TimeoutError(f"the liveliness get took {time.monotonic() - started:.1f} s")
+        self.table.resync(members, owners, now_ns())
+        log.debug("backend %s: ownership synced (%d backends, %d owner tokens on the bus)",
+                  self.table.instance_id, len(members), len(owners))
+        return len(members) + len(owners)
+
+    def apply(self, decision: Decision) -> None:
+        """Undeclare the released robots' tokens, then declare the claimed ones."""
+        for robot in decision.release:
+            token = self._tokens.pop(robot, None)
+            if token is not None:
+                token.undeclare()
+        for robot in decision.claim:
+            if robot not in self._tokens:
+                self._tokens[robot] = self.session.liveliness().declare_token(
+                    keys.owner_key(self.site, robot, self.table.instance_id))
+
+    def close(self) -> None:
+        for token in self._tokens.values():
+            token.undeclare()
+        self._tokens.clear()
+
+
+class BackendOwnership:
+    """Ownership for a backend :class:`~protocol.runtime.ServiceNode`: add
+    :meth:`subscriptions` to the node's, and call :meth:`attach`, :meth:`alive` and
+    :meth:`tick` from the node's methods of the same names; publish an estimate of robot R only
+    while :meth:`may_publish` (R, now).
+
+    Off until :meth:`attach` (a node driven by :class:`~protocol.runtime.ScriptedRunner` has no
+    bus and publishes every robot); on a bus, nothing is published before the start-up
+    liveliness get has returned (retried every :data:`SYNC_RETRY_S` when it failed), and the
+    get runs again every ``resync_s`` (:data:`DEFAULT_RESYNC_S`) to correct what the
+    subscriptions missed.
+    """
+
+    def __init__(self, site: str, instance_id: str, robots: Sequence[str], *, started_ns: int,
+                 pinned: Mapping[str, str] | None = None,
+                 confirm_s: float = DEFAULT_CONFIRM_S,
+                 join_delay_s: float = DEFAULT_JOIN_DELAY_S,
+                 stall_s: float = DEFAULT_STALL_S,
+                 resync_s: float = DEFAULT_RESYNC_S) -> None:
+        self.site = site
+        self.resync_ns = round(resync_s * NS)
+        self.table = OwnershipTable(instance_id, robots, started_ns=started_ns, pinned=pinned,
+                                    confirm_s=confirm_s, join_delay_s=join_delay_s,
+                                    stall_s=stall_s)
+        self.tokens: OwnershipTokens | None = None
+        self._clock: Callable[[], int] | None = None
+        self._next_sync_ns = 0
+        self._online = True
+        #: another backend with this instance id was on the bus at start: publish nothing
+        self.duplicate = False
+
+    @property
+    def active(self) -> bool:
+        """Whether a bus is attached (ownership decides what is published)."""
+        return self.tokens is not None
+
+    def subscriptions(self, *, members: bool = True) -> list[Subscription]:
+        """The liveliness the table needs: the owner tokens of the site and, with ``members``,
+        the backends' tokens (leave it out when the node already watches ``alive/*/*``: route
+        those events to :meth:`alive` too)."""
+        subs = [Subscription(keys.owner_key(self.site, "*", "*"), liveliness=True)]
+        if members:
+            subs.append(Subscription(keys.alive_key(self.site, BACKEND_SERVICE, "*"),
+                                     liveliness=True))
+        return subs
+
+    def attach(self, session: Any, clock: Callable[[], int]) -> None:
+        """The node's session is open, its own liveliness token not declared yet: refuse to
+        publish anything if a backend with this instance id is already on the bus (both would
+        take its tokens for their own), else sync the tokens on the bus (``clock``: the
+        node's)."""
+        self.tokens = OwnershipTokens(session, self.site, self.table)
+        self._clock = clock
+        me = self.table.instance_id
+        if session_connected(session):
+            try:
+                twins = list(session.liveliness().get(
+                    keys.alive_key(self.site, BACKEND_SERVICE, me), timeout=DEFAULT_SYNC_TIMEOUT_S))
+            except Exception:
+                log.exception("backend %s: the liveliness get for its own id failed", me)
+                twins = []
+            if any(reply.ok is not None for reply in twins):
+                self.duplicate = True
+                self.table.counters["ownership.duplicate_instance"] += 1
+                log.error("backend %s: another backend with the id %r is on the bus; this one "
+                          "publishes nothing (give each backend its own --id)", me, me)
+                return
+        self._sync()
+
+    def _sync(self) -> None:
+        assert self.tokens is not None and self._clock is not None
+        if not session_connected(self.tokens.session):
+            return  # nobody to ask: the next tick with a link tries
+        was_synced = self.table.is_synced
+        try:
+            n = self.tokens.sync(self._clock)
+        except Exception:
+            self.table.counters["ownership.sync_errors"] += 1
+            self._next_sync_ns = self._clock() + round(SYNC_RETRY_S * NS)
+            log.exception("backend %s: the liveliness get of the backends and owner tokens "
+                          "failed%s", self.table.instance_id,
+                          "" if was_synced else "; publishing nothing until it succeeds")
+        else:
+            self._next_sync_ns = self._clock() + self.resync_ns
+            if not was_synced:
+                log.info("backend %s: ownership synced (%d tokens on the bus)",
+                         self.table.instance_id, n)
+
+    def alive(self, key: str, present: bool, now_ns: int) -> bool:
+        """One liveliness event of the runner; True when it was the table's (a backend or an
+        owner token of this site), False for other services' tokens."""
+        parsed = parse_liveliness(key)
+        if parsed is None or parsed[0] != self.site:
+            return False
+        if parsed[1] == "alive" and parsed[2] != BACKEND_SERVICE:
+            return False
+        return self.table.on_liveliness(self.site, key, present, now_ns)
+
+    def tick(self, now_ns: int) -> Decision:
+        """Apply the claims and releases due now (before the tick publishes anything)."""
+        if self.tokens is None or self.duplicate:
+            return Decision()
+        if not session_connected(self.tokens.session):
+            if self._online:
+                self._online = False
+                decision = self.table.on_disconnected(now_ns)
+                self.tokens.apply(decision)
+                return decision
+            return Decision()
+        self._online = True
+        if now_ns >= self._next_sync_ns:  # the first sync, a retry, or the periodic one
+            self._sync()
+        decision = self.table.decide(now_ns)
+        if decision:
+            self.tokens.apply(decision)
+        return decision
+
+    def may_publish(self, robot_id: str, now_ns: int) -> bool:
+        """Whether estimates of ``robot_id`` go out now (always, without a bus)."""
+        if not self.active:
+            return True
+        return not self.duplicate and self.table.may_publish(robot_id, now_ns)
+
+    def detail(self, now_ns: int) -> str:
+        """Status text: ``ownership: backends ...; owns ...; pending ...`` (empty without a
+        bus)."""
+        if self.duplicate:
+            return (f"ownership: another backend runs with the id {self.table.instance_id!r}; "
+                    f"this one publishes nothing")
+        return f"ownership: {self.table.summary(now_ns)}" if self.active else ""
+
+    def counters(self) -> dict[str, int]:
+        return dict(self.table.counters)
+
+    def close(self) -> None:
+        if self.tokens is not None:
+            self.tokens.close()
+
+
+def session_connected(session: Any) -> bool:
+    """Whether a Zenoh session has a link to any other session (router, peer or client)."""
+    info = session.info
+    transports = getattr(info, "transports", None)  # eclipse-zenoh >= 1.5; lists clients too
+    if transports is not None:
+        return any(True for _ in transports())
+    return any(True for _ in info.routers_zid()) or any(True for _ in info.peers_zid())
