@@ -194,7 +194,8 @@ def to_ros(msg: Message) -> tuple[str, Any]:
         dets = [det(robot_id=d.robot_id, score=float(d.score), bbox_xyxy=_f64(d.bbox_xyxy),
                     keypoints_px=_f64(d.keypoints_px), keypoint_scores=_f64(d.keypoint_scores),
                     keypoint_sigmas_px=_f64(d.keypoint_sigmas_px
-                                            if d.keypoint_sigmas_px is not None else ()))
+                                            if d.keypoint_sigmas_px is not None else ()),
+                    robot_model=d.robot_model)
                 for d in msg.detections]
         return ROS_TYPES[RobotDetections], t["smartedge_msgs/msg/RobotDetections"](
             header=_header(ts, msg.stamp_ns, msg.camera_id), seq=int(msg.seq) % 2**32,

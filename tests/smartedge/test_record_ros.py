@@ -52,7 +52,7 @@ def _messages(k: int) -> list[tuple[str, object]]:
     cov = np.diag([1e-4, 2e-4, 3e-4])
     det = Detection(np.array([10.0, 20.0, 110.0 + k, 220.0]), 0.9,
                     rng.uniform(0, 400, (5, 2)), np.linspace(0.1, 0.9, 5), robot_id=ROBOT,
-                    keypoint_sigmas_px=np.full(5, 1.5))
+                    keypoint_sigmas_px=np.full(5, 1.5), robot_model="hsr")
     pts = rng.normal(size=(30 + k, 3)).astype(np.float32)
     return [
         (keys.pose_key(SITE, ROBOT), PoseEstimate(
@@ -136,6 +136,7 @@ def test_every_channel_decodes_with_an_independent_decoder(tmp_path: Path) -> No
     np.testing.assert_allclose(np.reshape(dets.detections[0].keypoints_px, (-1, 2)),
                                ref_det.keypoints_px)
     assert dets.detections[0].robot_id == ROBOT and dets.model_id == "kp-v3"
+    assert dets.detections[0].robot_model == "hsr"
     cloud = by_topic["/smartedge/lab/edge/cam_1/cloud"][k][1]
     rows = np.frombuffer(bytes(cloud.data), dtype=np.dtype(
         {"names": ["x", "y", "z", "label", "confidence"],
