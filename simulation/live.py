@@ -8,13 +8,15 @@ same robot the robot bridge drives, without exchanging ground truth. Stamps are 
 nanoseconds (the scenario's start stamp is set to the epoch), so live services can compare them
 with their own clock.
 
-A fleet (``robots`` > 1, ``--sim-robots N``): N identical robots of the scenario's model on the
-crossing routes of :mod:`simulation.fleet` (the trajectory option is not used), on the
-scenario's site with its robots replaced by the fleet (each in its own ROS namespace:
+A fleet (``robots`` > 1, ``--sim-robots N``): N identical HSR-like robots on the crossing
+routes of :mod:`simulation.fleet` (the trajectory option is not used), or with ``mixed``
+(``--sim-mixed-types``) the last of them a box base (:func:`simulation.fleet.fleet_spec`), on
+the scenario's site with its robots replaced by the fleet (each in its own ROS namespace:
 :func:`simulation.fleet.fleet_site`); a camera's detections of all robots in one image are
-merged, in random order and without robot ids; each robot bridge drives one robot
-(``--robot``). The rendered camera feeds draw one robot: a fleet takes its detections from the
-noise model.
+merged, in random order and without robot ids, each naming its robot's model
+(``Detection.robot_model``, as an edge running each type's detector reports it); each robot
+bridge drives one robot (``--robot``). The rendered camera feeds draw one robot: a fleet
+takes its detections from the noise model.
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ class LiveSimSpec:
     max_speed_mps: float | None = None
     #: robots in the simulation (more than one: a fleet on the crossing routes)
     robots: int = 1
+    #: a fleet of two types: the last robot a box base (``box_c``), the others HSR-like
+    mixed: bool = False
 
     def to_argv(self) -> list[str]:
         out = [
@@ -69,6 +73,8 @@ class LiveSimSpec:
             out += ["--sim-max-speed", repr(self.max_speed_mps)]
         if self.robots != 1:
             out += ["--sim-robots", str(self.robots)]
+        if self.mixed:
+            out.append("--sim-mixed-types")
         return out + (["--sim-reverse"] if self.reverse else [])
 
 
@@ -97,6 +103,9 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGrou
     group.add_argument("--sim-robots", type=int, default=1, metavar="N",
                        help="identical robots on crossing routes (default 1: the scenario's "
                        "robot on --sim-trajectory)")
+    group.add_argument("--sim-mixed-types", action="store_true",
+                       help="a fleet of two types: the last of the --sim-robots a box base "
+                       "(box_c), the others HSR-like")
     return group
 
 
@@ -111,6 +120,7 @@ def spec_from_args(args: argparse.Namespace) -> LiveSimSpec:
         args.sim_stop_s,
         args.sim_max_speed,
         int(getattr(args, "sim_robots", 1) or 1),
+        bool(getattr(args, "sim_mixed_types", False)),
     )
 
 
@@ -128,6 +138,9 @@ class LiveSimulation:
         self.scenario = base.with_overrides(start_stamp_ns=spec.epoch_ns, motion=motion)
         #: every robot's run, by robot id (one, unless a fleet)
         self.runs: dict[str, SimulationRun] = {}
+        if spec.mixed and spec.robots < 2:
+            raise ValueError("live simulation: a mixed fleet (--sim-mixed-types) needs "
+                             "--sim-robots 2 or 3")
         if spec.robots == 1:
             self.runs[self.scenario.robot_id] = SimulationRun(
                 self.scenario, spec.trajectory, spec.reverse, seed=spec.seed)
@@ -139,16 +152,17 @@ class LiveSimulation:
 
     def _build_fleet(self, spec: LiveSimSpec) -> None:
         from simulation.fleet import (
-            fleet_robot_ids,
             fleet_routes,
             fleet_site,
+            fleet_spec,
             robot_scenario,
             robot_seed,
             route_waypoints,
         )
 
-        ids = fleet_robot_ids(spec.robots)
-        site = fleet_site(ids, self.scenario.site.source_path)
+        models = fleet_spec(spec.robots, spec.mixed)
+        ids = list(models)
+        site = fleet_site(models, self.scenario.site.source_path)
         self.scenario = self.scenario.with_overrides(site=site, robot_id=ids[0])
         routes = fleet_routes(ids)
         for k, rid in enumerate(ids):
@@ -235,16 +249,19 @@ class CameraFeed:
 
     def _with_fleet(self, msg: RobotDetections, capture_ns: int) -> RobotDetections:
         """``msg`` (the first robot's detection) with every other robot's in the same image,
-        in random order, unnamed (the detection model's robots never occlude each other)."""
-        dets = list(msg.detections)
+        in random order, unnamed, each with its robot's model (a typed edge; the detection
+        model's robots never occlude each other)."""
+        models = self.live.site.robots
+        dets = [(d, models[self.live.robot_id]) for d in msg.detections]
         for rid, rng in self._robot_rngs.items():
             other = self.live.runs[rid].detector.detect(
                 self.camera_id, capture_ns, self.live.ground_truth(capture_ns, rid), self._seq,
                 rng)
-            dets.extend(other.detections)
+            dets.extend((d, models[rid]) for d in other.detections)
         order = self._merge_rng.permutation(len(dets))
         return dataclasses.replace(msg, detections=tuple(
-            dataclasses.replace(dets[i], robot_id="") for i in order))
+            dataclasses.replace(dets[i][0], robot_id="", robot_model=dets[i][1])
+            for i in order))
 
 
 class RenderedCameraFeed:

@@ -14,12 +14,15 @@ By default they run as threads of this process, each with its own Zenoh session;
 A monitor session listens to everything, prints progress, and at the end prints the accuracy
 summary against the simulator's ground truth.
 
-``--robots N`` (N > 1): a fleet of N identical HSR-like robots on crossing routes that pass
-within 0.5 m of each other (:mod:`simulation.fleet`), one robot bridge per robot
-(``--adapter sim --robot <id>``), the site written to the output folder with every robot in its
-own ROS namespace, and the backend assigning the edge agents' unnamed detections to the robots.
-The rendered cameras draw one robot, so a fleet's edge agents take their detections from the
-noise model (``--detections noise``), and the head camera's clouds are left out.
+``--robots N`` (N > 1): a fleet on crossing routes (:mod:`simulation.fleet`): two identical
+HSR-like robots passing within 0.5 m of each other, and with ``--robots 3`` a robot of a second
+type, a box base (``box_c``), crossing both their lanes; one robot bridge per robot
+(``--adapter sim --robot <id>``), the site written to the output folder with both robot models
+and every robot in its own ROS namespace, and the backend assigning the edge agents' unnamed
+detections to the robots (each detection names its robot's type, as an edge running each
+type's detector reports it, so the box base's go only to the box base). The rendered cameras
+draw one robot, so a fleet's edge agents take their detections from the noise model
+(``--detections noise``), and the head camera's clouds are left out.
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ STARTUP_S: Final = 4.0
 STARTUP_PROCESSES_S: Final = 10.0
 DEMO_STOP_S: Final = 4.0
 DEMO_MAX_SPEED_MPS: Final = 0.4
+#: a fleet of this many robots or more mixes two types (the last robot a box base)
+MIXED_FLEET_FROM: Final = 3
 
 
 @dataclasses.dataclass
@@ -185,8 +190,9 @@ def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[st
     true pose than its own); figures by name (``<robot> fused``, ``wrong_corrections``)."""
     figures: dict[str, float] = {}
     print("\nper robot (fleet)", file=out)
-    print(f"  {'robot':<10}{'camera n':>9}{'RMS':>9}{'fused n':>9}{'RMS':>9}"
+    print(f"  {'robot':<10}{'model':<10}{'camera n':>9}{'RMS':>9}{'fused n':>9}{'RMS':>9}"
           f"{'corrections':>13}", file=out)
+    models = getattr(getattr(live, "site", None), "robots", {})
     for rid in live.robot_ids:
         single = [e for e in seen.camera if e.robot_id == rid and "multi_frame" not in e.flags]
         fused = [e for e in seen.fused if e.robot_id == rid]
@@ -195,8 +201,8 @@ def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[st
         rc = float(np.sqrt(np.mean(dc ** 2))) if dc.size else math.nan
         rf = float(np.sqrt(np.mean(df ** 2))) if df.size else math.nan
         n_corr = sum(c.robot_id == rid for c in seen.corrections)
-        print(f"  {rid:<10}{dc.size:>9}{100 * rc:>6.1f} cm{df.size:>9}{100 * rf:>6.1f} cm"
-              f"{n_corr:>13}", file=out)
+        print(f"  {rid:<10}{models.get(rid, '?'):<10}{dc.size:>9}{100 * rc:>6.1f} cm"
+              f"{df.size:>9}{100 * rf:>6.1f} cm{n_corr:>13}", file=out)
         figures[f"{rid} cameras"] = rc
         figures[f"{rid} fused"] = rf
         figures[f"{rid} fused n"] = float(df.size)
@@ -207,7 +213,8 @@ def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[st
                     if name.startswith("backend/")), None)
     if backend is not None:
         counts = {k: int(backend.counters.get(f"association.detections_{k}", 0))
-                  for k in ("assigned", "ambiguous", "unassigned", "no_prediction")}
+                  for k in ("assigned", "ambiguous", "unassigned", "no_prediction",
+                            "unknown_model")}
         print("  the backend's assignment of unnamed detections (last status): "
               + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items()), file=out)
         figures.update({f"detections_{k}": float(v) for k, v in counts.items()})
@@ -315,7 +322,7 @@ class Services:
             return [""]
         from simulation.fleet import fleet_robot_ids
 
-        return fleet_robot_ids(count)
+        return fleet_robot_ids(count, bool(getattr(self.spec, "mixed", False)))
 
     def start(self, log_dir: Path) -> None:
         if self.args.processes:
@@ -448,8 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--robots", type=int, default=1, metavar="N",
-        help="identical robots (default 1); more than one: a fleet on crossing routes, one "
-        "robot bridge each, detections from the noise model, no clouds",
+        help="robots (1-3, default 1); more than one: a fleet on crossing routes, one robot "
+        "bridge each, detections from the noise model (typed), no clouds; 2: two identical "
+        "HSR-like robots; 3: two HSR-like robots and a box base",
     )
     parser.add_argument("--progress-s", type=float, default=5.0, help="progress line period")
     return parser
@@ -501,6 +509,7 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
         stop_s=DEMO_STOP_S,
         max_speed_mps=DEMO_MAX_SPEED_MPS,
         robots=args.robots,
+        mixed=args.robots >= MIXED_FLEET_FROM,
     )
     live = LiveSimulation(spec, scenario)
     duration_s = args.duration if args.duration else live.duration_s + 1.0
@@ -509,8 +518,9 @@ def run_demo(argv: Sequence[str]) -> DemoResult:
     what = (f"robot {live.robot_id!r}, {args.trajectory} "
             f"({live.run.plan.path_length_m:.1f} m, {live.duration_s:.0f} s)"
             if args.robots == 1 else
-            f"{args.robots} identical robots {', '.join(live.robot_ids)} on crossing routes "
-            f"({live.duration_s:.0f} s), site {site_path}")
+            f"{args.robots} robots "
+            f"{', '.join(f'{r} ({live.site.robots[r]})' for r in live.robot_ids)} on crossing "
+            f"routes ({live.duration_s:.0f} s), site {site_path}")
     print(
         f"smartedge demo: site {scenario.site.name!r}, {len(scenario.site.cameras)} cameras, "
         f"{what}, services as {mode}, Zenoh on {endpoint}, correction "
@@ -577,13 +587,14 @@ FLEET_SITE_FILE = "fleet_site.yaml"
 def _fleet_setup(args: argparse.Namespace, parser: argparse.ArgumentParser, site: Site,
                  out_dir: Path) -> Path:
     """``--robots N`` > 1: the noise-model detections and no clouds (said so), and the
-    fleet's site file (every robot in its own ROS namespace) written to ``out_dir``."""
+    fleet's site file (every robot in its own ROS namespace; a mixed fleet's models: the site's
+    and the box base's) written to ``out_dir``."""
     import yaml
 
-    from simulation.fleet import fleet_robot_ids, fleet_site_document
+    from simulation.fleet import fleet_site_document, fleet_spec
 
     try:
-        ids = fleet_robot_ids(args.robots)  # 1..3: the crossing routes
+        models = fleet_spec(args.robots, args.robots >= MIXED_FLEET_FROM)  # 1..3 robots
     except ValueError as exc:
         parser.error(f"--robots: {exc}")
     if args.detections == "cnn":
@@ -595,7 +606,7 @@ def _fleet_setup(args: argparse.Namespace, parser: argparse.ArgumentParser, site
               "rendered cameras follow one robot)")
         args.no_clouds = True
     path = out_dir / FLEET_SITE_FILE
-    path.write_text(yaml.safe_dump(fleet_site_document(site, ids), sort_keys=False))
+    path.write_text(yaml.safe_dump(fleet_site_document(site, models), sort_keys=False))
     return path
 
 

@@ -11,7 +11,7 @@
                                  [--breakdown]
     smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
     smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
-                             [--no-feedback] [--min-sigma-m M]
+                             [--no-feedback] [--min-sigma-m M] [--types]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
     smartedge evaluate calibration --out DIR [--quick] [--runs N] [--drive-s S] [--no-table]
 
@@ -30,7 +30,9 @@ site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the 
 ``fleet`` drives N identical robots on crossing routes through the backend's pipeline (unnamed
 detections assigned to robots) with correction feedback, and each robot alone with the same
 seed (:mod:`smartedge.experiments.fleet`): identity switches, wrong-robot detections and
-corrections, unassigned/ambiguous detections, per-robot ATE against the robot alone.
+corrections, unassigned/ambiguous detections, per-robot ATE against the robot alone;
+``--types``: two types (two HSR-like robots and a box base) with typed detections, and the same
+fleet with the types stripped as the comparison (wrong-type detections, ambiguous counts).
 """
 
 from __future__ import annotations
@@ -329,6 +331,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_fl.add_argument("--min-sigma-m", type=float, default=None, metavar="M",
                       help="floor on every robot's predicted position uncertainty (a stress "
                       "test: vaguer predictions leave more detections ambiguous)")
+    p_fl.add_argument("--types", action="store_true",
+                      help="two robot types: the last robot a box base (box_c), detections "
+                      "typed; also the same fleet untyped as the comparison")
     p_cmp = sub.add_parser("compare", help="side-by-side headline figures of finished "
                            "`evaluate paper` runs (Markdown)")
     p_cmp.add_argument("runs", nargs="+", metavar="NAME=DIR",
@@ -387,7 +392,7 @@ def _fleet(args: argparse.Namespace) -> int:
         config = FleetConfig(robots=args.robots, runs=1 if args.quick else args.runs,
                              seed=args.seed, until_s=QUICK_UNTIL_S if args.quick else None,
                              feedback=not args.no_feedback,
-                             min_sigma_xy_m=args.min_sigma_m)
+                             min_sigma_xy_m=args.min_sigma_m, types=args.types)
     except ValueError as exc:
         print(f"smartedge evaluate fleet: {exc}", file=sys.stderr)
         return 2

@@ -1,6 +1,11 @@
 """``smartedge evaluate fleet``: identical robots crossing paths, through the real per-robot
 pipeline, each scored against the same robot driving its route alone (issue #30 item 5).
 
+With ``types`` (``--types``) the fleet has two robot types (:data:`simulation.fleet.MIXED_FLEET`:
+two HSR-like robots passing each other and a box base crossing their lanes) and every
+detection names its robot's type, as an edge running each type's detector reports it; the
+same fleet is then driven again with the types stripped (an untyped edge) as the comparison.
+
 A run drives the robots of :data:`simulation.fleet.CROSSING_ROUTES` (the first ``robots`` of
 them) on the paper lab (:mod:`simulation.fleet`: one camera image of all robots, detections
 merged and stripped of their robot id) through the backend's
@@ -22,6 +27,7 @@ Scores (per run; :class:`FleetRunResult`):
   A's own;
 * identity switches: per robot, how often the true robot nearest to its published estimates
   (camera and fused) changes (starting from the robot itself);
+* wrong-type detections: wrong-robot detections given to a robot of another type;
 * unassigned, ambiguous and no-prediction detections (the router's counters);
 * per robot: RMS translation error (ATE) of the fused trajectory, of the camera estimates and
   of the robot's own localization, in the fleet and alone, and the ratio fleet / alone (the
@@ -49,8 +55,10 @@ from simulation.fleet import (
     CROSSING_ROUTES,
     FleetRun,
     alone_run,
+    fleet_routes,
     fleet_run,
     fleet_site,
+    fleet_spec,
 )
 from simulation.scenario import Scenario, load_scenario
 from smartedge.evaluation.metrics import rms, translation_errors
@@ -72,7 +80,9 @@ class FleetConfig:
     ``seed``, ``seed + 1``, ...; ``until_s``: simulated seconds (default: until the shortest
     route ends); ``feedback``: correction feedback through the robot bridges;
     ``min_sigma_xy_m``: a floor on every robot's predicted position uncertainty (default: the
-    site's association settings; larger: vaguer predictions, more detections left ambiguous)."""
+    site's association settings; larger: vaguer predictions, more detections left ambiguous);
+    ``types``: two robot types (the last robot a box base, :func:`simulation.fleet.fleet_spec`),
+    typed detections, and the same fleet untyped as the comparison."""
 
     robots: int = 3
     runs: int = 1
@@ -80,6 +90,7 @@ class FleetConfig:
     until_s: float | None = None
     feedback: bool = True
     min_sigma_xy_m: float | None = None
+    types: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.robots <= len(CROSSING_ROUTES):
@@ -91,6 +102,8 @@ class FleetConfig:
             raise ValueError(f"fleet: until_s must be > 0, got {self.until_s}")
         if self.min_sigma_xy_m is not None and not self.min_sigma_xy_m > 0:
             raise ValueError(f"fleet: min_sigma_xy_m must be > 0, got {self.min_sigma_xy_m}")
+        if self.types and self.robots < 2:
+            raise ValueError("fleet: --types needs 2 or 3 robots (an HSR and a box base)")
 
     def pipeline_config(self, fleet: FleetRun) -> PipelineConfig:
         """The paper's protocol with the noise model's error model (as ``evaluate paper``
@@ -102,9 +115,12 @@ class FleetConfig:
         return dataclasses.replace(config, association=dataclasses.replace(
             config.association, min_sigma_xy_m=self.min_sigma_xy_m))
 
+    def models(self) -> dict[str, str]:
+        """Robot id → robot model of the fleet."""
+        return fleet_spec(self.robots, self.types)
+
     def routes(self) -> dict[str, tuple[tuple[float, float, float], ...]]:
-        ids = list(CROSSING_ROUTES)[: self.robots]
-        return {rid: tuple(CROSSING_ROUTES[rid]) for rid in ids}
+        return {rid: tuple(pts) for rid, pts in fleet_routes(list(self.models())).items()}
 
 
 @dataclasses.dataclass
@@ -126,6 +142,9 @@ class Drive:
     contaminated_from_ns: dict[str, int]
     counters: dict[str, int]
     wall_s: float
+    #: per robot: the wrong-robot detections it got from a robot of another model
+    wrong_type: collections.Counter[str] = dataclasses.field(
+        default_factory=collections.Counter)
 
     def fused_rms_m(self, rid: str) -> float:
         tr = self.trajectory[rid]
@@ -165,6 +184,7 @@ def drive(fleet: FleetRun, feedback: bool, config: PipelineConfig | None = None,
     fused: dict[str, list[tuple[float, ...]]] = {rid: [] for rid in ids}
     corrections: dict[str, list[tuple[PoseCorrection, bool]]] = {rid: [] for rid in ids}
     wrong: collections.Counter[str] = collections.Counter()
+    wrong_type: collections.Counter[str] = collections.Counter()
     #: per robot: corrected stamps of the images from which it got another robot's detection
     bad: dict[str, list[tuple[str, int]]] = collections.defaultdict(list)
     contaminated: dict[str, int] = {}
@@ -191,6 +211,8 @@ def drive(fleet: FleetRun, feedback: bool, config: PipelineConfig | None = None,
                                         strict=True):
                 if outcome.used and outcome.robot_id != true_id:
                     wrong[outcome.robot_id] += 1
+                    if site.robots[outcome.robot_id] != site.robots[true_id]:
+                        wrong_type[outcome.robot_id] += 1
                     bad[outcome.robot_id].append((msg.camera_id, stamp))
         for solve in out.solves:
             rid = solve.robot_id
@@ -233,7 +255,7 @@ def drive(fleet: FleetRun, feedback: bool, config: PipelineConfig | None = None,
                  {r: np.array(v, dtype=np.float64).reshape(-1, 4) for r, v in camera.items()},
                  {r: np.array(v, dtype=np.float64).reshape(-1, 4) for r, v in fused.items()},
                  corrections, wrong, contaminated, dict(pipeline.counter_snapshot()),
-                 time.perf_counter() - wall0)
+                 time.perf_counter() - wall0, wrong_type)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,6 +277,9 @@ class RobotScore:
     corrections: int
     corrections_accepted: int
     wrong_corrections: int
+    #: the robot's model, and the wrong-robot detections it got from another model's robot
+    model: str = "hsr"
+    wrong_type_detections: int = 0
 
     @property
     def fused_ratio(self) -> float:
@@ -286,6 +311,15 @@ class FleetRunResult:
     wall_s: float
     #: the two closest robots' true positions then
     closest_xy: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    #: detections that named their robot's model; typed detections of a model no robot has
+    typed: bool = True
+    unknown_model: int = 0
+    #: a typed mixed fleet: the same seed driven with the types stripped (the comparison)
+    untyped: FleetRunResult | None = None
+
+    @property
+    def wrong_type_detections(self) -> int:
+        return sum(r.wrong_type_detections for r in self.robots.values())
 
     @property
     def identity_switches(self) -> int:
@@ -302,16 +336,20 @@ class FleetRunResult:
     def summary(self) -> dict[str, object]:
         return {
             "seed": self.seed, "until_s": self.until_s, "wall_s": self.wall_s,
+            "typed": self.typed,
             "identity_switches": self.identity_switches,
             "wrong_detections": self.wrong_detections,
+            "wrong_type_detections": self.wrong_type_detections,
             "wrong_corrections": self.wrong_corrections,
             "assigned": self.assigned, "ambiguous": self.ambiguous,
             "unassigned": self.unassigned, "no_prediction": self.no_prediction,
+            "unknown_model": self.unknown_model,
             "closest_m": self.closest[0], "closest_t_s": self.closest[1],
             "closest_robots": list(self.closest[2:]),
             "robots": {rid: {**dataclasses.asdict(r), "fused_ratio": r.fused_ratio,
                              "camera_ratio": r.camera_ratio}
                        for rid, r in self.robots.items()},
+            **({"untyped": self.untyped.summary()} if self.untyped is not None else {}),
         }
 
 
@@ -351,22 +389,48 @@ def count_wrong_corrections(fleet: FleetRun, rid: str, dr: Drive) -> int:
 
 def run_fleet_once(config: FleetConfig, seed: int, scenario: Scenario | None = None,
                    say: Callable[[str], None] = lambda s: None) -> FleetRunResult:
-    """One seed: the fleet, then each robot alone (module docstring)."""
+    """One seed: the fleet, then each robot alone (module docstring); with ``config.types``
+    also the fleet untyped (:attr:`FleetRunResult.untyped`)."""
     wall0 = time.perf_counter()
     scenario = scenario or load_scenario()
     routes = config.routes()
-    site = fleet_site(list(routes))
+    site = fleet_site(config.models())
     fleet = fleet_run(routes, until_s=config.until_s, seed=seed, site=site, scenario=scenario)
     closest = fleet.min_distance()
-    say(f"[seed {seed}] {len(routes)} robots, {fleet.until_s:.0f} s simulated, closest "
+    kinds = ", ".join(f"{r} ({m})" for r, m in config.models().items())
+    say(f"[seed {seed}] {len(routes)} robots {kinds}, {fleet.until_s:.0f} s simulated, closest "
         f"approach {closest[0]:.2f} m ({closest[2]}/{closest[3]} at {closest[1]:.1f} s)")
     dr = drive(fleet, config.feedback, config.pipeline_config(fleet))
-    say(f"[seed {seed}] fleet driven in {dr.wall_s:.1f} s")
-    scores: dict[str, RobotScore] = {}
+    say(f"[seed {seed}] fleet driven in {dr.wall_s:.1f} s"
+        + (" (typed detections)" if config.types else ""))
+    alone: dict[str, tuple[FleetRun, Drive]] = {}
     for rid in routes:
         run = alone_run(fleet, rid, scenario)
-        alone = FleetRun(run.scenario.site, {rid: run}, fleet.until_s, seed)
-        da = drive(alone, config.feedback, config.pipeline_config(alone))
+        alone_fleet = FleetRun(run.scenario.site, {rid: run}, fleet.until_s, seed)
+        alone[rid] = (alone_fleet,
+                      drive(alone_fleet, config.feedback, config.pipeline_config(alone_fleet)))
+    result = _score(fleet, dr, alone, closest, say, time.perf_counter() - wall0)
+    if not config.types:
+        return result
+    t1 = time.perf_counter()
+    bare = fleet_run(routes, until_s=config.until_s, seed=seed, site=site, scenario=scenario,
+                     typed=False)
+    du = drive(bare, config.feedback, config.pipeline_config(bare))
+    say(f"[seed {seed}] the same fleet untyped (types stripped) driven in {du.wall_s:.1f} s")
+    untyped = _score(bare, du, alone, closest, say, time.perf_counter() - t1)
+    return dataclasses.replace(result, untyped=untyped,
+                               wall_s=time.perf_counter() - wall0)
+
+
+def _score(fleet: FleetRun, dr: Drive, alone: Mapping[str, tuple[FleetRun, Drive]],
+           closest: tuple[float, float, str, str], say: Callable[[str], None], wall_s: float
+           ) -> FleetRunResult:
+    """A drive of ``fleet`` scored per robot against its drive alone."""
+    seed = fleet.seed
+    tag = "" if fleet.typed else " untyped"
+    scores: dict[str, RobotScore] = {}
+    for rid in fleet.runs:
+        alone_fleet, da = alone[rid]
         sw_c, near_c = identity_score(fleet, rid, dr.camera[rid])
         sw_f, near_f = identity_score(fleet, rid, dr.fused[rid])
         corr = dr.corrections[rid]
@@ -375,19 +439,21 @@ def run_fleet_once(config: FleetConfig, seed: int, scenario: Scenario | None = N
             camera_rms_m=_estimates_rms_m(fleet, rid, dr.camera[rid]),
             robot_rms_m=dr.robot_rms_m(rid),
             alone_fused_rms_m=da.fused_rms_m(rid),
-            alone_camera_rms_m=_estimates_rms_m(alone, rid, da.camera[rid]),
+            alone_camera_rms_m=_estimates_rms_m(alone_fleet, rid, da.camera[rid]),
             alone_robot_rms_m=da.robot_rms_m(rid),
             camera_estimates=len(dr.camera[rid]), alone_camera_estimates=len(da.camera[rid]),
             identity_switches=sw_c + sw_f, estimates_nearer_other=near_c + near_f,
             wrong_detections=int(dr.wrong_detections[rid]),
             corrections=len(corr), corrections_accepted=sum(t for _, t in corr),
-            wrong_corrections=count_wrong_corrections(fleet, rid, dr))
+            wrong_corrections=count_wrong_corrections(fleet, rid, dr),
+            model=fleet.model_of(rid), wrong_type_detections=int(dr.wrong_type[rid]))
         s = scores[rid]
-        say(f"[seed {seed}] {rid}: fused {s.fused_rms_m * 100:.2f} cm (alone "
+        say(f"[seed {seed}{tag}] {rid} ({s.model}): fused {s.fused_rms_m * 100:.2f} cm (alone "
             f"{s.alone_fused_rms_m * 100:.2f} cm, x{s.fused_ratio:.3f}), camera "
             f"{s.camera_rms_m * 100:.2f} cm (alone {s.alone_camera_rms_m * 100:.2f} cm), "
-            f"{s.identity_switches} switches, {s.wrong_corrections} wrong corrections "
-            f"({da.wall_s:.1f} s alone)")
+            f"{s.identity_switches} switches, {s.wrong_detections} wrong-robot detections "
+            f"({s.wrong_type_detections} of another type), {s.wrong_corrections} wrong "
+            f"corrections ({da.wall_s:.1f} s alone)")
     c = dr.counters
     return FleetRunResult(
         seed=seed, until_s=fleet.until_s, robots=scores,
@@ -396,10 +462,12 @@ def run_fleet_once(config: FleetConfig, seed: int, scenario: Scenario | None = N
         unassigned=int(c.get("association.detections_unassigned", 0)),
         no_prediction=int(c.get("association.detections_no_prediction", 0)),
         closest=closest,
-        truth_xy={rid: dr.truth[rid][:, :2] for rid in routes},
-        wall_s=time.perf_counter() - wall0,
+        truth_xy={rid: dr.truth[rid][:, :2] for rid in fleet.runs},
+        wall_s=wall_s,
         closest_xy={rid: (float(xy[0]), float(xy[1])) for rid in closest[2:] if rid
-                    for xy in [fleet.runs[rid].plan.pose_at(np.array([closest[1]]))[0, :2]]})
+                    for xy in [fleet.runs[rid].plan.pose_at(np.array([closest[1]]))[0, :2]]},
+        typed=fleet.typed,
+        unknown_model=int(c.get("association.detections_unknown_model", 0)))
 
 
 def run_fleet(config: FleetConfig, scenario: Scenario | None = None,
@@ -419,37 +487,32 @@ def _x(v: float) -> str:
 
 def fleet_table(results: Sequence[FleetRunResult]) -> tuple[str, dict[str, object]]:
     """The report's tables (Markdown) and the headline numbers: per robot (mean over seeds)
-    ATE fleet / alone, worst ratio, and the identity figures summed over seeds."""
+    ATE fleet / alone, worst ratio, and the identity figures summed over seeds; a typed mixed
+    fleet: the same for its untyped comparison (``numbers["untyped"]``) and a table of both."""
     ids = list(results[0].robots)
-    numbers: dict[str, object] = {
-        "seeds": len(results),
-        "identity_switches": sum(r.identity_switches for r in results),
-        "wrong_detections": sum(r.wrong_detections for r in results),
-        "wrong_corrections": sum(r.wrong_corrections for r in results),
-        "assigned": sum(r.assigned for r in results),
-        "ambiguous": sum(r.ambiguous for r in results),
-        "unassigned": sum(r.unassigned for r in results),
-        "no_prediction": sum(r.no_prediction for r in results),
-        "closest_m": min(r.closest[0] for r in results),
-    }
+    models = {rid: results[0].robots[rid].model for rid in ids}
+    numbers = _identity_numbers(results)
+    numbers["closest_m"] = min(r.closest[0] for r in results)
+    mixed = len(set(models.values())) > 1
+    who = (f"{len(ids)} robots of {len(set(models.values()))} types "
+           f"({', '.join(f'{r}: {m}' for r, m in models.items())}), detections "
+           f"{'typed' if results[0].typed else 'untyped'}"
+           if mixed else f"{len(ids)} identical robots ({', '.join(ids)})")
     lines = [
-        f"{len(ids)} identical robots ({', '.join(ids)}), {len(results)} seed(s), "
-        f"{results[0].until_s:.0f} s simulated each; closest approach "
-        f"{numbers['closest_m']:.2f} m.",
+        f"{who}, {len(results)} seed(s), {results[0].until_s:.0f} s simulated each; closest "
+        f"approach {numbers['closest_m']:.2f} m.",
         "",
-        "| | identity switches | wrong-robot detections | wrong-robot corrections | "
-        "assigned | ambiguous | unassigned | no prediction |",
-        "|---|---|---|---|---|---|---|---|",
-        f"| all seeds | {numbers['identity_switches']} | {numbers['wrong_detections']} | "
-        f"{numbers['wrong_corrections']} | {numbers['assigned']} | {numbers['ambiguous']} | "
-        f"{numbers['unassigned']} | {numbers['no_prediction']} |",
+        "| | identity switches | wrong-robot detections | of another type | wrong-robot "
+        "corrections | assigned | ambiguous | unassigned | no prediction |",
+        "|---|---|---|---|---|---|---|---|---|",
+        _identity_row("all seeds", numbers),
         "",
         "Per robot, mean over seeds: RMS translation error (cm) in the fleet and driving alone "
         f"(same seed), and the ratio (target <= {ATE_RATIO_TARGET:.2f}).",
         "",
-        "| robot | fused fleet | fused alone | ratio | camera fleet | camera alone | ratio | "
-        "own localization fleet | alone | corrections (taken) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| robot | model | fused fleet | fused alone | ratio | camera fleet | camera alone | "
+        "ratio | own localization fleet | alone | corrections (taken) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     worst = 0.0
     per: dict[str, dict[str, float]] = {}
@@ -468,7 +531,8 @@ def fleet_table(results: Sequence[FleetRunResult]) -> tuple[str, dict[str, objec
         per[rid] = {"fused_cm": f * 100, "alone_fused_cm": fa * 100, "fused_ratio": fr,
                     "camera_cm": c * 100, "alone_camera_cm": ca * 100, "camera_ratio": cr}
         lines.append(
-            f"| {rid} | {_cm(f)} | {_cm(fa)} | {_x(fr)} | {_cm(c)} | {_cm(ca)} | {_x(cr)} | "
+            f"| {rid} | {models[rid]} | {_cm(f)} | {_cm(fa)} | {_x(fr)} | {_cm(c)} | {_cm(ca)} | "
+            f"{_x(cr)} | "
             f"{_cm(mean('robot_rms_m'))} | {_cm(mean('alone_robot_rms_m'))} | "
             f"{sum(s.corrections for s in rs)} ({sum(s.corrections_accepted for s in rs)}) |")
     numbers["per_robot"] = per
@@ -478,7 +542,68 @@ def fleet_table(results: Sequence[FleetRunResult]) -> tuple[str, dict[str, objec
         and worst <= ATE_RATIO_TARGET)
     lines += ["", f"Worst ratio {worst:.3f} (target <= {ATE_RATIO_TARGET:.2f}): target "
               f"{'met' if numbers['target_met'] else 'NOT met'}."]
+    bare = [r.untyped for r in results if r.untyped is not None]
+    if bare:
+        un = _identity_numbers(bare)
+        worst_untyped = _worst_ratio(bare)
+        un["worst_ratio"] = worst_untyped
+        un["per_robot"] = {rid: {
+            "fused_ratio": _ratio(*_means(bare, rid, "fused_rms_m", "alone_fused_rms_m")),
+            "camera_ratio": _ratio(*_means(bare, rid, "camera_rms_m", "alone_camera_rms_m")),
+            "camera_cm": _means(bare, rid, "camera_rms_m", "camera_rms_m")[0] * 100}
+            for rid in ids}
+        numbers["untyped"] = un
+        lines += [
+            "", "The same fleet with the types stripped (an untyped edge: every detection a "
+            "candidate for every robot with as many keypoints), same seeds:", "",
+            "| detections | identity switches | wrong-robot detections | of another type | "
+            "wrong-robot corrections | assigned | ambiguous | unassigned | no prediction | "
+            "worst ATE ratio |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            _identity_row("typed", numbers) + f" {_x(worst)} |",
+            _identity_row("untyped", un) + f" {_x(worst_untyped)} |",
+        ]
     return "\n".join(lines) + "\n", numbers
+
+
+def _identity_numbers(results: Sequence[FleetRunResult]) -> dict[str, object]:
+    """The identity figures and the router's counters summed over seeds."""
+    return {
+        "seeds": len(results),
+        "identity_switches": sum(r.identity_switches for r in results),
+        "wrong_detections": sum(r.wrong_detections for r in results),
+        "wrong_type_detections": sum(r.wrong_type_detections for r in results),
+        "wrong_corrections": sum(r.wrong_corrections for r in results),
+        "assigned": sum(r.assigned for r in results),
+        "ambiguous": sum(r.ambiguous for r in results),
+        "unassigned": sum(r.unassigned for r in results),
+        "no_prediction": sum(r.no_prediction for r in results),
+        "unknown_model": sum(r.unknown_model for r in results),
+    }
+
+
+def _identity_row(name: str, n: Mapping[str, object]) -> str:
+    return (f"| {name} | {n['identity_switches']} | {n['wrong_detections']} | "
+            f"{n['wrong_type_detections']} | {n['wrong_corrections']} | {n['assigned']} | "
+            f"{n['ambiguous']} | {n['unassigned']} | {n['no_prediction']} |")
+
+
+def _means(results: Sequence[FleetRunResult], rid: str, a: str, b: str
+           ) -> tuple[float, float]:
+    """Means over seeds (finite values) of two :class:`RobotScore` fields of ``rid``."""
+    out = []
+    for attr in (a, b):
+        v = [getattr(r.robots[rid], attr) for r in results]
+        v = [x for x in v if math.isfinite(x)]
+        out.append(float(np.mean(v)) if v else math.nan)
+    return out[0], out[1]
+
+
+def _worst_ratio(results: Sequence[FleetRunResult]) -> float:
+    ratios = [_ratio(*_means(results, rid, a, b)) for rid in results[0].robots
+              for a, b in (("fused_rms_m", "alone_fused_rms_m"),
+                           ("camera_rms_m", "alone_camera_rms_m"))]
+    return max([x for x in ratios if math.isfinite(x)], default=math.nan)
 
 
 def plot_routes(result: FleetRunResult, scenario: Scenario, path: Path) -> Path:
@@ -531,11 +656,15 @@ def write_report(results: Sequence[FleetRunResult], scenario: Scenario, out: Pat
     table, numbers = fleet_table(results)
     fig = plot_routes(results[0], scenario, out / "fleet_routes.png")
     feedback = "with" if config.feedback else "without"
-    text = ("# Fleet: identical robots crossing paths\n\n"
+    title = ("two robot types crossing paths" if config.types
+             else "identical robots crossing paths")
+    text = (f"# Fleet: {title}\n\n"
             "Every robot's detections reach the backend merged per camera image, without a "
             "robot id; the backend's pipeline assigns them (issue #30 item 1), "
             f"{feedback} correction feedback through one robot bridge per robot. Each robot "
             "is also driven alone (same seed, same route) for the ATE ratio."
+            + (" Each detection names its robot's type (a typed edge); the comparison drives "
+               "the same fleet with the types stripped." if config.types else "")
             + (f" Predictions no sharper than {config.min_sigma_xy_m:g} m (a stress test)."
                if config.min_sigma_xy_m is not None else "") + "\n\n"
             + table + f"\n![routes]({fig.name})\n")

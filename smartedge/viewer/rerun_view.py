@@ -241,6 +241,24 @@ def covariance_ellipse(x: float, y: float, covariance: np.ndarray, sigma: float 
     return np.column_stack([ring, np.full(points, 0.02)])
 
 
+def robot_body(model: Any) -> Any:
+    """The Rerun archetype of a robot model's body in its base frame: a cylinder of the
+    footprint radius and height for a round base (its keypoints' floor distances from the
+    centre within 10 % of the radius, the HSR), else the box its keypoints span, from the
+    floor to the top keypoint (a box base)."""
+    kp = np.asarray(model.keypoints_base_m, np.float64).reshape(-1, 3)
+    color = [(*COLORS["fused"], 90)]
+    radii = np.hypot(kp[:, 0], kp[:, 1])
+    if np.ptp(radii) < 0.1 * model.footprint_radius_m:
+        return rr.Cylinders3D(lengths=[model.height_m], radii=[model.footprint_radius_m],
+                              centers=[[0.0, 0.0, model.height_m / 2]], colors=color)
+    lo, hi = kp.min(axis=0), kp.max(axis=0)
+    top = float(hi[2])
+    return rr.Boxes3D(centers=[[(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, top / 2]],
+                      half_sizes=[[(hi[0] - lo[0]) / 2, (hi[1] - lo[1]) / 2, top / 2]],
+                      colors=color)
+
+
 class RerunView:
     """Logs site, detections, poses, trajectories and metrics to one Rerun recording.
 
@@ -345,17 +363,9 @@ class RerunView:
                 ),
                 static=True,
             )
-            # the robot body (a cylinder of the footprint) rides on the fused pose
-            rec.log(
-                f"world/robots/{robot_id}/fused/body",
-                rr.Cylinders3D(
-                    lengths=[model.height_m],
-                    radii=[model.footprint_radius_m],
-                    centers=[[0.0, 0.0, model.height_m / 2]],
-                    colors=[(*COLORS["fused"], 90)],
-                ),
-                static=True,
-            )
+            # the robot body rides on the fused pose: a round base (keypoints on a circle) as
+            # a cylinder of the footprint, any other (a box base) as its keypoints' box
+            rec.log(f"world/robots/{robot_id}/fused/body", robot_body(model), static=True)
             rec.log(
                 f"world/robots/{robot_id}/fused/keypoints",
                 rr.Points3D(

@@ -199,7 +199,7 @@ def _typed_run(typed: bool) -> tuple[list[tuple[int, object]], dict[int, tuple[s
     from robot_bridge.service import LOCALIZATION_PERIOD_NS
     from simulation.fleet import fleet_run, merged_messages
 
-    fleet = fleet_run(CROSSING, until_s=12.0, seed=5, site=SITE)
+    fleet = fleet_run(CROSSING, until_s=12.0, seed=5, site=SITE, typed=False)  # typed below
     messages = merged_messages(fleet, 1e9 / LOCALIZATION_PERIOD_NS)
     out: list[tuple[int, object]] = []
     truth: dict[int, tuple[str, ...]] = {}

@@ -1,7 +1,7 @@
-"""``smartedge demo --robots 3``: three identical robots on crossing routes, live over Zenoh on
-loopback: four edge agents reporting every robot unnamed, the backend assigning the detections,
-one robot bridge per robot. Every robot gets fused poses on the bus, near its own true pose,
-and no correction goes to the wrong robot."""
+"""``smartedge demo --robots 3``: two identical HSR-like robots and a box base on crossing
+routes, live over Zenoh on loopback: four edge agents reporting every robot unnamed (typed),
+the backend assigning the detections, one robot bridge per robot. Every robot gets fused poses
+on the bus, near its own true pose, and no correction goes to the wrong robot."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from smartedge.demo import FLEET_SITE_FILE, run_demo, wrong_robot_corrections
 
 pytestmark = pytest.mark.slow
 
-ROBOTS = ("hsr_a", "hsr_b", "hsr_c")
+ROBOTS = ("hsr_a", "hsr_b", "box_c")
 
 
 def test_fleet_demo_every_robot_localized_no_wrong_corrections(tmp_path: Path) -> None:
@@ -28,6 +28,7 @@ def test_fleet_demo_every_robot_localized_no_wrong_corrections(tmp_path: Path) -
     assert all(f"namespace: {r}" in site_text for r in ROBOTS)
     live = result.live
     assert live.robot_ids == ROBOTS
+    assert dict(live.site.robots) == {"hsr_a": "hsr", "hsr_b": "hsr", "box_c": "box_base"}
     for rid in ROBOTS:
         fused = [e for e in seen.fused if e.robot_id == rid]
         camera = [e for e in seen.camera if e.robot_id == rid]
@@ -42,4 +43,5 @@ def test_fleet_demo_every_robot_localized_no_wrong_corrections(tmp_path: Path) -
     assert result.figures["wrong_corrections"] == 0
     # the backend assigned the unnamed detections (counted in its status)
     assert result.figures["detections_assigned"] > 1000
+    assert result.figures["detections_unknown_model"] == 0
     assert (tmp_path / "tum" / "hsr_b" / "fused.tum").exists()
