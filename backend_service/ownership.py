@@ -357,6 +357,13 @@ class OwnershipTable:
         """Robots whose owner token this backend holds, sorted."""
         return sorted(self._held)
 
+    def to_run(self, now_ns: int) -> frozenset[str]:
+        """Robots whose pipeline this backend runs: those it holds and those it should own
+        now (its claim is due or waits for the old owner's token), so that their pipeline is
+        running when it starts publishing."""
+        return frozenset(self._held) | frozenset(
+            r for r in self.robots if self.owner_of(r, now_ns) == self.instance_id)
+
     def pending(self, now_ns: int) -> dict[str, str]:
         """Robots this backend should own but does not publish yet, and why."""
         out: dict[str, str] = {}
@@ -593,6 +600,16 @@ class BackendOwnership:
         if decision:
             self.tokens.apply(decision)
         return decision
+
+    def pipeline_robots(self, now_ns: int) -> frozenset[str] | None:
+        """The robots whose full pipeline this backend runs (:meth:`OwnershipTable.to_run`);
+        ``None``: no decision (no bus, or not synced since the start or since the view was
+        dropped: whatever runs goes on running). A backend with a duplicate id runs none."""
+        if self.tokens is not None and self.duplicate:
+            return frozenset()
+        if self.tokens is None or not self.table.is_synced:
+            return None
+        return self.table.to_run(now_ns)
 
     def may_publish(self, robot_id: str, now_ns: int) -> bool:
         """Whether estimates of ``robot_id`` go out now (always, without a bus)."""

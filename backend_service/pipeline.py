@@ -31,6 +31,11 @@ same way by the backend service (:mod:`backend_service.service`), the paper's ex
    recalibrated (its calibrated pose in ``site`` changes: assign a new :class:`Site` to
    :attr:`BackendPipeline.site`), :meth:`BackendPipeline.reset_camera_health` or a restart.
 
+Several backends sharing a site's robots: :meth:`BackendPipeline.set_active` names the robots
+whose steps 1-6 run here; of the others only their odometry and the fused poses their owners
+publish (:meth:`BackendPipeline.on_external_pose`) are kept, as their predictions in step 0
+(carried forward by the odometry) and as the first prior when this backend takes one over.
+
 Inputs are the wire messages in arrival order (:meth:`BackendPipeline.feed`) plus the clock
 (:meth:`BackendPipeline.poll`); outputs are :class:`PipelineOutput` records: the camera
 estimates and fused poses exactly as they are published (``seq`` and ``frame_id`` set), and one
@@ -45,7 +50,7 @@ import collections
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import TYPE_CHECKING, Final, Protocol
 
 import numpy as np
@@ -61,7 +66,7 @@ from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, so
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
 from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
-from protocol.geometry import MotionState, StaticDetector
+from protocol.geometry import MotionState, StaticDetector, se2_between, se2_compose
 from protocol.history import StampedHistory
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 from protocol.site import ClockPolicy, Site
@@ -77,6 +82,13 @@ PRIOR_SOURCES: Final = ("fused", "localization")
 LOCALIZATION_BUFFER: Final = 64
 #: How many recent predictions per robot are kept for reuse (:meth:`RobotTrack.prediction`).
 PREDICTIONS_KEPT: Final = 4
+#: How many odometry messages per robot are kept to carry another backend's pose forward.
+ODOMETRY_BUFFER: Final = 512
+#: How long a robot's pose published by another backend (its owner) is carried forward with
+#: the robot's odometry, for its prediction and a takeover's prior (seconds).
+EXTERNAL_CARRY_S: Final = 5.0
+#: The largest gap between an external pose's stamp and the odometry it is carried from (ns).
+_EXTERNAL_ODOM_GAP_NS: Final = 200_000_000
 
 
 class Fusion(Protocol):
@@ -176,7 +188,9 @@ class SolveRecord:
     """One frame-set's trip through the pipeline.
 
     ``prior``: the pose the solve started from (``None``: PnP) and ``prior_source`` which one
-    (``fused``, ``localization``, ``camera`` or ``none``); ``result``: the solver's outcome;
+    (``fused``, ``localization``, ``camera``, ``external``: the pose another backend published,
+    carried forward by the odometry, after a takeover; or ``none``); ``result``: the solver's
+    outcome;
     ``static``: the robot stood still at the frame-set's stamp; ``averaged``: the multi-frame
     average this solve completed (or ``None``); ``solve_s``: wall time of the solve;
     ``prior_covariance``: the prior's covariance the solve was given (or ``None``).
@@ -234,6 +248,15 @@ class RobotTrack:
         self.averaged_stop_ns: int | None = None
         self.seq_camera = 0
         self.seq_fused = 0
+        #: whether this backend runs the robot's pipeline (solve, fusion); a robot run by
+        #: another backend keeps only its prediction (:meth:`BackendPipeline.set_active`)
+        self.active = True
+        #: the newest pose of the robot published by the backend that runs it (a robot this
+        #: backend does not run): its prediction, and a takeover's prior
+        self.external: PoseEstimate | None = None
+        self._odometry: StampedHistory[Odometry] = StampedHistory(ODOMETRY_BUFFER,
+                                                                  out_of_order="insert")
+        self._external_carry_ns = round(EXTERNAL_CARRY_S * 1e9)
         self._dwell_ns = round(config.static_dwell_s * 1e9)
         self._max_age_ns = (clock if clock is not None else ClockPolicy()).max_age_ns
         # the robot's own localization; messages may overtake each other on the way
@@ -261,6 +284,47 @@ class RobotTrack:
     def add_localization(self, est: PoseEstimate) -> None:
         self._localization.insert(est.stamp_ns, est)
 
+    def add_odometry(self, odom: Odometry) -> None:
+        self.last_odometry = odom
+        self._odometry.insert(odom.stamp_ns, odom)
+
+    def add_external(self, est: PoseEstimate) -> bool:
+        """Another backend's published pose of this robot; False when older than the one
+        kept (messages may overtake each other)."""
+        if self.external is not None and est.stamp_ns <= self.external.stamp_ns:
+            return False
+        self.external = est
+        self.forget_predictions()
+        return True
+
+    def forget_predictions(self) -> None:
+        """Drop the predictions kept for reuse (what they came from has changed)."""
+        self._predictions.clear()
+
+    def external_at(self, stamp_ns: int) -> tuple[PlanarPose, np.ndarray, float] | None:
+        """The robot's pose at ``stamp_ns`` from the newest pose its owner published: carried
+        by the robot's odometry between the two stamps (each within 0.2 s of an odometry
+        message), else, within the clock policy's ``max_age_ms``, as published; ``None`` when
+        older than :data:`EXTERNAL_CARRY_S` or too old to use without odometry. Returns the
+        pose, the published covariance and the seconds it was carried over."""
+        ext = self.external
+        if ext is None:
+            return None
+        gap_ns = abs(stamp_ns - ext.stamp_ns)
+        if gap_ns > self._external_carry_ns:
+            return None
+        pose = np.array([ext.x, ext.y, ext.theta])
+        at_ext = self._odometry.nearest(ext.stamp_ns, max_gap_ns=_EXTERNAL_ODOM_GAP_NS)
+        at_now = self._odometry.nearest(stamp_ns, max_gap_ns=_EXTERNAL_ODOM_GAP_NS)
+        if at_ext is not None and at_now is not None:
+            a, b = at_ext.item, at_now.item
+            pose = se2_compose(pose, se2_between(np.array([a.x, a.y, a.theta]),
+                                                 np.array([b.x, b.y, b.theta])))
+        elif gap_ns > self._max_age_ns:
+            return None
+        return (PlanarPose(float(pose[0]), float(pose[1]), float(pose[2])),
+                np.asarray(ext.covariance, np.float64), gap_ns * 1e-9)
+
     def _localization_at(self, stamp_ns: int) -> PoseEstimate | None:
         near = self._localization.nearest(stamp_ns, max_gap_ns=self._max_age_ns)
         return None if near is None else near.item
@@ -278,7 +342,18 @@ class RobotTrack:
         lookups = {"fused": self._fused_at, "localization": self._localization_at,
                    "camera": self._camera_at}
         other = next(s for s in PRIOR_SOURCES if s != self.config.prior)
-        for source in (self.config.prior, "camera", other):
+        # "external": after a takeover, the previous owner's last published pose (its pose
+        # graph's), carried forward by the odometry; before the robot's own localization when
+        # the fused pose comes first
+        order = ((self.config.prior, "camera", "external", other)
+                 if self.config.prior == "fused" else (self.config.prior, "camera", other,
+                                                       "external"))
+        for source in order:
+            if source == "external":
+                external = self.external_at(stamp_ns)
+                if external is not None:
+                    return external[0], "external", None
+                continue
             est = lookups[source](stamp_ns)
             if est is not None:
                 cov = est.covariance if source == "localization" else None
@@ -315,6 +390,16 @@ class RobotTrack:
         if self.fusion is not None and self.fusion.anchored:
             candidates.append(("fused", self.fusion.pose_at(stamp_ns) or self.fusion.latest()))
         candidates.append(("camera", self._camera_at(stamp_ns)))
+        if not any(est is not None and abs(stamp_ns - est.stamp_ns) <= self._max_age_ns
+                   for _, est in candidates):
+            # not run here (or just taken over): the pose its owner published, carried
+            # forward by the odometry; the robot's own localization only after that
+            external = self.external_at(stamp_ns)
+            if external is not None:
+                pose, ext_cov, carried_s = external
+                cov = predicted_covariance(ext_cov, carried_s + self._prediction_reuse_ns * 1e-9,
+                                           "fused", config)
+                return RobotPrediction(self.robot_id, pose, cov, "fused")
         candidates.append(("localization", self._localization_at(stamp_ns)))
         for source, est in candidates:
             if est is None or abs(stamp_ns - est.stamp_ns) > self._max_age_ns:
@@ -357,6 +442,7 @@ class BackendPipeline:
 
             def fusion_factory(robot_id: str) -> Fusion:
                 return PoseGraphFusion(robot_id, fcfg, site.clock)
+        self._fusion_factory = fusion_factory if with_fusion else None
 
         self.sync = FrameSetSynchronizer(site)
         #: several robots: unnamed detections go to robots by where each is expected to be
@@ -401,6 +487,52 @@ class BackendPipeline:
         self.counters["ignored"] += 1
         return PipelineOutput()
 
+    def set_active(self, robot_ids: Collection[str] | None) -> None:
+        """Run the full pipeline (solve, averaging, pose graph) only for ``robot_ids``
+        (``None``: every robot, the default): several backends share a site's robots, each
+        runs the robots it owns. The others keep only what matching detections to robots
+        needs: their odometry and the poses their owners publish (:meth:`on_external_pose`),
+        for their predictions; their frame-sets are skipped (counted ``standby.frame_sets``).
+        A robot that stops being run here loses its pose graph (a later takeover starts a
+        fresh one, its first solve from the previous owner's last pose carried forward by the
+        odometry: prior source ``external``)."""
+        for rid, track in self.tracks.items():
+            want = robot_ids is None or rid in robot_ids
+            if want == track.active:
+                continue
+            track.active = want
+            track.averager.reset()
+            track.forget_predictions()
+            if want:
+                self.counters["standby.activated"] += 1
+                log.info("running the pipeline of %s", rid)
+            else:
+                self.counters["standby.deactivated"] += 1
+                if self._fusion_factory is not None:
+                    track.fusion = self._fusion_factory(rid)
+                log.info("no longer running the pipeline of %s (another backend does)", rid)
+
+    @property
+    def active_robots(self) -> list[str]:
+        """The robots whose full pipeline runs here, sorted."""
+        return sorted(rid for rid, t in self.tracks.items() if t.active)
+
+    def on_external_pose(self, est: PoseEstimate) -> None:
+        """A fused pose of a robot published by a backend (on ``.../pose``): kept for the
+        robots not run here (their predictions and a takeover's prior); the echo of this
+        backend's own poses, and poses of robots it runs, are ignored (counted
+        ``external_pose.ignored``)."""
+        track = self._track(est.robot_id)
+        if track is None:
+            return
+        if track.active or est.source != "fused":
+            self.counters["external_pose.ignored"] += 1
+            return
+        if track.add_external(est):
+            self.counters["external_pose.used"] += 1
+        else:
+            self.counters["external_pose.out_of_order"] += 1
+
     def step(self, message: Message, arrival_ns: int) -> PipelineOutput:
         """What the service does when ``message`` arrives at ``arrival_ns``: its clock tick
         first (:meth:`poll`), then the message (:meth:`feed`). Replays and experiments drive
@@ -440,9 +572,9 @@ class BackendPipeline:
         motion = track.static.update(odom.stamp_ns, odom.vx, odom.vy, odom.wz)
         if motion.still_since_ns is None:
             track.averager.reset()
-        track.last_odometry = odom
+        track.add_odometry(odom)
         out = PipelineOutput()
-        if track.fusion is not None:
+        if track.fusion is not None and track.active:
             fused = track.fusion.add_odometry(odom)
             if fused is not None:
                 out.fused.append(self._stamp_fused(track, fused))
@@ -506,6 +638,9 @@ class BackendPipeline:
         # an unnamed frame-set can only come from a one-robot site (the synchronizer's rule)
         track = self._track(fs.robot_id) if fs.robot_id else next(iter(self.tracks.values()))
         if track is None:
+            return out
+        if not track.active:  # another backend runs this robot
+            self.counters["standby.frame_sets"] += 1
             return out
         prior, source, prior_cov = track.prior(fs.stamp_ns)
         health = self.camera_health

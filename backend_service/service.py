@@ -23,7 +23,13 @@ from backend_service.fusion import FusionConfig, fusion_config_from_site
 from backend_service.ownership import BackendOwnership
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
 from protocol import keys
-from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
+from protocol.messages import (
+    MAX_NUMBER_MAP_ENTRIES,
+    Message,
+    Odometry,
+    PoseEstimate,
+    RobotDetections,
+)
 from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
 from protocol.session import add_session_arguments
 from protocol.site import Site, load_site
@@ -46,11 +52,18 @@ class BackendNode(ServiceNode):
     transport's few milliseconds; on a replayed recording, whose stamps are hours old, it is the
     replay's offset, so replayed poses are not all stale.
 
-    Several backends: every backend runs the pipeline of every robot (a warm standby) and
-    publishes the estimates of the robots it owns (:class:`~backend_service.ownership.
-    BackendOwnership`: liveliness tokens ``owner/<robot>/<id>``, rendezvous hashing over the
-    live backends); the others are counted ``ownership.withheld``. Without a bus
-    (:class:`~protocol.runtime.ScriptedRunner`) every robot is published.
+    Several backends: each backend owns a share of the robots (:class:`~backend_service.
+    ownership.BackendOwnership`: liveliness tokens ``owner/<robot>/<id>``, rendezvous hashing
+    over the live backends), runs the full pipeline (solve, pose graph) only for those
+    (:meth:`~backend_service.pipeline.BackendPipeline.set_active`) and publishes only their
+    estimates (others are counted ``ownership.withheld``). Of the other robots it keeps what
+    matching detections to robots needs: their odometry and the fused poses their owners
+    publish on ``.../pose`` (subscribed here), so a detection of a robot run elsewhere is still
+    matched against that robot's predicted pose, never given to a robot run here for lack of
+    it. A takeover starts the robot's pipeline with the previous owner's last pose, carried
+    forward by the odometry, as the first prior. Until the first liveliness sync every robot
+    runs (a cold start loses nothing). Without a bus (:class:`~protocol.runtime.
+    ScriptedRunner`) every robot runs and is published.
 
     Load shedding: detections that waited in the input queue longer than ``max_input_delay_s``
     are dropped by the runner before they are decoded (``shed``, ``shed.<key>``), oldest first,
@@ -90,6 +103,8 @@ class BackendNode(ServiceNode):
                          max_queue_delay_s=self.pipeline.config.max_input_delay_s),
             Subscription(keys.odom_key(s, "*"), Odometry, capacity=4096, drop_oldest=False),
             Subscription(keys.localization_key(s, "*"), PoseEstimate, capacity=256),
+            # the owners' fused poses: the predictions of the robots run by other backends
+            Subscription(keys.pose_key(s, "*"), PoseEstimate, capacity=1024),
             Subscription(keys.alive_key(s, "*", "*"), liveliness=True),
             *self.ownership.subscriptions(members=False),
         ]
@@ -115,6 +130,9 @@ class BackendNode(ServiceNode):
             self.stats.event("detections")
         elif isinstance(message, Odometry):
             self.stats.event("odometry")
+        elif isinstance(message, PoseEstimate) and key.endswith("/pose"):
+            self.pipeline.on_external_pose(message)  # a backend's fused pose (maybe our own)
+            return []
         elif isinstance(message, PoseEstimate) and message.source != "robot":
             # only the robot's own localization belongs on .../localization
             self.stats.count("localization_wrong_source")
@@ -128,6 +146,9 @@ class BackendNode(ServiceNode):
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         self._last_now_ns = max(self._last_now_ns, now_ns)
         self.ownership.tick(now_ns)
+        run = self.ownership.pipeline_robots(now_ns)
+        if run is not None:
+            self.pipeline.set_active(run)
         return self._publish(self.pipeline.poll(now_ns), now_ns)
 
     def _publish(self, out: PipelineOutput, now_ns: int) -> list[Outgoing]:
@@ -210,7 +231,7 @@ class BackendNode(ServiceNode):
         if self.ownership.duplicate:  # publishes nothing: a person must rename one backend
             problems.append(owners)
         elif owners:
-            detail += f"; {owners}"
+            detail += f"; {owners}; runs: {','.join(self.pipeline.active_robots) or '-'}"
         if problems:
             shown = "; ".join(problems[:6]) + (f"; +{len(problems) - 6} more"
                                                if len(problems) > 6 else "")
@@ -221,10 +242,39 @@ class BackendNode(ServiceNode):
         out = self.stats.snapshot_counters()
         out.update(self.pipeline.counter_snapshot())
         out.update(self.ownership.counters())
-        return out
+        return fit_counters(out, MAX_NUMBER_MAP_ENTRIES)
 
     def close(self) -> None:
         self.ownership.close()
+
+
+def fit_counters(counters: dict[str, int], limit: int) -> dict[str, int]:
+    """``counters`` within ``limit`` entries (a status carries at most
+    :data:`~protocol.messages.MAX_NUMBER_MAP_ENTRIES`; a site with a hundred cameras has a few
+    counters per camera): over it, the per-camera synchronizer counters
+    (``sync.camera.<cam>.<what>``) are summed over the cameras into ``sync.cameras.<what>``
+    (``counters.folded``: how many were folded); still over, the last names in sorted order
+    are left out (``counters.omitted``: how many)."""
+    if len(counters) <= limit:
+        return counters
+    out: dict[str, int] = {}
+    folded = 0
+    for name, value in counters.items():
+        parts = name.split(".")
+        if len(parts) >= 4 and parts[0] == "sync" and parts[1] == "camera":
+            key = f"sync.cameras.{parts[-1]}"
+            out[key] = out.get(key, 0) + int(value)
+            folded += 1
+        else:
+            out[name] = value
+    out["counters.folded"] = folded
+    if len(out) > limit:
+        names = sorted(n for n in out if n != "counters.folded")[:limit - 2]
+        kept = {n: out[n] for n in names}
+        kept["counters.folded"] = folded
+        kept["counters.omitted"] = len(out) - 1 - len(names)
+        out = kept
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -26,6 +26,8 @@ BENCHES: Final[dict[str, Command]] = {
     "association": Command("smartedge.bench.association", "main",
                            "CPU of matching detections to several robots per frame-set"),
     "backend": Command("smartedge.bench.backend", "main", "throughput/latency over real Zenoh"),
+    "fleet": Command("smartedge.bench.fleet", "main",
+                     "a facility on loopback: robots, cameras, routers, 1..3 backends"),
     "ros-source": Command("smartedge.bench.ros_source", "main",
                           "edge agent frames/s from a ROS 2 image topic"),
     "render": Command("smartedge.bench.render", "main", "rendered images/s with exact labels"),
