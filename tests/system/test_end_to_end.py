@@ -49,8 +49,12 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     # poses came out, accurate against ground truth, and the bridge corrected the robot
     # (CNN keypoints, 5 Hz per camera; measured over 60 s: cameras RMS 2.6 cm, fused 2.5 cm)
     assert len(seen.camera) > 60 and len(seen.fused) > 100
-    assert result.figures["cameras, 1 frame"] < 0.04
-    assert result.figures["fused (pose graph)"] < 0.04
+    # on failure, say how complete the frame-sets were (a starved edge agent's late frames
+    # leave frame-sets of fewer cameras, whose poses are less accurate)
+    backend = seen.status["backend/main"].counters
+    why = {k: v for k, v in backend.items() if k.startswith(("sync.", "shed", "ownership."))}
+    assert result.figures["cameras, 1 frame"] < 0.04, (result.figures, why)
+    assert result.figures["fused (pose graph)"] < 0.04, (result.figures, why)
     assert seen.corrections and all(c.kind == "correction" for c in seen.corrections)
     # the semantic map: the cameras' and the robot's clouds fused, saved when the mapper
     # stopped, and scored against the simulation's ground truth
