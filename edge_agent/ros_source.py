@@ -256,9 +256,13 @@ def _size(cdr: CdrReader) -> tuple[int, int]:
     return height, width
 
 
-def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
-    """``sensor_msgs/Image`` from its CDR bytes; :class:`RosImageError` when truncated or
-    inconsistent (``step`` too small for the encoding, data shorter than ``step * height``)."""
+def _read_image(payload: bytes | memoryview, what: str,
+                bytes_per_pixel: Callable[[str], int], *, depth: bool) -> RosImage:
+    """The fields of a ``sensor_msgs/Image`` with its size checks: ``bytes_per_pixel(encoding)``
+    says how wide a pixel of that encoding is (or raises ``ros_bad_encoding``); a ``step``
+    shorter than a row is ``ros_bad_size``, data shorter than ``step * height``
+    ``ros_truncated``. The encoding is returned upper case for depth (``16UC1``), lower case
+    otherwise."""
     cdr = CdrReader(payload, what)
     stamp_ns, frame_id = cdr.header()
     height, width = _size(cdr)
@@ -266,22 +270,33 @@ def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
     is_bigendian = bool(cdr.u8("is_bigendian"))
     step = cdr.u32("step")
     data = cdr.octets("data")
-    bpp = _RAW_BPP.get(encoding.lower())
-    if bpp is None and encoding.lower() in _DEPTH_TYPES:
-        raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is a depth "
-                            "image, not a colour image (a depth topic is read with "
-                            "--ros-depth-topic)")
-    if bpp is None:
-        raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not "
-                            f"supported (one of {', '.join(SUPPORTED_ENCODINGS)})")
+    bpp = bytes_per_pixel(encoding)  # the encoding as sent, for the error message
     if step < width * bpp:
         raise RosImageError("ros_bad_size", f"{what}: step {step} < width {width} x {bpp} "
                             f"bytes ({encoding})")
     if len(data) < step * height:
         raise RosImageError("ros_truncated", f"{what}: {len(data)} data bytes for "
                             f"{height} rows of {step} ({width}x{height} {encoding})")
-    return RosImage(stamp_ns, frame_id, height, width, encoding.lower(), is_bigendian, step,
-                    data)
+    return RosImage(stamp_ns, frame_id, height, width,
+                    encoding.upper() if depth else encoding.lower(), is_bigendian, step, data)
+
+
+def decode_image(payload: bytes | memoryview, what: str = "Image") -> RosImage:
+    """``sensor_msgs/Image`` from its CDR bytes; :class:`RosImageError` when truncated or
+    inconsistent (``step`` too small for the encoding, data shorter than ``step * height``)."""
+
+    def colour_bpp(encoding: str) -> int:
+        bpp = _RAW_BPP.get(encoding.lower())
+        if bpp is None and encoding.lower() in _DEPTH_TYPES:
+            raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is a "
+                                "depth image, not a colour image (a depth topic is read with "
+                                "--ros-depth-topic)")
+        if bpp is None:
+            raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not "
+                                f"supported (one of {', '.join(SUPPORTED_ENCODINGS)})")
+        return bpp
+
+    return _read_image(payload, what, colour_bpp, depth=False)
 
 
 def decode_depth_image(payload: bytes | memoryview, what: str = "depth Image") -> RosImage:
@@ -290,26 +305,15 @@ def decode_depth_image(payload: bytes | memoryview, what: str = "depth Image") -
     shorter than a row (``ros_bad_size``) and data shorter than ``step * height``
     (``ros_truncated``). Row padding of any length, also not a whole number of pixels, is
     handled. Convert with :func:`depth_to_m`."""
-    cdr = CdrReader(payload, what)
-    stamp_ns, frame_id = cdr.header()
-    height, width = _size(cdr)
-    encoding = cdr.string("encoding")
-    is_bigendian = bool(cdr.u8("is_bigendian"))
-    step = cdr.u32("step")
-    data = cdr.octets("data")
-    kind = _DEPTH_TYPES.get(encoding.lower())
-    if kind is None:
-        raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not a depth "
-                            f"encoding (one of {', '.join(DEPTH_ENCODINGS)})")
-    bpp = int(kind[0][1])
-    if step < width * bpp:
-        raise RosImageError("ros_bad_size", f"{what}: step {step} < width {width} x {bpp} "
-                            f"bytes ({encoding})")
-    if len(data) < step * height:
-        raise RosImageError("ros_truncated", f"{what}: {len(data)} data bytes for "
-                            f"{height} rows of {step} ({width}x{height} {encoding})")
-    return RosImage(stamp_ns, frame_id, height, width, encoding.upper(), is_bigendian, step,
-                    data)
+
+    def depth_bpp(encoding: str) -> int:
+        kind = _DEPTH_TYPES.get(encoding.lower())
+        if kind is None:
+            raise RosImageError("ros_bad_encoding", f"{what}: encoding {encoding!r} is not a "
+                                f"depth encoding (one of {', '.join(DEPTH_ENCODINGS)})")
+        return int(kind[0][1])
+
+    return _read_image(payload, what, depth_bpp, depth=True)
 
 
 def depth_to_m(image: RosImage) -> np.ndarray:
