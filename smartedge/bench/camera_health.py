@@ -263,7 +263,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="only the CPU cost: the pipeline with the monitor on and off on the "
                         "ring site with these camera counts (e.g. 4 16 64)")
     parser.add_argument("--cpu-frames", type=int, default=300)
+    parser.add_argument("--detections", choices=("noise", "cnn"), default="noise",
+                        help="cnn: runs rendered through the shipped ONNX models, the monitor "
+                        "as the site sets it against counting every frame "
+                        "(smartedge.bench.camera_health_cnn)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1],
+                        help="--detections cnn: run seeds (default 0 1)")
+    parser.add_argument("--trajectories", nargs="+", default=list(TRAJECTORIES),
+                        help="--detections cnn: trajectories, each forward and reversed")
+    parser.add_argument("--bump-cameras", nargs="+", default=["cam1", "cam3"],
+                        help="--detections cnn: cameras given a calibration off by 5 cm / 1 "
+                        "deg, one at a time (default cam1 cam3)")
     args = parser.parse_args(argv)
+    if args.detections == "cnn":
+        from smartedge.bench.camera_health_cnn import run as run_cnn
+
+        run_cnn(args.seeds, args.trajectories, args.bump_cameras)
+        return 0
     if args.cpu:
         print_cpu(args.cpu, args.cpu_frames)
         return 0

@@ -245,3 +245,42 @@ def test_bad_settings_name_the_key(tmp_path: Path, section: dict, key: str) -> N
         CameraHealthConfig.from_site(site)
     assert f": {key}" in str(err.value)
     assert str(tmp_path / "site.yaml") in str(err.value)
+
+
+def _creep(monitor: CameraHealthMonitor, site: Site, bias_px: np.ndarray, seconds: float,
+           rng: np.random.Generator) -> None:
+    """A robot creeping 1 cm/s (5 Hz frame-sets), cam3's keypoints off by a fixed pattern
+    ``bias_px`` (M, 2): a detector's error that belongs to the view, not to the frame."""
+    cams = [site.cameras[c] for c in sorted(site.cameras)]
+    i3 = sorted(site.cameras).index("cam3")
+    for i in range(round(seconds * 5)):
+        pose = PlanarPose(9.5 + 0.002 * i, 6.0, 0.3)
+        kp, T, uv, w = _views(site, cams, pose, rng, 0.3)
+        uv[i3] += bias_px
+        monitor.observe("hsr", round(i / 5 * 1e9), cams, kp, T, uv, w)
+
+
+def test_a_view_repeated_is_not_evidence_repeated(site: Site) -> None:
+    """A CNN's keypoint error depends on the view: frames of a standing or creeping robot repeat
+    it. Counted as independent frames, that error names an unmoved camera moved (as it did in
+    the closed-loop demo); counted by how far the robot moved, it does not."""
+    n_kp = len(site.robot_model(None).keypoints_base_m)
+    bias = np.random.default_rng(5).normal(0.0, 2.0, (n_kp, 2))
+    every_frame = CameraHealthMonitor(CameraHealthConfig(
+        independent_motion_m=1e-6, independent_turn_deg=1e-6))
+    _creep(every_frame, site, bias, 60.0, np.random.default_rng(6))
+    assert "cam3" in every_frame.moved  # the failure this guards against
+    by_motion = CameraHealthMonitor(CameraHealthConfig())
+    _creep(by_motion, site, bias, 60.0, np.random.default_rng(6))
+    assert by_motion.moved == {}
+    state = by_motion.state("cam3")
+    assert state is not None and state.evidence_s < 5.0  # 0.6 m of creeping: ~2.4 views
+    # a standing robot adds nothing
+    standing = CameraHealthMonitor(CameraHealthConfig())
+    cams = [site.cameras[c] for c in sorted(site.cameras)]
+    rng = np.random.default_rng(7)
+    for i in range(50):
+        kp, T, uv, w = _views(site, cams, PlanarPose(10.0, 6.0, 0.0), rng, 0.5)
+        standing.observe("hsr", round(i / 5 * 1e9), cams, kp, T, uv, w)
+    assert standing.counters["judged"] == 1
+    assert standing.counters["skipped.same_view"] == 49

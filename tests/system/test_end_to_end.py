@@ -52,7 +52,11 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     # on failure, say how complete the frame-sets were (a starved edge agent's late frames
     # leave frame-sets of fewer cameras, whose poses are less accurate)
     backend = seen.status["backend/main"].counters
-    why = {k: v for k, v in backend.items() if k.startswith(("sync.", "shed", "ownership."))}
+    why = {k: v for k, v in backend.items()
+           if k.startswith(("sync.", "shed", "ownership.", "camera_health."))}
+    # no camera was moved: one named moved is left out of the solve, and the frame-sets of
+    # fewer cameras are less accurate (the CNN's view-dependent keypoint error once did this)
+    assert backend.get("camera_health.moved", 0) == 0, why
     assert result.figures["cameras, 1 frame"] < 0.04, (result.figures, why)
     assert result.figures["fused (pose graph)"] < 0.04, (result.figures, why)
     assert seen.corrections and all(c.kind == "correction" for c in seen.corrections)
