@@ -8,8 +8,12 @@ Modes:
 - ``site``: a view of the simulated site from one of its own cameras (intrinsics, distortion,
   pose as the site file says), the robot at a random free pose in the room, sometimes people
   standing around;
-- ``randomized``: :func:`simulation.scenes.randomized_view` plus image-space augmentation
-  (colour jitter, blur, sensor noise, JPEG compression);
+- ``randomized``: :func:`simulation.scenes.randomized_view` (camera, lens, textures,
+  clutter, occluders, lights and materials, the robot's colours) plus image-space effects: the
+  robot's shadow and dirt (:func:`scene_effects`) and the camera's (:func:`camera_effects`:
+  vignetting, defocus and motion blur, exposure, white balance, gamma, saturation, sensor
+  noise, JPEG), all drawn from the generator's :class:`simulation.scenes.RandomizationConfig`
+  (:data:`simulation.scenes.HELD_OUT_VARIATION`: the held-out renderer variations);
 - ``robot``: what the robot's own head camera (the robot model's ``head_camera`` in the site
   file) sees from a random free pose in the room with a random heading: the site without the
   robot itself (as :meth:`simulation.site_cameras.SiteCameraRenderer.render_head` draws it),
@@ -32,6 +36,7 @@ import functools
 import itertools
 import json
 import logging
+import math
 import multiprocessing
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -48,10 +53,13 @@ from simulation.scenes import (
     FIRST_OTHER_INSTANCE,
     ROBOT_INSTANCE,
     RandomizationConfig,
+    hsr_arm_poses,
     person_mesh,
     random_environments,
     randomized_view,
+    robot_appearances,
     robot_keypoints_world,
+    shadow_polygon_world,
     site_geometry,
     site_scene,
 )
@@ -174,6 +182,159 @@ def augment(image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def _vignetting_gain(width: int, height: int, strength: float, rng: np.random.Generator,
+                     ) -> np.ndarray:
+    """(H, W, 3) uint8 gain (255 = 1) falling off as ``1 - strength * r^2`` to the corners,
+    about an optical centre a little off the image centre (built at 1/8 resolution and
+    resized: smooth)."""
+    import cv2
+
+    w8, h8 = max(2, width // 8), max(2, height // 8)
+    cx, cy = 0.5 + rng.normal(0, 0.04, 2)
+    y, x = np.mgrid[0:h8, 0:w8]
+    dx = (x + 0.5) / w8 - cx
+    dy = ((y + 0.5) / h8 - cy) * (height / width)
+    r2 = (dx * dx + dy * dy) / (0.25 * (1 + (height / width) ** 2))
+    g = np.clip(255.0 * (1.0 - strength * r2), 0, 255).astype(np.uint8)
+    return cv2.resize(np.repeat(g[..., None], 3, axis=2), (width, height),
+                      interpolation=cv2.INTER_LINEAR)
+
+
+def _disk_kernel(radius_px: float) -> np.ndarray:
+    """A normalized disk (defocus) kernel with an anti-aliased rim."""
+    n = math.ceil(radius_px)
+    y, x = np.mgrid[-n:n + 1, -n:n + 1]
+    k = np.clip(radius_px + 0.5 - np.hypot(x, y), 0.0, 1.0).astype(np.float32)
+    return _trimmed(k)
+
+
+def _trimmed(kernel: np.ndarray) -> np.ndarray:
+    """``kernel`` without its all-zero border rows and columns, normalized to sum 1 (kept odd
+    and centred: trimmed symmetrically)."""
+    n = kernel.shape[0] // 2
+    used = np.flatnonzero(kernel.any(axis=0) | kernel.any(axis=1))
+    m = max(int(np.max(np.abs(used - n))), 0) if len(used) else 0
+    k = kernel[n - m:n + m + 1, n - m:n + m + 1]
+    return k / max(float(k.sum()), 1e-6)
+
+
+def _line_kernel(length_px: float, angle_rad: float) -> np.ndarray:
+    """A normalized straight motion-blur kernel of ``length_px`` at ``angle_rad``."""
+    import cv2
+
+    n = math.ceil(length_px / 2)
+    k = np.zeros((2 * n + 1, 2 * n + 1), np.float32)
+    d = 0.5 * (length_px - 1) * np.array([math.cos(angle_rad), math.sin(angle_rad)])
+    p0 = np.round((n - d) * 16).astype(int)
+    p1 = np.round((n + d) * 16).astype(int)
+    cv2.line(k, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])), 1.0, 1, cv2.LINE_AA,
+             shift=4)
+    return _trimmed(k)
+
+
+def camera_effects(image_rgb: np.ndarray, rng: np.random.Generator,
+                   config: RandomizationConfig | None = None) -> np.ndarray:
+    """What a real camera does to an (H, W, 3) uint8 RGB image, drawn from ``config``
+    (:class:`simulation.scenes.RandomizationConfig`): the lens (vignetting, defocus, motion
+    blur), the sensor (exposure, Gaussian noise), the image processing (white balance, gamma,
+    saturation) and JPEG compression. Labels are unaffected (blur and noise do not move
+    anything). uint8 OpenCV operations throughout; the same ``rng`` state gives the same
+    image."""
+    import cv2
+
+    cfg = config or RandomizationConfig()
+    h, w = image_rgb.shape[:2]
+    img = image_rgb
+    if rng.uniform() < cfg.vignetting_probability:
+        gain = _vignetting_gain(w, h, float(rng.uniform(*cfg.vignetting)), rng)
+        img = cv2.multiply(img, gain, scale=1.0 / 255.0)
+    if rng.uniform() < cfg.defocus_probability:
+        img = cv2.filter2D(img, -1, _disk_kernel(float(rng.uniform(*cfg.defocus_px))))
+    if rng.uniform() < cfg.motion_blur_probability:
+        img = cv2.filter2D(img, -1, _line_kernel(float(rng.uniform(*cfg.motion_blur_px)),
+                                                 float(rng.uniform(0, np.pi))))
+    # exposure x white balance, then the tone curve: one lookup table per channel
+    gain3 = 2.0 ** rng.uniform(*cfg.exposure_ev) * rng.uniform(*cfg.white_balance, 3)
+    gamma = float(rng.uniform(*cfg.gamma))
+    levels = np.clip(np.arange(256)[:, None] / 255.0 * gain3, 0.0, 1.0) ** (1.0 / gamma)
+    offset = float(rng.uniform(*cfg.brightness_offset))
+    lut = np.clip(np.round(255.0 * levels + offset), 0, 255).astype(np.uint8)
+    img = cv2.LUT(np.ascontiguousarray(img), lut.reshape(256, 1, 3))
+    sat = float(rng.uniform(*cfg.saturation))
+    gray = cv2.cvtColor(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+    img = cv2.addWeighted(img, sat, gray, 1.0 - sat, 0.0)
+    sigma = float(rng.uniform(*cfg.noise_sigma))
+    if sigma > 0.5:
+        noise = np.empty(img.shape, np.int16)
+        cv2.setRNGSeed(int(rng.integers(2**31)))  # OpenCV's generator, seeded from ours
+        cv2.randn(noise, 0, sigma)
+        img = cv2.add(img, noise, dtype=cv2.CV_8U)
+    if rng.uniform() < cfg.jpeg_probability:
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                               [cv2.IMWRITE_JPEG_QUALITY,
+                                int(rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))])
+        if ok:
+            img = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    return np.ascontiguousarray(img)
+
+
+def scene_effects(image_rgb: np.ndarray, class_id: np.ndarray, instance_id: np.ndarray,
+                  camera: CameraModel, scene: Any, robot_pose: np.ndarray, model: Any,
+                  robot_bbox_xyxy: np.ndarray | None, rng: np.random.Generator,
+                  config: RandomizationConfig | None = None) -> np.ndarray:
+    """Shading the renderer does not do, in image space and only near the robot: its contact
+    and cast shadow on the floor (:func:`simulation.scenes.shadow_polygon_world`, darkening
+    only floor pixels, soft-edged) and dirt and wear patches on its visible pixels. Returns
+    the image (a new array where changed)."""
+    import cv2
+
+    cfg = config or RandomizationConfig()
+    h, w = image_rgb.shape[:2]
+    img = image_rgb
+    if rng.uniform() < cfg.shadow_probability:
+        strength = float(rng.uniform(*cfg.shadow_strength))
+        poly = shadow_polygon_world(robot_pose, model, scene.light_dir_world)
+        uv, z = camera.project(poly)
+        if np.all(z > 0.2) and np.all(np.isfinite(uv)) and np.all(np.abs(uv) < 4 * (w + h)):
+            hull = cv2.convexHull(uv.astype(np.float32))[:, 0]
+            soft = max(1.5, 0.06 * float(np.ptp(hull[:, 1])))
+            pad = int(3 * soft) + 1
+            x0, y0 = (max(0, int(v) - pad) for v in hull.min(axis=0))
+            x1, y1 = (min(m, int(v) + pad + 1) for m, v in zip((w, h), hull.max(axis=0),
+                                                                 strict=True))
+            if x1 > x0 and y1 > y0:
+                # drawn and blurred at 1/4 resolution (a soft shadow has no fine detail), then
+                # applied as an 8-bit gain on the floor pixels
+                q = 4
+                small = np.zeros(((y1 - y0 + q - 1) // q, (x1 - x0 + q - 1) // q), np.float32)
+                pts = np.round((hull - [x0 + 0.5 * q - 0.5, y0 + 0.5 * q - 0.5]) * (16 / q))
+                cv2.fillConvexPoly(small, pts.astype(np.int32), 1.0, cv2.LINE_AA, shift=4)
+                small = cv2.GaussianBlur(small, (0, 0), max(0.5, soft / q))
+                mask = cv2.resize(small, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+                mask *= class_id[y0:y1, x0:x1] == CLASS_ID["floor"]
+                gain = np.clip(255.0 * (1.0 - strength * mask), 0, 255).astype(np.uint8)
+                img = img.copy()
+                roi = img[y0:y1, x0:x1]
+                cv2.multiply(roi, cv2.cvtColor(gain, cv2.COLOR_GRAY2RGB), dst=roi,
+                             scale=1.0 / 255.0)
+    if robot_bbox_xyxy is not None and rng.uniform() < cfg.dirt_probability:
+        x0, y0 = (max(0, int(v)) for v in robot_bbox_xyxy[:2])
+        x1, y1 = min(w, int(robot_bbox_xyxy[2]) + 1), min(h, int(robot_bbox_xyxy[3]) + 1)
+        if x1 - x0 >= 2 and y1 - y0 >= 2:
+            grid = rng.uniform(0, 1, (int(rng.integers(3, 9)),) * 2).astype(np.float32)
+            patches = cv2.resize(grid, (x1 - x0, y1 - y0), interpolation=cv2.INTER_CUBIC)
+            cover = np.clip((patches - rng.uniform(0.45, 0.75)) / 0.15, 0.0, 1.0)
+            cover *= float(rng.uniform(0.3, 0.7)) * (instance_id[y0:y1, x0:x1] == ROBOT_INSTANCE)
+            dirt = (rng.uniform(0.15, 0.45) * np.array([1.0, 0.9, 0.75]) * 255.0).astype(
+                np.float32)
+            if img is image_rgb:
+                img = img.copy()
+            roi = img[y0:y1, x0:x1]
+            a = cover[..., None]
+            roi[...] = np.clip(roi * (1.0 - a) + dirt * a, 0, 255).astype(np.uint8)
+    return img
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class View:
     """A sample before rendering: its ``index``, the random generator ``rng`` after building
@@ -197,15 +358,19 @@ class SampleGenerator:
     ``height``: image size (default: each site camera's own in site mode, the head camera's in
     robot mode, 848x480 randomized); ``robot_mesh``: the robot's mesh
     (default: the built-in HSR-like mesh of the scenario's robot model); ``robot_model``: its
-    keypoints (default: the site's model of the scenario's robot). The GL renderer is created on
-    first use, in the process that renders.
+    keypoints (default: the site's model of the scenario's robot); ``randomization``: the
+    ranges of randomized views; ``arm_poses``: ``robot_mesh`` is the built-in HSR-like mesh,
+    whose arm randomized views may show in other poses (``randomization.robot_arm_poses``,
+    :func:`simulation.scenes.hsr_arm_poses`; default: when ``robot_mesh`` is not given). The
+    GL renderer is created on first use, in the process that renders.
     """
 
     def __init__(self, scenario: Any, mode: str = "site", *, seed: int = 0,
                  width: int | None = None, height: int | None = None,
                  robot_mesh: Mesh | None = None,
                  robot_model: Any = None,
-                 randomization: RandomizationConfig | None = None) -> None:
+                 randomization: RandomizationConfig | None = None,
+                 arm_poses: bool | None = None) -> None:
         if mode not in MODES:
             raise DatasetError(f"mode {mode!r}: expected one of {MODES}")
         if (width is None) != (height is None) or (width is not None and min(width, height) < 8):  # type: ignore[operator]
@@ -216,10 +381,14 @@ class SampleGenerator:
         self.width, self.height = width, height
         self.robot_id = scenario.robot_id
         self.model = robot_model or scenario.site.robot_model(self.robot_id)
+        builtin_hsr = False
         if robot_mesh is None:
-            from simulation.robot_mesh import builtin_robot_mesh
+            from simulation.robot_mesh import BUILTIN_MESHES, builtin_robot_mesh
 
             robot_mesh = builtin_robot_mesh(self.model)
+            builtin_hsr = self.model.name not in BUILTIN_MESHES
+        #: randomized views also move the arm of the built-in HSR-like mesh
+        self.arm_poses = builtin_hsr if arm_poses is None else bool(arm_poses)
         self.robot_mesh = robot_mesh
         self.randomization = randomization or RandomizationConfig()
         self.camera_ids = tuple(sorted(scenario.site.cameras))
@@ -231,6 +400,7 @@ class SampleGenerator:
         self._world = World(scenario) if in_site else None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._environments: tuple[Any, ...] | None = None
+        self._appearances: tuple[Mesh, ...] | None = None
         self._times: Any = None
         self._preloaded: set[tuple[int, int]] = set()
 
@@ -275,7 +445,8 @@ class SampleGenerator:
         else:
             w, h = self.width or 848, self.height or 480
             scene, camera, pose = randomized_view(rng, self.robot_mesh, self.model, w, h,
-                                                  self.randomization, self.environments())
+                                                  self.randomization, self.environments(),
+                                                  self.appearances())
             labelled = pose
         return View(index, rng, scene, camera, pose, labelled)
 
@@ -285,6 +456,16 @@ class SampleGenerator:
             self._environments = random_environments(self.seed, self.randomization)
         return self._environments
 
+    def appearances(self) -> tuple[Mesh, ...]:
+        """The robot's colour (and, for the built-in HSR-like mesh, arm pose) variants of
+        randomized views (built on first use)."""
+        if self._appearances is None:
+            cfg = self.randomization
+            shapes = hsr_arm_poses(self.model, self.seed, max(0, cfg.robot_appearances - 1),
+                                   cfg) if self.arm_poses and cfg.robot_arm_poses else ()
+            self._appearances = robot_appearances(self.robot_mesh, self.seed, cfg, shapes)
+        return self._appearances
+
     def renderer(self, width: int, height: int) -> Any:
         """The :class:`simulation.render_gl.Renderer` for ``width`` x ``height`` images (made on
         first use, in this process; a randomized generator uploads its floor and wall textures
@@ -292,8 +473,9 @@ class SampleGenerator:
         llvmpipe's pipeline, ~5 ms each)."""
         renderer = self._renderer(width, height)
         if self.mode == "randomized" and (width, height) not in self._preloaded:
-            renderer.upload(m for env in self.environments()
-                            for m in (env.floor.mesh, env.walls.mesh))
+            renderer.upload([*(m for env in self.environments()
+                               for m in (env.floor.mesh, env.walls.mesh)),
+                             *self.appearances()])
             self._preloaded.add((width, height))
         return renderer
 
@@ -323,7 +505,10 @@ class SampleGenerator:
             clock.lap("labels")
             image = out.color_rgb
             if self.mode == "randomized":
-                image = augment(image, v.rng)
+                bbox = robots[0].bbox_xyxy if robots else None
+                image = scene_effects(image, out.class_id, out.instance_id, v.camera, v.scene,
+                                      v.robot_pose, self.model, bbox, v.rng, self.randomization)
+                image = camera_effects(image, v.rng, self.randomization)
                 clock.lap("augment")
             result.append(Sample(v.index, self.seed, self.mode, v.camera, image, out.depth_m,
                                  out.class_id, out.instance_id, robots, v.robot_pose))
@@ -424,7 +609,33 @@ class SampleGenerator:
 
         kp = keypoint_labels(out, camera, robot_keypoints_world(self.model, pose))
         return RobotLabel(self.robot_id, ROBOT_INSTANCE, instance_bbox(out, ROBOT_INSTANCE),
-                          kp.pixels_px, kp.visible, kp.in_image, kp.depth_m)
+                          kp.pixels_px, _near_instance(out.instance_id, kp.pixels_px,
+                                                       kp.visible, ROBOT_INSTANCE),
+                          kp.in_image, kp.depth_m)
+
+
+#: a visible keypoint has a pixel of its robot within this many pixels (Chebyshev)
+KEYPOINT_INSTANCE_RADIUS_PX: Final = 2
+
+
+def _near_instance(instance_id: np.ndarray, pixels_px: np.ndarray, visible: np.ndarray,
+                   instance: int, radius_px: int = KEYPOINT_INSTANCE_RADIUS_PX) -> np.ndarray:
+    """``visible`` with the keypoints that have no pixel of ``instance`` within ``radius_px``
+    of their pixel cleared: the depth test of :func:`simulation.labels.keypoint_labels` keeps a
+    keypoint on an occluder's silhouette visible when the floor behind it is farther, even with
+    the robot wholly hidden behind the occluder."""
+    out = np.asarray(visible, bool).copy()
+    idx = np.flatnonzero(out)
+    if not len(idx):
+        return out
+    h, w = instance_id.shape
+    iu = np.rint(pixels_px[idx, 0]).astype(np.intp)
+    iv = np.rint(pixels_px[idx, 1]).astype(np.intp)
+    offsets = np.arange(-radius_px, radius_px + 1)
+    rows = np.clip(iv[:, None, None] + offsets[None, :, None], 0, h - 1)
+    cols = np.clip(iu[:, None, None] + offsets[None, None, :], 0, w - 1)
+    out[idx] = (instance_id[rows, cols] == instance).reshape(len(idx), -1).any(axis=1)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -522,7 +733,8 @@ class SamplePool:
         kwargs = {"scenario_path": source, "mode": generator.mode,
                   "seed": generator.seed, "width": generator.width, "height": generator.height,
                   "robot_mesh": generator.robot_mesh, "robot_model": generator.model,
-                  "randomization": generator.randomization}
+                  "randomization": generator.randomization,
+                  "arm_poses": generator.arm_poses}
         self._pool = concurrent.futures.ProcessPoolExecutor(
             self.workers, mp_context=multiprocessing.get_context("spawn"),
             initializer=_pool_init, initargs=(kwargs, gl_threads, cv_threads))

@@ -19,9 +19,11 @@ from simulation.mesh import Mesh
 #: A ``moderngl.Context`` (typed loosely: only :mod:`simulation.render_gl` imports moderngl).
 GLContext = Any
 
-# Lambert shading is evaluated per vertex (Gouraud): on llvmpipe small triangles cost whole
-# 4x4 pixel blocks of fragment shading, so a lean fragment shader is most of the speed. Meshes
-# without a texture use a variant without the uv varying and the texture fetch.
+# Lambert shading (a key light, an optional fill light, each with a colour, and an optional
+# Blinn-Phong highlight of the key light) is evaluated per vertex (Gouraud): on llvmpipe small
+# triangles cost whole 4x4 pixel blocks of fragment shading, so a lean fragment shader is most
+# of the speed. Meshes without a texture use a variant without the uv varying and the texture
+# fetch.
 _VERTEX_SHADER: Final = """
 #version 330
 uniform mat4 u_proj;
@@ -29,6 +31,11 @@ uniform mat4 u_cam_obj;
 uniform mat3 u_normal_cam_obj;
 uniform vec3 u_light_cam;
 uniform float u_ambient;
+uniform vec3 u_light_rgb;
+uniform vec3 u_fill_cam;
+uniform vec3 u_fill_rgb;
+uniform float u_specular;
+uniform float u_shininess;
 in vec3 in_position;
 in vec3 in_normal;
 in vec3 in_color;
@@ -43,7 +50,14 @@ void main() {
     float len_n = length(n);
     n = len_n > 1e-12 ? n / len_n : -normalize(p.xyz);
     if (dot(n, p.xyz) > 0.0) n = -n;  // two-sided: light the side facing the camera
-    v_color = in_color * (u_ambient + (1.0 - u_ambient) * max(dot(n, u_light_cam), 0.0));
+    float lit = max(dot(n, u_light_cam), 0.0);
+    v_color = in_color * (u_ambient + (1.0 - u_ambient) * (
+        u_light_rgb * lit + u_fill_rgb * max(dot(n, u_fill_cam), 0.0)));
+    if (u_specular > 0.0 && lit > 0.0) {  // Blinn-Phong highlight of the key light
+        vec3 h = normalize(u_light_cam - normalize(p.xyz));
+        v_color += u_specular * (1.0 - u_ambient) * u_light_rgb
+            * pow(max(dot(n, h), 0.0), u_shininess);
+    }
 #ifdef TEXTURED
     v_uv = in_uv;
 #endif
@@ -92,6 +106,9 @@ class ShaderProgram:
         u: Any = self.program  # moderngl types members as a union of uniform kinds
         self.proj, self.cam_obj, self.normal = u["u_proj"], u["u_cam_obj"], u["u_normal_cam_obj"]
         self.light, self.ambient = u["u_light_cam"], u["u_ambient"]
+        self.light_rgb, self.fill, self.fill_rgb = (u["u_light_rgb"], u["u_fill_cam"],
+                                                    u["u_fill_rgb"])
+        self.specular, self.shininess = u["u_specular"], u["u_shininess"]
         self.instance_id, self.class_id = u["u_instance_id"], u["u_class_id"]
         self.attributes = ("in_position", "in_normal", "in_color") + (("in_uv",) if textured
                                                                       else ())
@@ -152,6 +169,9 @@ class Frame:
     #: its draws can touch (a box around its projected bounds; empty boxes left out);
     #: ``None``: not known (an object reaches behind the near plane), the whole render
     dynamic_rects: list[tuple[int, int, int, int]] | None = None
+    #: key light colour (3), fill light direction in the camera frame (3) and colour (3),
+    #: specular strength and exponent (see :class:`simulation.mesh.Scene`)
+    lighting: tuple[float, ...] = (1.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 16.0)
 
 
 class Targets:

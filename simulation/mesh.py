@@ -226,6 +226,10 @@ class SceneObject:
 class Scene:
     """What one render draws. ``light_dir_world`` (3,): direction the light comes *from*;
     ``ambient`` in [0, 1]; ``background_rgb`` (3,) in [0, 1] where nothing is drawn.
+    ``light_rgb`` (3,): the key light's colour; ``fill_dir_world`` / ``fill_rgb``: a second
+    light (black: none); ``specular`` >= 0 and ``shininess``: a Blinn-Phong highlight of the
+    key light (0: matte). Shading per vertex: albedo x (ambient + (1 - ambient) x (key + fill))
+    + highlight (the defaults give the plain one-light Lambert image).
 
     ``static_objects``: the first that many ``objects`` are the same :class:`SceneObject`
     instances from frame to frame (the site's floor, walls and furniture): a renderer may keep
@@ -238,6 +242,11 @@ class Scene:
     ambient: float = 0.45
     background_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)
     static_objects: int = 0
+    light_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    fill_dir_world: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    fill_rgb: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    specular: float = 0.0
+    shininess: float = 16.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.static_objects <= len(self.objects):

@@ -6,7 +6,9 @@ never needs it). One draw pass with three render targets (RGBA8 colour; R32UI
 every pixel of the image *as the real, distorted lens sees it*:
 
 - ``color_rgb`` (H, W, 3) uint8: albedo (× texture) × (ambient + (1 - ambient) · max(0, n·l)),
-  lit per vertex and two-sided (a face seen from behind is lit with its normal flipped);
+  lit per vertex and two-sided (a face seen from behind is lit with its normal flipped); the
+  scene may colour the light, add a fill light and a specular highlight
+  (:class:`~simulation.mesh.Scene`);
 - ``depth_m`` (H, W) float32: z of the surface point in the camera optical frame, metres,
   ``np.inf`` where nothing was drawn;
 - ``instance_id`` / ``class_id`` (H, W) int32: exact (never interpolated), 0 where nothing (or
@@ -431,7 +433,7 @@ class Renderer:
         static = scene.objects[:scene.static_objects]
         key = (camera.K.tobytes(), camera.dist.tobytes(), camera.T_cam_world.tobytes(),
                (camera.width, camera.height), tuple(map(id, static)), frame.light_cam,
-               frame.ambient, frame.background)
+               frame.ambient, frame.background, frame.lighting)
         kept = self._static.get(key)
         if kept is None:
             t.fbo_color.clear(*frame.background, 1.0)
@@ -486,8 +488,13 @@ class Renderer:
         if num_static:
             rects = self._dynamic_rects(gms[num_static:], T_cam_obj[num_static:], lm)
         bg = tuple(float(c) for c in scene.background_rgb)
+        fill = camera.T_cam_world[:3, :3] @ np.asarray(scene.fill_dir_world, np.float64)
+        fill_norm = float(np.linalg.norm(fill))
+        fill = fill / fill_norm if fill_norm > 0 else np.zeros(3)
+        lighting = (*map(float, scene.light_rgb), *map(float, fill), *map(float, scene.fill_rgb),
+                    float(scene.specular), float(scene.shininess))
         return Frame(proj, light_cam, float(scene.ambient), (bg[0], bg[1], bg[2]), draws,
-                      num_static, rects)
+                      num_static, rects, lighting)
 
     def _dynamic_rects(self, gms: Sequence[GpuMesh], T_cam_obj: np.ndarray, lm: LensMap
                        ) -> list[tuple[int, int, int, int]]:
@@ -544,6 +551,10 @@ class Renderer:
             prog.proj.write(frame.proj)
             prog.light.value = frame.light_cam
             prog.ambient.value = frame.ambient
+            lit = frame.lighting
+            prog.light_rgb.value, prog.fill.value = lit[0:3], lit[3:6]
+            prog.fill_rgb.value = lit[6:9]
+            prog.specular.value, prog.shininess.value = lit[9], lit[10]
         for d in frame.draws[draws]:
             gm = d.gm
             prog = gm.program

@@ -8,7 +8,7 @@
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
-                                 [--breakdown]
+                                 [--breakdown] [--held-out-variations]
     smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
     smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
                              [--no-feedback] [--min-sigma-m M] [--types]
@@ -26,7 +26,10 @@ route, label accuracy, consistency with and without feedback, a top-down map), a
 ``report.md`` with all four.
 ``keypoints`` renders a fresh held-out set (seed S, N views each of randomized scenes and of the
 site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the ONNX models
-(default: the shipped ones), one figure per line with its name.
+(default: the shipped ones), one figure per line with its name; with
+``--held-out-variations`` N views rendered with settings never used in training
+(:data:`simulation.scenes.HELD_OUT_VARIATION`) instead: detector recall per distance band,
+false detections per image, AP@0.5, keypoint median error and PCK@2/5px.
 ``fleet`` drives N identical robots on crossing routes through the backend's pipeline (unnamed
 detections assigned to robots) with correction feedback, and each robot alone with the same
 seed (:mod:`smartedge.experiments.fleet`): identity switches, wrong-robot detections and
@@ -164,6 +167,22 @@ def _keypoints(args: argparse.Namespace) -> int:
     if args.count < 1:
         print("smartedge evaluate keypoints: --count must be >= 1", file=sys.stderr)
         return 2
+    if args.held_out_variations:
+        from simulation.scenes import RandomizationError
+        from smartedge.evaluation.keypoints import evaluate_held_out_variations
+
+        try:
+            held = evaluate_held_out_variations(args.model, seed=args.seed, count=args.count,
+                                                scenario_path=args.scenario,
+                                                threads=args.threads, flip=args.flip,
+                                                progress=lambda line: print(line, flush=True))
+        except (ModelError, OSError, ValueError, RandomizationError) as exc:
+            print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
+            return 1
+        for line in held.lines():
+            print(line)
+        print(f"({held.views} views in {held.wall_s:.0f} s)")
+        return 0
     if args.calibrate:
         from smartedge.evaluation.keypoints import calibrate_keypoints
 
@@ -284,6 +303,11 @@ def build_parser() -> argparse.ArgumentParser:
                       "test-time flip augmentation (default: as the model's card says)")
     p_kp.add_argument("--breakdown", action="store_true", help="also per keypoint (bias, "
                       "spread) and per distance (common shift and scale, the rest)")
+    p_kp.add_argument("--held-out-variations", action="store_true",
+                      help="instead: the held-out renderer variations (settings never used in "
+                      "training: other textures, occluders, lens, light; "
+                      "simulation.scenes.HELD_OUT_VARIATION): recall by distance band, false "
+                      "detections per image, AP@0.5, keypoint errors")
     p_kp.add_argument("--calibrate", action="store_true",
                       help="instead: measure the confidence -> pixel error table on the "
                       "validation seeds (1001/1002) and write it into the keypoint model's card "

@@ -358,3 +358,170 @@ def error_breakdown(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
                                "shift px": summary["shift_px"], "scale": summary["scale"],
                                "rest px": summary["rest_px"]}
     return ErrorBreakdown(per_keypoint, per_distance)
+
+
+# --------------------------------------------------------------------------------------------
+# held-out renderer variations
+# --------------------------------------------------------------------------------------------
+
+#: distance bands (metres on the floor from the camera to the robot) of the held-out recall
+HELD_OUT_BANDS_M: Final = ((0.0, 4.0), (4.0, 6.0), (6.0, 8.0), (8.0, math.inf))
+#: a robot counts (for recall, false detections and AP) when at least this many of its
+#: keypoints are visible; views with less of it are left out of the detector figures
+MIN_VISIBLE_KEYPOINTS: Final = 3
+#: the edge's operating detector threshold (what recall and false detections are counted at)
+OPERATING_SCORE: Final = 0.3
+
+
+def _band_label(lo: float, hi: float) -> str:
+    return f"<{hi:g} m" if lo == 0 else (f">={lo:g} m" if math.isinf(hi) else f"{lo:g}-{hi:g} m")
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldOutEvaluation:
+    """Figures of the deployed models on the held-out renderer variations: name → value, in
+    print order (see :func:`evaluate_held_out_set`)."""
+
+    figures: dict[str, float]
+    views: int
+    wall_s: float
+
+    def lines(self) -> list[str]:
+        return [f"held-out {name} {_fmt(value)}" for name, value in self.figures.items()]
+
+
+def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
+                          distances_m: Sequence[float],
+                          progress: Callable[[str], None] | None = None) -> dict[str, float]:
+    """Detector and keypoint figures on rendered ``samples`` (robots ``distances_m`` away on
+    the floor): recall at :data:`OPERATING_SCORE` per :data:`HELD_OUT_BANDS_M` band (a true
+    box matched by a detection with IoU >= 0.5), false detections per image (detections at
+    that score matching no robot), AP@0.5 (detections from 0.05), and the keypoints of the
+    matched robots: median error of the visible ones (in the image, not occluded), PCK@2/5px,
+    and the same over all in-image keypoints. Robots with fewer than
+    :data:`MIN_VISIBLE_KEYPOINTS` visible keypoints are left out."""
+    say = progress or (lambda line: None)
+    found_in_band: dict[str, list[bool]] = {_band_label(*b): [] for b in HELD_OUT_BANDS_M}
+    dets, gts = [], []
+    false_dets = 0
+    images = 0
+    left_out = 0
+    err_vis, err_in = [], []
+    det_ms, kp_ms = [], []
+    step = max(1, len(samples) // 10)
+    for n, (s, dist) in enumerate(zip(samples, distances_m, strict=True), start=1):
+        robot = s.robots[0] if s.robots else None
+        gt = None if robot is None or robot.bbox_xyxy is None else np.asarray(robot.bbox_xyxy)
+        if n % step == 0 or n == len(samples):
+            say(f"  evaluating {n}/{len(samples)} views")
+        if gt is not None and int(np.sum(robot.visible)) < MIN_VISIBLE_KEYPOINTS:
+            left_out += 1
+            continue
+        found = pipeline(s.image_rgb, min_score=0.05, max_robots=4)
+        det_ms.append(pipeline.times.detector_ms)
+        kp_ms.append(pipeline.times.keypoints_ms)
+        images += 1
+        dets.append(np.array([[*o.bbox_xyxy, o.score] for o in found]).reshape(-1, 5))
+        gts.append(np.full(4, np.nan) if gt is None else gt)
+        matched = None
+        for o in found:  # best first
+            if o.score < OPERATING_SCORE:
+                break
+            if gt is not None and matched is None and box_iou(o.bbox_xyxy, gt) >= 0.5:
+                matched = o
+            else:
+                false_dets += 1
+        if gt is not None:
+            for lo, hi in HELD_OUT_BANDS_M:
+                if lo <= dist < hi:
+                    found_in_band[_band_label(lo, hi)].append(matched is not None)
+        if matched is not None and robot is not None:
+            e = np.linalg.norm(matched.keypoints_px - robot.keypoints_px, axis=1)
+            err_vis.append(e[np.asarray(robot.visible, bool)])
+            err_in.append(e[np.asarray(robot.in_image, bool)])
+    figures: dict[str, float] = {"views": float(len(samples)), "views left out (robot hidden)":
+                                 float(left_out)}
+    all_found: list[bool] = []
+    for label, hits in found_in_band.items():
+        if hits:
+            figures[f"recall {label}"] = float(np.mean(hits))
+            figures[f"robots {label}"] = float(len(hits))
+            all_found += hits
+    within6 = found_in_band[_band_label(0.0, 4.0)] + found_in_band[_band_label(4.0, 6.0)]
+    if within6:
+        figures["recall within 6 m"] = float(np.mean(within6))
+    if all_found:
+        figures["recall"] = float(np.mean(all_found))
+    figures["false detections per image"] = false_dets / max(images, 1)
+    if dets:
+        figures["AP@0.5"] = detection_ap(dets, np.array(gts).reshape(-1, 4))["AP@0.5"]
+    if err_vis:
+        ev = np.concatenate(err_vis)
+        ei = np.concatenate(err_in)
+        if ev.size:
+            figures["visible keypoint median error px"] = float(np.median(ev))
+            figures["visible PCK@2px"] = float(np.mean(ev <= 2.0))
+            figures["visible PCK@5px"] = float(np.mean(ev <= 5.0))
+        if ei.size:
+            figures["in-image keypoint median error px"] = float(np.median(ei))
+            figures["in-image PCK@5px"] = float(np.mean(ei <= 5.0))
+    if det_ms:
+        figures["detector ms"] = float(np.median(det_ms))
+        figures["keypoints ms"] = float(np.median(kp_ms))
+    return figures
+
+
+def held_out_samples(count: int, *, seed: int = DEFAULT_SEED,
+                     scenario_path: Path | None = None,
+                     progress: Callable[[str], None] | None = None,
+                     ) -> tuple[list[Any], list[float]]:
+    """``count`` views rendered with :data:`simulation.scenes.HELD_OUT_VARIATION` (checked
+    disjoint from the training randomization first) and the robot's distance in each."""
+    from simulation.dataset import SampleGenerator
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+    from simulation.scenes import (
+        HELD_OUT_VARIATION,
+        RandomizationConfig,
+        check_disjoint,
+        robot_distance_m,
+    )
+
+    check_disjoint(RandomizationConfig(), HELD_OUT_VARIATION)
+    say = progress or (lambda line: None)
+    scenario = load_scenario(scenario_path or PAPER_SCENARIO)
+    gen = SampleGenerator(scenario, "randomized", seed=seed, randomization=HELD_OUT_VARIATION)
+    say(f"rendering {count} views of the held-out renderer variations (seed {seed})")
+    samples: list[Any] = []
+    batch = 8
+    step = max(batch, (count // 10) // batch * batch)
+    t0 = time.perf_counter()
+    for start in range(0, count, batch):
+        samples += gen.samples(list(range(start, min(count, start + batch))))
+        if len(samples) % step == 0 or len(samples) == count:
+            rate = len(samples) / max(time.perf_counter() - t0, 1e-9)
+            say(f"  rendered {len(samples)}/{count} views ({rate:.1f} views/s)")
+    distances = [robot_distance_m(s.camera, s.robot_pose) for s in samples]
+    return samples, distances
+
+
+def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
+                                 count: int = 200, scenario_path: Path | None = None,
+                                 threads: int = 2, flip: bool | None = None,
+                                 progress: Callable[[str], None] | None = None,
+                                 ) -> HeldOutEvaluation:
+    """Render ``count`` views of the held-out renderer variations from ``seed`` and evaluate
+    the models of ``model_dir`` (default: the shipped ones) on them
+    (:func:`evaluate_held_out_set`)."""
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+
+    say = progress or (lambda line: None)
+    scenario = load_scenario(scenario_path or PAPER_SCENARIO)
+    model = scenario.site.robot_model(scenario.robot_id)
+    pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads,
+                                                 keypoint_names=model.keypoint_names, flip=flip)
+    t0 = time.perf_counter()
+    samples, distances = held_out_samples(count, seed=seed, scenario_path=scenario_path,
+                                          progress=say)
+    say(f"running the detector and keypoint networks on {count} views")
+    figures = evaluate_held_out_set(pipeline, samples, distances, progress=say)
+    return HeldOutEvaluation(figures, count, time.perf_counter() - t0)

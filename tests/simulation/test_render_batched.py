@@ -251,8 +251,7 @@ def test_kept_static_render_gives_the_one_pass_image(scenario, monkeypatch) -> N
             monkeypatch.setattr(render_gl, "STATIC_CACHE_BYTES", 1)
         lens = lenses[step % 3]
         camera = v.camera if lens is None else dataclasses.replace(v.camera, dist=lens)
-        flat = Scene(v.scene.objects, v.scene.light_dir_world, v.scene.ambient,
-                     v.scene.background_rgb, static_objects=0)
+        flat = dataclasses.replace(v.scene, static_objects=0)
         assert_same_output(kept.render(v.scene, camera), plain.render(flat, camera))
         assert len(kept._static) >= (v.scene.static_objects > 0)
         assert not plain._static
