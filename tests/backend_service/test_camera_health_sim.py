@@ -80,13 +80,13 @@ def test_a_bumped_camera_is_named_in_the_status_and_left_out() -> None:
 
 
 @pytest.mark.slow
-def test_unmoved_cameras_are_never_named_in_ten_minutes() -> None:
-    """Ten simulated minutes of the usual noise, the three trajectories back to back (the
+def test_unmoved_cameras_are_never_named_in_five_minutes() -> None:
+    """Five simulated minutes of the usual noise, the three trajectories back to back (the
     one-hour figure is ``smartedge bench camera-health``, docs/calibration.md)."""
     scenario = load_scenario()
     health = CameraHealthConfig.from_site(scenario.site)
-    result = run_session(scenario, 600.0, seed=5, health=health)
-    assert result.duration_s >= 590.0
+    result = run_session(scenario, 300.0, seed=5, health=health)
+    assert result.duration_s >= 295.0
     assert result.alarms == []
     # the monitor did judge every camera, and none came near the alarm
     assert set(result.max_chi2) == set(scenario.site.cameras)

@@ -44,7 +44,7 @@ def test_unknown_probe_is_an_error(capsys: pytest.CaptureFixture[str]) -> None:
 
 @pytest.mark.slow
 def test_one_probe_runs_and_passes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(["--probes", "poisoned_odometry", "--seconds", "14", "--startup-s", "8",
+    code = main(["--probes", "poisoned_odometry", "--seconds", "11", "--startup-s", "8",
                  "--out", str(tmp_path), "--progress-s", "5"])
     out = capsys.readouterr().out
     assert code == 0, out[-3000:]
