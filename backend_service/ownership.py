@@ -38,6 +38,19 @@ sends a message of its own.
   backend's session may re-declare its old tokens when it reconnects, before its worker runs:
   the other backend stops publishing at the sight of them, and the thawed one withdraws them
   on its first decision.
+- **Areas** (backend_service/areas.py): on a site split into areas, a backend started with
+  ``--area`` announces each area it serves with a liveliness token
+  ``smartedge/<site>/area/<area>/<instance>`` (declared before its backend token; a backend
+  without one serves every area). A robot's candidates are the counted backends that serve
+  the area it is in (:meth:`OwnershipTable.on_robot_position`, fed with the poses on the bus);
+  the rendezvous score picks among them, a pin still wins, and a robot whose area has no live
+  backend (or whose area is not known yet) goes by score over all of them. A robot that
+  crosses into another area changes its choice like a backend leaving: the old owner stops
+  publishing at once and releases (rule 3), the new one claims when the token is gone and
+  publishes ``confirm_s`` later (its estimates meanwhile are withheld and counted), so the
+  hand-over costs a few frame-sets and never two publishers. The backends agree on the area
+  up to the bus's delay; where two views briefly differ, rules 1, 2 and 4 still allow one
+  publisher.
 - **Missed events**: a synced backend runs the liveliness get again every ``resync_s`` and
   adds what its subscriptions missed (they do not replay what happened while a session was cut
   off); it removes nothing on a get's word, only on a vanishing token.
@@ -62,6 +75,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Final
 
+from backend_service.areas import AreaMap
 from protocol import keys
 from protocol.errors import ValidationError
 from protocol.runtime import Subscription
@@ -81,6 +95,11 @@ DEFAULT_JOIN_DELAY_S: Final = 0.5
 #: re-synced the tokens and re-confirmed its claims (keep it below the session lease, so that
 #: a stall long enough for the router to drop the session always trips it)
 DEFAULT_STALL_S: Final = 1.0
+#: on a site with areas, how long after its start a backend waits for a robot's first pose on
+#: the bus before it treats the robot's area as unknown (and the robot as anybody's): claiming
+#: it at once by score over all backends would hand it to the backend of its area a moment
+#: later (a release and a claim per robot at every cold start)
+DEFAULT_AREA_GRACE_S: Final = 1.0
 #: how long the start-up liveliness get waits for the router's replies
 DEFAULT_SYNC_TIMEOUT_S: Final = 2.0
 #: how long after a failed start-up liveliness get the next one is tried
@@ -165,7 +184,12 @@ class OwnershipTable:
     ``ownership.owner_lost`` (another backend's owner token vanished while it was the only one),
     ``ownership.member_joined``, ``ownership.member_left``, ``ownership.stalls`` (claims
     re-confirmed after the worker stalled), ``ownership.disconnects`` (every claim dropped: the
-    session lost its links).
+    session lost its links), ``ownership.area_changes`` (a robot moved to another area),
+    ``ownership.unknown_area_tokens`` (an area token of an area the site does not have).
+
+    Areas: ``areas`` (the site's :class:`~backend_service.areas.AreaMap`) and ``own_areas``
+    (the areas this backend serves; empty: every area) make a robot's candidates the backends
+    of its area (module doc, "Areas"); without areas every counted backend is a candidate.
     """
 
     def __init__(
@@ -178,6 +202,8 @@ class OwnershipTable:
         confirm_s: float = DEFAULT_CONFIRM_S,
         join_delay_s: float = DEFAULT_JOIN_DELAY_S,
         stall_s: float = DEFAULT_STALL_S,
+        areas: AreaMap | None = None,
+        own_areas: Sequence[str] = (),
     ) -> None:
         if not confirm_s >= 0 or not join_delay_s >= 0 or not stall_s > 0:
             raise ValueError(f"confirm_s and join_delay_s must be >= 0 and stall_s > 0, got "
@@ -189,6 +215,8 @@ class OwnershipTable:
         self.join_delay_ns = round(join_delay_s * NS)
         self.stall_ns = round(stall_s * NS)
         self._last_decide_ns: int | None = None
+        self._started_ns = started_ns
+        self.area_grace_ns = round(DEFAULT_AREA_GRACE_S * NS)
         #: live backends -> when this table first saw them (self: from ``started_ns``)
         self._members: dict[str, int] = {self.instance_id: started_ns}
         #: robot -> other backends whose owner token for it is in sight
@@ -200,18 +228,31 @@ class OwnershipTable:
         self._publishing: set[str] = set()
         self._synced = False
         self.counters: collections.Counter[str] = collections.Counter()
+        self.areas: AreaMap | None = areas if areas else None
+        self.own_areas: frozenset[str] = frozenset(own_areas)
+        if self.own_areas and (self.areas is None
+                               or not self.own_areas <= set(self.areas.areas)):
+            raise ValueError(f"own_areas {sorted(self.own_areas)}: not all areas of the site "
+                             f"({sorted(self.areas.areas) if self.areas else '-'})")
+        #: other backends -> the areas their tokens say they serve (none: every area)
+        self._member_areas: dict[str, set[str]] = {}
+        #: robot -> (stamp ns, area) of its newest position on the bus
+        self._robot_area: dict[str, tuple[int, str | None]] = {}
 
     # ---------------------------------------------------------------- inputs
 
     def resync(self, members: Iterable[str], owner_tokens: Iterable[tuple[str, str]],
-               now_ns: int) -> None:
+               now_ns: int, area_tokens: Iterable[tuple[str, str]] = ()) -> None:
         """The answer of a liveliness get: backends (``members``) and owner tokens
         (``(robot, instance)``) on the bus. It adds what the events missed and removes nothing:
         a get's answer can lack tokens that stand (seen with zenoh 1.10 under load), so only a
         vanishing token (an event) or :meth:`forget` removes one. Backends it adds while the
         table is not synced yet (at start, after :meth:`forget`) were there before: they count
         at once; later ones are new and count after the join delay. This backend's own tokens
-        are ignored. Claims may begin."""
+        are ignored. ``area_tokens``: ``(area, instance)`` of the area tokens on the bus.
+        Claims may begin."""
+        for area, inst in area_tokens:
+            self.on_area_token(area, inst, True)
         established = not self._synced
         for inst in sorted(set(members) - {self.instance_id}):
             if inst not in self._members:
@@ -235,6 +276,7 @@ class OwnershipTable:
         self._publishing.clear()
         for holders in self._tokens.values():
             holders.clear()
+        self._member_areas.clear()
         self._members = {self.instance_id: now_ns - self.join_delay_ns}
         self._synced = False
         return Decision(release=release)
@@ -284,6 +326,50 @@ class OwnershipTable:
             if not holders:
                 self.counters["ownership.owner_lost"] += 1
 
+    def on_area_token(self, area: str, instance_id: str, present: bool) -> None:
+        """Backend ``instance_id``'s token of area ``area`` appeared or vanished (this
+        backend's own are ignored: it knows its areas)."""
+        if instance_id == self.instance_id:
+            return
+        if self.areas is not None and area not in self.areas.areas:
+            self.counters["ownership.unknown_area_tokens"] += 1
+            return
+        if present:
+            self._member_areas.setdefault(instance_id, set()).add(area)
+        else:
+            served = self._member_areas.get(instance_id)
+            if served is not None:
+                served.discard(area)
+                if not served:
+                    del self._member_areas[instance_id]
+
+    def on_robot_position(self, robot_id: str, x_m: float, y_m: float, stamp_ns: int) -> None:
+        """A pose of ``robot_id`` on the bus (its owner's fused pose or its own localization,
+        world x, y in m): updates the robot's area (older stamps than the newest are ignored)."""
+        if self.areas is None or robot_id not in self._tokens:
+            return
+        last_ns, current = self._robot_area.get(robot_id, (-1, None))
+        if stamp_ns < last_ns:
+            return
+        area = self.areas.area_of(x_m, y_m, current)
+        if current is not None and area != current:
+            self.counters["ownership.area_changes"] += 1
+            log.info("backend %s: %s moved from area %s to %s", self.instance_id, robot_id,
+                     current, area)
+        self._robot_area[robot_id] = (stamp_ns, area)
+
+    def robot_area(self, robot_id: str) -> str | None:
+        """The area ``robot_id`` is in, as far as this table knows (``None``: not known)."""
+        return self._robot_area.get(robot_id, (0, None))[1]
+
+    def serves(self, instance_id: str, area: str) -> bool:
+        """Whether backend ``instance_id`` serves ``area`` (one without area tokens serves
+        every area)."""
+        if instance_id == self.instance_id:
+            return not self.own_areas or area in self.own_areas
+        served = self._member_areas.get(instance_id)
+        return not served or area in served
+
     # ---------------------------------------------------------------- decisions
 
     def members(self, now_ns: int) -> list[str]:
@@ -291,9 +377,23 @@ class OwnershipTable:
         return sorted(inst for inst, since in self._members.items()
                       if now_ns - since >= self.join_delay_ns)
 
+    def candidates(self, robot_id: str, now_ns: int) -> list[str]:
+        """The counted backends that may own ``robot_id`` now: those serving its area (and its
+        pinned instance); all counted backends when the site has no areas, no counted backend
+        serves the robot's area, or its area is still not known :data:`DEFAULT_AREA_GRACE_S`
+        after this backend's start (none before: nobody claims it yet)."""
+        members = self.members(now_ns)
+        if self.areas is None:
+            return members
+        area = self.robot_area(robot_id)
+        if area is None:
+            return members if now_ns - self._started_ns >= self.area_grace_ns else []
+        out = [m for m in members if self.serves(m, area) or self.pinned.get(robot_id) == m]
+        return out or members
+
     def owner_of(self, robot_id: str, now_ns: int) -> str | None:
         """The backend that should own ``robot_id`` now, in this table's view."""
-        return choose_owner(robot_id, self.members(now_ns), self.pinned)
+        return choose_owner(robot_id, self.candidates(robot_id, now_ns), self.pinned)
 
     def _outranks(self, robot_id: str, a: str, b: str) -> bool:
         return rank(robot_id, a, self.pinned) > rank(robot_id, b, self.pinned)
@@ -388,6 +488,8 @@ class OwnershipTable:
         pending = self.pending(now_ns)
         text = (f"backends: {','.join(self.members(now_ns)) or '-'}; "
                 f"owns: {','.join(self.owned()) or '-'}")
+        if self.areas is not None:
+            text += f"; areas: {','.join(sorted(self.own_areas)) or 'all'}"
         if pending:
             text += "; pending: " + ", ".join(f"{r} ({why})" for r, why in sorted(pending.items()))
         return text
@@ -406,22 +508,25 @@ class OwnershipTable:
             if a != BACKEND_SERVICE:
                 return False
             self.on_member(b, present, now_ns)
+        elif kind == "area":
+            self.on_area_token(a, b, present)
         else:
             self.on_owner_token(a, b, present)
         return True
 
 
 def parse_liveliness(key: str) -> tuple[str, str, str, str] | None:
-    """``(site, 'alive', service, instance)`` or ``(site, 'owner', robot, instance)`` of a
-    liveliness key, ``None`` when it is neither."""
+    """``(site, 'alive', service, instance)``, ``(site, 'owner', robot, instance)`` or
+    ``(site, 'area', area, instance)`` of a liveliness key, ``None`` when it is none of
+    those."""
     try:
         parsed = keys.parse_key(key)
     except ValidationError:
         return None
     if parsed.scope == "alive":
         return parsed.site, "alive", parsed.topic, parsed.source_id
-    if parsed.scope == "owner":
-        return parsed.site, "owner", parsed.source_id, parsed.topic
+    if parsed.scope in ("owner", "area"):
+        return parsed.site, parsed.scope, parsed.source_id, parsed.topic
     return None
 
 
@@ -440,6 +545,7 @@ class OwnershipTokens:
         self.site = site
         self.table = table
         self._tokens: dict[str, Any] = {}
+        self._area_tokens: dict[str, Any] = {}
 
     def sync(self, now_ns: Callable[[], int], timeout_s: float = DEFAULT_SYNC_TIMEOUT_S) -> int:
         """Ask the bus for the backends and owner tokens that exist and hand them to
@@ -447,9 +553,13 @@ class OwnershipTokens:
         error reply) leaves the table unsynced (no claims) and raises."""
         members: list[str] = []
         owners: list[tuple[str, str]] = []
+        areas: list[tuple[str, str]] = []
         started = time.monotonic()
-        for key_expr in (keys.alive_key(self.site, BACKEND_SERVICE, "*"),
-                         keys.owner_key(self.site, "*", "*")):
+        key_exprs = [keys.alive_key(self.site, BACKEND_SERVICE, "*"),
+                     keys.owner_key(self.site, "*", "*")]
+        if self.table.areas is not None:
+            key_exprs.insert(0, keys.area_key(self.site, "*", "*"))
+        for key_expr in key_exprs:
             for reply in self.session.liveliness().get(key_expr, timeout=timeout_s):
                 if reply.ok is None:
                     raise RuntimeError(f"liveliness get {key_expr}: error reply {reply.err}")
@@ -458,14 +568,16 @@ class OwnershipTokens:
                     continue
                 if parsed[1] == "alive":
                     members.append(parsed[3])
+                elif parsed[1] == "area":
+                    areas.append((parsed[2], parsed[3]))
                 else:
                     owners.append((parsed[2], parsed[3]))
         if time.monotonic() - started >= 0.9 * timeout_s:  # cut short: maybe not all
             raise TimeoutError(f"the liveliness get took {time.monotonic() - started:.1f} s")
-        self.table.resync(members, owners, now_ns())
+        self.table.resync(members, owners, now_ns(), areas)
         log.debug("backend %s: ownership synced (%d backends, %d owner tokens on the bus)",
                   self.table.instance_id, len(members), len(owners))
-        return len(members) + len(owners)
+        return len(members) + len(owners) + len(areas)
 
     def apply(self, decision: Decision) -> None:
         """Undeclare the released robots' tokens, then declare the claimed ones."""
@@ -478,10 +590,19 @@ class OwnershipTokens:
                 self._tokens[robot] = self.session.liveliness().declare_token(
                     keys.owner_key(self.site, robot, self.table.instance_id))
 
+    def declare_areas(self) -> None:
+        """Declare this backend's area tokens (once; before its backend token, so that the
+        others know its areas when it starts to count)."""
+        for area in sorted(self.table.own_areas):
+            if area not in self._area_tokens:
+                self._area_tokens[area] = self.session.liveliness().declare_token(
+                    keys.area_key(self.site, area, self.table.instance_id))
+
     def close(self) -> None:
-        for token in self._tokens.values():
+        for token in [*self._tokens.values(), *self._area_tokens.values()]:
             token.undeclare()
         self._tokens.clear()
+        self._area_tokens.clear()
 
 
 class BackendOwnership:
@@ -502,12 +623,14 @@ class BackendOwnership:
                  confirm_s: float = DEFAULT_CONFIRM_S,
                  join_delay_s: float = DEFAULT_JOIN_DELAY_S,
                  stall_s: float = DEFAULT_STALL_S,
-                 resync_s: float = DEFAULT_RESYNC_S) -> None:
+                 resync_s: float = DEFAULT_RESYNC_S,
+                 areas: AreaMap | None = None,
+                 own_areas: Sequence[str] = ()) -> None:
         self.site = site
         self.resync_ns = round(resync_s * NS)
         self.table = OwnershipTable(instance_id, robots, started_ns=started_ns, pinned=pinned,
                                     confirm_s=confirm_s, join_delay_s=join_delay_s,
-                                    stall_s=stall_s)
+                                    stall_s=stall_s, areas=areas, own_areas=own_areas)
         self.tokens: OwnershipTokens | None = None
         self._clock: Callable[[], int] | None = None
         self._next_sync_ns = 0
@@ -525,6 +648,8 @@ class BackendOwnership:
         the backends' tokens (leave it out when the node already watches ``alive/*/*``: route
         those events to :meth:`alive` too)."""
         subs = [Subscription(keys.owner_key(self.site, "*", "*"), liveliness=True)]
+        if self.table.areas is not None:
+            subs.append(Subscription(keys.area_key(self.site, "*", "*"), liveliness=True))
         if members:
             subs.append(Subscription(keys.alive_key(self.site, BACKEND_SERVICE, "*"),
                                      liveliness=True))
@@ -551,6 +676,7 @@ class BackendOwnership:
                 log.error("backend %s: another backend with the id %r is on the bus; this one "
                           "publishes nothing (give each backend its own --id)", me, me)
                 return
+        self.tokens.declare_areas()
         self._sync()
 
     def _sync(self) -> None:
@@ -610,6 +736,11 @@ class BackendOwnership:
         if self.tokens is None or not self.table.is_synced:
             return None
         return self.table.to_run(now_ns)
+
+    def observe(self, robot_id: str, x_m: float, y_m: float, stamp_ns: int) -> None:
+        """A pose of ``robot_id`` seen on the bus (fused or its own localization): its area
+        (:meth:`OwnershipTable.on_robot_position`)."""
+        self.table.on_robot_position(robot_id, x_m, y_m, stamp_ns)
 
     def may_publish(self, robot_id: str, now_ns: int) -> bool:
         """Whether estimates of ``robot_id`` go out now (always, without a bus)."""

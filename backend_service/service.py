@@ -19,10 +19,12 @@ import time
 from collections.abc import Iterable, Sequence
 from typing import Final
 
+from backend_service.areas import AreaMap, backend_areas
 from backend_service.fusion import FusionConfig, fusion_config_from_site
 from backend_service.ownership import BackendOwnership
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
 from protocol import keys
+from protocol.limits import QUEUE_BYTE_BUDGETS
 from protocol.messages import (
     MAX_NUMBER_MAP_ENTRIES,
     Message,
@@ -65,6 +67,12 @@ class BackendNode(ServiceNode):
     runs (a cold start loses nothing). Without a bus (:class:`~protocol.runtime.
     ScriptedRunner`) every robot runs and is published.
 
+    Areas (backend_service/areas.py): with ``areas`` (``--area``) the backend subscribes to
+    the detections of those areas' cameras only (one subscription per camera key) and owns the
+    robots in those areas (``area/<area>/<id>`` tokens, backend_service/ownership.py); the
+    poses on the bus (``.../pose``, ``.../localization``) tell every backend which area each
+    robot is in. Without ``areas`` it receives every camera.
+
     Load shedding: detections that waited in the input queue longer than ``max_input_delay_s``
     are dropped by the runner before they are decoded (``shed``, ``shed.<key>``), oldest first,
     and the status reports ``degraded`` with how many since the previous status.
@@ -80,8 +88,15 @@ class BackendNode(ServiceNode):
         config: PipelineConfig | None = None,
         fusion: FusionConfig | None = None,
         tick_period_s: float = 0.01,
+        areas: Sequence[str] = (),
     ) -> None:
         super().__init__(site.name, instance_id)
+        self.area_map = AreaMap(site)
+        unknown = sorted(set(areas) - set(self.area_map.areas))
+        if unknown:
+            raise ValueError(f"areas {unknown} are not in site {site.name!r} (areas: "
+                             f"{sorted(self.area_map.areas) or '-'})")
+        self.areas: tuple[str, ...] = tuple(dict.fromkeys(areas))
         self.site_model = site
         self.pipeline = BackendPipeline(site, config, fusion_config=fusion)
         self.tick_period_s = tick_period_s
@@ -94,13 +109,23 @@ class BackendNode(ServiceNode):
         self._shed_seen = 0
         self._contradicted_seen = 0
         self.ownership = BackendOwnership(site.name, instance_id, sorted(site.robots),
-                                          started_ns=time.time_ns())
+                                          started_ns=time.time_ns(),
+                                          areas=self.area_map or None, own_areas=self.areas)
 
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
+        delay_s = self.pipeline.config.max_input_delay_s
+        if self.areas:  # only the cameras of its areas: one channel per camera
+            cams = self.area_map.cameras_of(self.areas)
+            detections = [Subscription(
+                keys.detections_key(s, cam), RobotDetections, capacity=max(64, 4096 // len(cams)),
+                max_queued_bytes=QUEUE_BYTE_BUDGETS["RobotDetections"] // len(cams),
+                max_queue_delay_s=delay_s) for cam in cams]
+        else:
+            detections = [Subscription(keys.detections_key(s, "*"), RobotDetections,
+                                       capacity=4096, max_queue_delay_s=delay_s)]
         return [
-            Subscription(keys.detections_key(s, "*"), RobotDetections, capacity=4096,
-                         max_queue_delay_s=self.pipeline.config.max_input_delay_s),
+            *detections,
             Subscription(keys.odom_key(s, "*"), Odometry, capacity=4096, drop_oldest=False),
             Subscription(keys.localization_key(s, "*"), PoseEstimate, capacity=256),
             # the owners' fused poses: the predictions of the robots run by other backends
@@ -132,11 +157,14 @@ class BackendNode(ServiceNode):
             self.stats.event("odometry")
         elif isinstance(message, PoseEstimate) and key.endswith("/pose"):
             self.pipeline.on_external_pose(message)  # a backend's fused pose (maybe our own)
+            self.ownership.observe(message.robot_id, message.x, message.y, message.stamp_ns)
             return []
         elif isinstance(message, PoseEstimate) and message.source != "robot":
             # only the robot's own localization belongs on .../localization
             self.stats.count("localization_wrong_source")
             return []
+        elif isinstance(message, PoseEstimate):  # the robot's own: where it is, for its area
+            self.ownership.observe(message.robot_id, message.x, message.y, message.stamp_ns)
         stamp_ns = getattr(message, "stamp_ns", None)
         if isinstance(stamp_ns, int):
             self._input_delays.append(recv_ns - stamp_ns)
@@ -296,6 +324,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="robust loss against keypoint outliers (default: the site file's "
         "pose.robust_loss, else the solver's default, cauchy)",
     )
+    parser.add_argument(
+        "--area", action="append", default=[], metavar="NAME",
+        help="serve only this area of the site file's areas: section (its cameras' detections, "
+        "the robots in it); repeat for several. Default: the areas that list this --id under "
+        "backends, else every camera",
+    )
     add_session_arguments(parser)
     return parser
 
@@ -308,8 +342,11 @@ def build_node(args: argparse.Namespace) -> BackendNode:
         solver = dataclasses.replace(solver, robust_loss=args.robust_loss)
     if args.solver is not None:
         solver = dataclasses.replace(solver, method=args.solver)
+    areas = backend_areas(site, [a for v in args.area for a in v.split(",") if a], args.id)
+    if areas:
+        log.info("backend %s serves the areas %s", args.id, ", ".join(areas))
     return BackendNode(site, args.id, config=dataclasses.replace(config, solver=solver),
-                       fusion=fusion_config_from_site(site))
+                       fusion=fusion_config_from_site(site), areas=areas)
 
 
 def main(argv: Sequence[str]) -> int:

@@ -7,7 +7,7 @@ One identity per service, named by the common name (CN) of its TLS client certif
                     status and liveliness token
 ``backend``         the backend host's services (backend, mapper, viewer): fused and
                     camera-only poses, the semantic map, their statuses and tokens, and
-                    the backends' robot owner tokens
+                    the backends' robot owner and area tokens
 ``bridge-<robot>``  a robot bridge: the robot's odometry, localization, corrections,
                     cloud, its status and token, and the ROS topics it drives on the
                     robot (corrections, pose outputs, tf)
@@ -300,7 +300,7 @@ def grants(
         put=(keys.pose_key(s, "*"), keys.camera_pose_key(s, "*"), keys.map_voxels_key(s, "*"),
              *(keys.status_key(s, svc, "*") for svc in BACKEND_SERVICES)),
         tokens=(*(keys.alive_key(s, svc, "*") for svc in BACKEND_SERVICES),
-                keys.owner_key(s, "*", "*")),
+                keys.owner_key(s, "*", "*"), keys.area_key(s, "*", "*")),
         read=(prefix,),
     ))  # fmt: skip
     if isinstance(ros_keys, Mapping) and len(site.robots) > 1:

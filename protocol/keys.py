@@ -17,6 +17,8 @@
     smartedge/<site>/alive/<service>/<id>            liveliness token (no payload)
     smartedge/<site>/owner/<robot_id>/<id>           liveliness token: backend <id> publishes
                                                      the robot's estimates
+    smartedge/<site>/area/<area>/<id>                liveliness token: backend <id> serves the
+                                                     area's cameras (``--area``)
 """
 
 from __future__ import annotations
@@ -147,12 +149,22 @@ def owner_key(site: str, robot_id: str, instance_id: str) -> str:
     )
 
 
+def area_key(site: str, area: str, instance_id: str) -> str:
+    """Liveliness token key ``smartedge/<site>/area/<area>/<id>``: backend ``<id>`` serves the
+    cameras of site area ``<area>`` (backend_service/areas.py); ``'*'`` allowed for both."""
+    return (
+        f"{ROOT}/{check_id('site', site)}/area/{_chunk('area', area, True)}/"
+        f"{_chunk('instance_id', instance_id, True)}"
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class ParsedKey:
     """A key split into its parts. ``scope`` is ``edge``, ``robot``, ``map``, ``status``,
-    ``alive`` or ``owner``; ``source_id`` the camera/robot/map/instance id (for owner: the
-    robot); ``topic`` the last chunk (for status/alive: the service name; for owner: the
-    backend instance); ``message_type`` the type carried (``None`` for liveliness)."""
+    ``alive``, ``owner`` or ``area``; ``source_id`` the camera/robot/map/instance id (for
+    owner: the robot; for area: the area); ``topic`` the last chunk (for status/alive: the
+    service name; for owner and area: the backend instance); ``message_type`` the type
+    carried (``None`` for liveliness)."""
 
     site: str
     scope: str
@@ -181,4 +193,6 @@ def parse_key(key: str) -> ParsedKey:
         return ParsedKey(site, scope, check_id("key.id", b), check_id("key.service", a), None)
     if scope == "owner":
         return ParsedKey(site, scope, check_id("key.robot_id", a), check_id("key.id", b), None)
+    if scope == "area":
+        return ParsedKey(site, scope, check_id("key.area", a), check_id("key.id", b), None)
     raise ValidationError("key", f"unknown scope {scope!r} in {key!r}")

@@ -426,12 +426,12 @@ _CAMERA_KEYS: Final = {
 }
 #: Sections owned by a service package: the site file holds them, the package parses them into
 #: its own dataclass (``backend_service``: pose, multi_frame, fusion, camera_health,
-#: association;
+#: association, areas;
 #: ``robot_bridge``: bridge, pose_output, map_output, ros; map and edge are reserved for the
 #: semantic map and the edge pipeline).
 PACKAGE_SECTIONS: Final = (
     "pose", "multi_frame", "fusion", "camera_health", "association", "bridge", "pose_output",
-    "map_output", "ros", "map", "edge")
+    "map_output", "ros", "map", "edge", "areas")
 _TOP_KEYS: Final = {
     "site", "world_frame", "cameras", "robot_models", "robots", "thresholds", "clock",
     *PACKAGE_SECTIONS,

@@ -176,6 +176,36 @@ def _kind(value: object) -> str:
     return "number"
 
 
+#: the ``areas:`` section: a map of areas, not a flat dataclass (written by hand)
+AREA_KEYS: Final = """## `areas:` (backend_service; optional)
+
+A facility split into areas (`backend_service.areas.Area`): each area is a set of cameras and
+optionally a floor polygon. `smartedge backend --area NAME` (repeatable), or a backend whose
+`--id` an area lists under `backends`, subscribes to the detections of its areas' cameras only
+and owns the robots in its areas (docs/deployment.md, "Areas"). A backend without an area
+receives every camera. Errors name the key (`areas.west.cameras[3]: no camera 'cam9' in the
+site`).
+
+| key | meaning |
+|---|---|
+| `areas.<name>.cameras` | ids of the area's cameras (required, at least one; a camera on a \
+border may be in two areas) |
+| `areas.<name>.polygon_m` | floor polygon `[[x, y], ...]`, world metres, at least 3 points \
+(default: the floor nearest to the area's cameras, i.e. a robot is in the area of its nearest \
+camera) |
+| `areas.<name>.backends` | backend `--id`s that serve this area when started without `--area` |
+
+A robot stays in its area while it is within 0.5 m of the area's polygon
+(`backend_service.areas.HYSTERESIS_M`).
+
+```yaml
+areas:
+  hall_a: {cameras: [cam000, cam001, cam002], polygon_m: [[-6, -6], [30, -6], [30, 6], [-6, 6]]}
+  hall_b: {cameras: [cam002, cam003, cam004], polygon_m: [[30, -6], [66, -6], [66, 6], [30, 6]]}
+```
+"""
+
+
 def render() -> str:
     """The whole reference page as Markdown."""
     parts = [HEADER]
@@ -195,6 +225,7 @@ def render() -> str:
                 parts.append(f"| `{f.name}` | {shown} | {_kind(value)} |")
             parts.append("")
     parts.append(ROBOT_MODEL_KEYS)
+    parts.append(AREA_KEYS)
     return "\n".join(parts).rstrip() + "\n"
 
 

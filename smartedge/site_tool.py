@@ -19,12 +19,14 @@ def check_sections(site: object) -> None:
     """Parse the package-owned sections too (each package's own parser), where the package is
     installed, so ``site check`` reports a bad ``fusion.window_s`` before a service starts."""
     try:
+        from backend_service.areas import parse_areas
         from backend_service.fusion import fusion_config_from_site
         from backend_service.pipeline import PipelineConfig
     except ImportError:  # an edge board has no backend packages
         return
     PipelineConfig.from_site(site)  # type: ignore[arg-type]
     fusion_config_from_site(site)  # type: ignore[arg-type]
+    parse_areas(site)  # type: ignore[arg-type]
     try:
         from robot_bridge.bridge import BridgeConfig
     except ImportError:

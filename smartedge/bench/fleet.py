@@ -12,6 +12,16 @@ of cell c publish through router c mod R (the router of their area), the robots 
 Every frame's payloads are projected and encoded before the run (the cameras do that on their own
 boards), so only sending them shares the cores with the services.
 
+Two ways to split the facility over the backends (``--split``, one set of rows each):
+
+- ``none``: every backend receives every camera's detections and the backends share the robots by
+  the rendezvous hash (each still decodes, associates and synchronizes every camera);
+- ``area``: the site has one area per router (``a<k>``: the cameras of the cells c with
+  c mod R = k, backend_service/areas.py) and backend j serves the areas k with k mod B = j
+  (``smartedge backend --area``): it subscribes to those cameras only and owns the robots in
+  them (backend j connects to router j mod R, so with B = R each backend is on its area's
+  router).
+
 Measured per backend count (one row each, everything restarted):
 
 - detection-to-pose latency: the frame-set's stamp to the arrival of the robot's camera pose on
@@ -29,6 +39,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import math
 import os
 import platform
@@ -65,11 +76,12 @@ LOCALIZATION_RATE_HZ: Final = 5.0
 #: left unassigned, frame-sets overflowing the synchronizer, solves without an estimate, poses
 #: too old to publish)
 DROP_COUNTERS: Final = ("shed", "stale_dropped.camera_pose", "sync.overflow", "sync.late",
-                        "sync.rate_limited", "no_estimate",
+                        "sync.rate_limited", "no_estimate", "ownership.withheld",
                         "association.detections_ambiguous",
                         "association.detections_no_prediction",
                         "association.detections_unassigned")
 SITE_NAME: Final = "fleet"
+SPLITS: Final = ("none", "area")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,9 +104,23 @@ class FleetLayout:
                          math.remainder(a + math.pi / 2, 2 * math.pi)])
 
 
-def write_fleet_site(path: Path, n_robots: int, n_cameras: int) -> tuple[Site, FleetLayout]:
+def area_name(k: int) -> str:
+    return f"a{k}"
+
+
+def backend_areas_of(backend: int, n_backends: int, n_areas: int) -> list[str]:
+    """The areas backend ``backend`` of ``n_backends`` serves in the ``area`` split: those
+    ``k`` with ``k mod n_backends == backend`` (all of them for one backend; none when there are
+    more backends than areas and this one is beyond them: it then serves every camera)."""
+    return [area_name(k) for k in range(n_areas) if k % n_backends == backend]
+
+
+def write_fleet_site(path: Path, n_robots: int, n_cameras: int, n_areas: int = 0
+                     ) -> tuple[Site, FleetLayout]:
     """A site file of ``n_robots`` HSR-like robots (each in its own ROS namespace) and
-    ``n_cameras`` cameras, spread over one cell per robot."""
+    ``n_cameras`` cameras, spread over one cell per robot; with ``n_areas``, an ``areas:``
+    section of that many areas, area ``a<k>`` the cameras of the cells c with c mod n_areas =
+    k (the cells of router k; no polygon: a robot is in the area of its nearest camera)."""
     from simulation.scenario import load_scenario
 
     if n_robots < 1 or n_cameras < 1:
@@ -128,6 +154,11 @@ def write_fleet_site(path: Path, n_robots: int, n_cameras: int) -> tuple[Site, F
         "robots": [{"id": rid, "model": "hsr", "ros": {"namespace": rid}} for rid in robot_ids],
         "thresholds": {"sync_window_ms": 10.0, "sync_max_wait_ms": 50.0},
     }
+    if n_areas:
+        areas = {area_name(k): {"cameras": [c for c, cell in cell_of.items()
+                                            if cell % n_areas == k]}
+                 for k in range(n_areas)}
+        doc["areas"] = {k: v for k, v in areas.items() if v["cameras"]}
     path.write_text(yaml.safe_dump(doc))
     return load_site(path), FleetLayout(robot_ids, cell_of)
 
@@ -251,6 +282,7 @@ def _wait_listening(proc: subprocess.Popen, port: int, timeout_s: float, log: Pa
 @dataclasses.dataclass
 class RowResult:
     backends: int
+    split: str
     p50_ms: float
     p99_ms: float
     max_ms: float
@@ -267,6 +299,9 @@ class RowResult:
     statuses_in_span: dict[str, int]  # backend -> statuses received over the measured span
     unreadable_statuses: int
     missing_at: list[tuple[str, float]]  # the first missing frame-sets: (robot, s into the span)
+    received: dict[str, int]  # backend -> camera messages its synchronizer received (all run)
+    areas: dict[str, str]  # backend -> the areas it served ("all": every camera)
+    load1: float = math.nan  # the machine's 1-minute load average at the end of the span
 
     @property
     def silent(self) -> int:
@@ -275,13 +310,19 @@ class RowResult:
 
 def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate_hz: float,
             odom_rate_hz: float, seconds: float, warmup_s: float, workdir: Path,
-            progress: bool = True) -> RowResult:
+            progress: bool = True, split: str = "none") -> RowResult:
     """One row: fresh routers and backends, ``warmup_s`` + ``seconds`` of traffic; only the
-    frame-sets stamped after the warm-up are measured."""
+    frame-sets stamped after the warm-up are measured. ``split``: ``none`` (every backend
+    receives every camera) or ``area`` (one area per router, see the module doc)."""
     import zenoh
 
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
     site_path = workdir / "fleet_site.yaml"
-    site, layout = write_fleet_site(site_path, n_robots, n_cameras)
+    n_areas = n_routers if split == "area" else 0
+    site, layout = write_fleet_site(site_path, n_robots, n_cameras, n_areas)
+    served = {f"b{b}": (backend_areas_of(b, n_backends, len(site.section("areas")))
+                        if n_areas else []) for b in range(n_backends)}
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     procs: dict[str, subprocess.Popen] = {}
     endpoints: list[str] = []
@@ -300,7 +341,8 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
             procs[f"backend{b}"] = subprocess.Popen(
                 [sys.executable, "-m", "smartedge", "--log-level", "WARNING", "backend",
                  "--site", str(site_path), "--id", f"b{b}", "--mode", "client", "--connect",
-                 endpoints[b % n_routers], "--no-multicast-scouting"],
+                 endpoints[b % n_routers], "--no-multicast-scouting",
+                 *(a for area in served[f"b{b}"] for a in ("--area", area))],
                 cwd=REPO_ROOT, stdout=subprocess.DEVNULL,
                 stderr=(workdir / f"backend{b}.log").open("w"), env=env)
         poses: list[tuple[int, str, bytes]] = []  # (arrival ns, robot, payload)
@@ -363,6 +405,7 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
                     pub.put(payload)
             span_s = time.monotonic() - t_cpu0
             end_ns = time.time_ns()
+            load1 = os.getloadavg()[0]
             cpu = {name: (_cpu_s(p.pid) - cpu0[name]) / span_s for name, p in procs.items()}
             cpu["bench"] = (_cpu_s(os.getpid()) - cpu0["bench"]) / span_s
             time.sleep(2.5)  # the last poses, and a status with the final counters
@@ -382,6 +425,7 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
     counters: dict[str, int] = {}
     stage_ms: dict[str, float] = {}
     owners: dict[str, str] = {}
+    received: dict[str, int] = {}
     # the backends' own stage latencies: the worst p99 any status of the measured span gave
     for st in history:
         if measured_from <= st.stamp_ns <= end_ns:
@@ -392,48 +436,139 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
     for inst, st in statuses.items():
         for name, v in st.counters.items():
             if name in DROP_COUNTERS or name.startswith(
-                    ("ownership.withheld", "standby.", "external_pose.used", "stale_dropped")):
+                    ("ownership.", "standby.", "external_pose.used", "stale_dropped")):
                 counters[name] = counters.get(name, 0) + int(v)
         owns = [part.split(":", 1)[1].strip() for part in st.detail.split(";")
                 if part.strip().startswith("owns")]
         owners[inst] = owns[0] if owns else "?"
+        received[inst] = int(st.counters.get("sync.received", 0))
     accounted = sum(v for k, v in counters.items() if k in DROP_COUNTERS)
     lost = sorted(expected - set(got), key=lambda fs: fs[1])
     missing = len(lost)
     missing_at = [(rid, round((st - measured_from) * 1e-9, 3)) for rid, st in lost[:8]]
     return RowResult(
-        backends=n_backends,
+        backends=n_backends, split=split,
         p50_ms=float(np.percentile(lat, 50)) if lat.size else math.nan,
         p99_ms=float(np.percentile(lat, 99)) if lat.size else math.nan,
         max_ms=float(lat.max()) if lat.size else math.nan,
         poses=int(lat.size), frame_sets=len(expected), missing=missing, accounted=accounted,
         duplicates=sum(1 for rxs in got.values() if len(rxs) > 1), late_publish=late, cpu=cpu,
         counters=counters, stage_ms=stage_ms, owners=owners,
-        statuses_in_span=in_span, unreadable_statuses=bad_status[0], missing_at=missing_at)
+        statuses_in_span=in_span, unreadable_statuses=bad_status[0], missing_at=missing_at,
+        received=received, areas={k: ",".join(v) or "all" for k, v in served.items()},
+        load1=load1)
+
+
+def _ratio(a: float, b: float) -> str:
+    return f"{a / b:.2f}x" if b > 0 and math.isfinite(a) and math.isfinite(b) else "-"
 
 
 def print_row(r: RowResult, base: RowResult | None) -> None:
-    ratio = (f"{r.p50_ms / base.p50_ms:>6.2f}x{r.p99_ms / base.p99_ms:>6.2f}x"
-             if base is not None and base.p50_ms > 0 and base.p99_ms > 0 else f"{'':>14}")
-    print(f"{r.backends:>8}{r.p50_ms:>9.1f}{r.p99_ms:>9.1f}{r.max_ms:>9.1f}{ratio}"
+    ratio = (f"{_ratio(r.p50_ms, base.p50_ms):>7}{_ratio(r.p99_ms, base.p99_ms):>7}"
+             if base is not None else f"{'':>14}")
+    print(f"{r.split:>6}{r.backends:>9}{r.p50_ms:>9.1f}{r.p99_ms:>9.1f}{r.max_ms:>9.1f}{ratio}"
           f"{r.missing:>7}/{r.frame_sets:<6}{r.silent:>7}{r.duplicates:>6}{r.late_publish:>6}",
           flush=True)
     backends = sum(v for k, v in r.cpu.items() if k.startswith("backend"))
     routers = sum(v for k, v in r.cpu.items() if k.startswith("router"))
     print(f"{'':>8}CPU s/s: backends {backends:.2f} ("
           + ", ".join(f"{v:.2f}" for k, v in r.cpu.items() if k.startswith("backend"))
-          + f"), routers {routers:.2f}, publisher+monitor {r.cpu['bench']:.2f}")
+          + f"), routers {routers:.2f}, publisher+monitor {r.cpu['bench']:.2f}; machine load "
+          f"average {r.load1:.1f} (1 min, {os.cpu_count()} cores)")
     print(f"{'':>8}backend stage p99 ms: "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(r.stage_ms.items())))
     print(f"{'':>8}counters: " + (", ".join(f"{k} {v}" for k, v in sorted(r.counters.items()))
                                   or "-"))
     print(f"{'':>8}owners: " + "; ".join(f"{k}: {v}" for k, v in sorted(r.owners.items())))
+    print(f"{'':>8}areas and camera messages received: " + "; ".join(
+        f"{k}: {r.areas.get(k, '?')} {r.received.get(k, 0)}" for k in sorted(r.owners)))
     print(f"{'':>8}statuses over the measured span: "
           + ", ".join(f"{k} {v}" for k, v in sorted(r.statuses_in_span.items()))
           + (f"; {r.unreadable_statuses} unreadable" if r.unreadable_statuses else ""))
     if r.missing_at:
         print(f"{'':>8}first missing (robot, s into the span): "
               + ", ".join(f"{rid} {t:.2f}" for rid, t in r.missing_at))
+
+
+@dataclasses.dataclass
+class CpuResult:
+    """One backend's CPU in process (``--cpu-only``): the split, the areas it served, how many
+    camera messages it was handed, and CPU seconds per second of traffic."""
+
+    split: str
+    backend: str
+    areas: str
+    camera_messages: int
+    robots_run: int
+    cpu_s_per_s: float
+
+
+def in_process_cpu(split: str, n_backends: int, n_routers: int, n_robots: int,
+                   n_cameras: int, rate_hz: float, odom_rate_hz: float, seconds: float,
+                   workdir: Path) -> list[CpuResult]:
+    """Each backend's work without Zenoh and without the other processes: a
+    :class:`~backend_service.service.BackendNode` per backend, handed the messages its
+    subscriptions would receive (``area``: its areas' cameras; every robot's odometry and
+    localization) in stamp order through the runtime's decode-and-dispatch, and running the
+    robots the split would give it (``area``: those of its areas' cells; ``none``: the
+    rendezvous hash over the backends). CPU time (``time.process_time``) over the second half
+    of ``seconds`` of traffic: the figure does not depend on what else runs on the machine."""
+    n_areas = n_routers if split == "area" else 0
+    site, layout = write_fleet_site(workdir / "fleet_site_cpu.yaml", n_robots, n_cameras,
+                                    n_areas)
+    prepared = prepare_run(site, layout, rate_hz, odom_rate_hz, seconds,
+                           np.random.default_rng(0))
+    names = [f"b{b}" for b in range(n_backends)]
+    out = []
+    quiet = logging.getLogger("backend_service")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)  # each node logs the robots it does not run
+    try:
+        for b in range(len(names)):
+            out.append(_one_backend_cpu(site, layout, prepared, split, b, names, n_areas,
+                                        seconds))
+    finally:
+        quiet.setLevel(level)
+    return out
+
+
+def _one_backend_cpu(site: Site, layout: FleetLayout, prepared: PreparedRun, split: str,
+                     b: int, names: list[str], n_areas: int, seconds: float) -> CpuResult:
+    from backend_service.ownership import choose_owner
+    from backend_service.service import BackendNode
+    from protocol.runtime import ScriptedRunner, dispatch
+
+    name = names[b]
+    areas = backend_areas_of(b, len(names), len(site.section("areas"))) if n_areas else []
+    node = BackendNode(site, name, areas=areas)
+    if areas:
+        served = {int(a[1:]) for a in areas}
+        robots = [r for i, r in enumerate(layout.robot_ids) if i % n_areas in served]
+    else:
+        robots = [r for r in layout.robot_ids if choose_owner(r, names) == name]
+    node.pipeline.set_active(robots)
+    runner = ScriptedRunner(node)
+    subs: dict[str, Any] = {}
+    half_ns = prepared.start_ns + round(seconds * 0.5e9)
+    cpu0: float | None = None
+    cams = 0
+    for stamp, msgs in prepared.frames:
+        if cpu0 is None and stamp >= half_ns:
+            cpu0 = time.process_time()
+        recv_ns = stamp + 2_000_000
+        runner.tick(recv_ns)
+        for key, payload, _cell in msgs:
+            if key not in subs:
+                subs[key] = runner._match(key)
+            sub = subs[key]
+            if sub is None:
+                continue  # not subscribed: Zenoh would not deliver it
+            if cpu0 is not None and sub.message_type is RobotDetections:
+                cams += 1
+            dispatch(node, sub, key, payload, recv_ns)
+    cpu = time.process_time() - (cpu0 or 0.0)
+    return CpuResult(split, name, ",".join(areas) or "all", cams, len(robots),
+                     cpu / (seconds * 0.5))
 
 
 def main(argv: Sequence[str]) -> int:
@@ -448,8 +583,16 @@ def main(argv: Sequence[str]) -> int:
                         help="comma-separated backend counts: one row each")
     parser.add_argument("--routers", type=int, default=3, help="routers in a chain")
     parser.add_argument("--seconds", type=float, default=10.0, help="measured time per row")
+    parser.add_argument("--split", default="none,area",
+                        help="comma-separated ways to split the facility over the backends: "
+                        "none (every backend receives every camera), area (each backend the "
+                        "cameras of its routers' areas); one set of rows each")
     parser.add_argument("--warmup", type=float, default=4.0,
                         help="unmeasured start per row (ownership settles, robots localize)")
+    parser.add_argument("--cpu-only", action="store_true",
+                        help="no processes, no Zenoh: each backend's CPU per second of traffic "
+                        "in this process, per split and backend count (independent of the "
+                        "machine's other load)")
     args = parser.parse_args(list(argv))
     try:
         counts = [int(v) for v in args.backends.split(",")]
@@ -457,27 +600,66 @@ def main(argv: Sequence[str]) -> int:
         parser.error(f"--backends: comma-separated integers, got {args.backends!r}")
     if any(c < 1 for c in counts) or args.routers < 1 or args.rate <= 0 or args.seconds <= 0:
         parser.error("--backends, --routers, --rate and --seconds must be positive")
+    splits = [v.strip() for v in args.split.split(",") if v.strip()]
+    if not splits or any(v not in SPLITS for v in splits):
+        parser.error(f"--split: comma-separated of {', '.join(SPLITS)}, got {args.split!r}")
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, python "
           f"{platform.python_version()}")
     print(f"{args.robots} robots, {args.cameras} cameras at {args.rate:g} Hz, odometry "
           f"{args.odom_rate:g} Hz, {args.routers} routers in a chain, {args.seconds:g} s "
           f"measured per row after {args.warmup:g} s")
+    if args.cpu_only:
+        print(f"{'split':>6}{'backends':>9}  backend  areas     camera msgs  robots  CPU s/s")
+        with tempfile.TemporaryDirectory(prefix="smartedge-bench-fleet-") as tmp:
+            for split in splits:
+                for b in counts:
+                    res = in_process_cpu(split, b, args.routers, args.robots, args.cameras,
+                                         args.rate, args.odom_rate, args.seconds, Path(tmp))
+                    for r in res:
+                        print(f"{split:>6}{b:>9}  {r.backend:<8} {r.areas:<9}"
+                              f"{r.camera_messages:>12}{r.robots_run:>8}{r.cpu_s_per_s:>9.3f}",
+                              flush=True)
+                    print(f"{'':>15}sum {sum(r.cpu_s_per_s for r in res):.3f} s/s, busiest "
+                          f"{max(r.cpu_s_per_s for r in res):.3f} s/s", flush=True)
+        print("CPU s/s: CPU seconds of the backend per second of traffic (second half of "
+              "--seconds); camera msgs: camera messages it was handed in that half")
+        return 0
     rows: list[RowResult] = []
     with tempfile.TemporaryDirectory(prefix="smartedge-bench-fleet-") as tmp:
+        for split in splits:
+            first: RowResult | None = None
+            for b in counts:
+                print(f"row: split {split}, {b} backend(s)", flush=True)
+                r = run_row(b, args.routers, args.robots, args.cameras, args.rate,
+                            args.odom_rate, args.seconds, args.warmup, Path(tmp), split=split)
+                if not rows:
+                    print(f"{'split':>6}{'backends':>9}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}"
+                          f"{'p50 x':>7}{'p99 x':>7}{'missing':>14}{'silent':>7}{'dup':>6}"
+                          f"{'late':>6}")
+                print_row(r, first)
+                first = first or r
+                rows.append(r)
+    if len(splits) > 1:
+        print("side by side (p50 / p99 ms, CPU of the backends s/s; ratio area / none):")
+        by = {(r.split, r.backends): r for r in rows}
         for b in counts:
-            print(f"row: {b} backend(s)", flush=True)
-            r = run_row(b, args.routers, args.robots, args.cameras, args.rate, args.odom_rate,
-                        args.seconds, args.warmup, Path(tmp))
-            if not rows:
-                print(f"{'backends':>8}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}{'p50 x':>7}"
-                      f"{'p99 x':>7}{'missing':>14}{'silent':>7}{'dup':>6}{'late':>6}")
-            print_row(r, rows[0] if rows else None)
-            rows.append(r)
+            cells = []
+            for split in splits:
+                r = by[(split, b)]
+                cpu = sum(v for k, v in r.cpu.items() if k.startswith("backend"))
+                cells.append(f"{split} {r.p50_ms:.1f} / {r.p99_ms:.1f} ms, {cpu:.2f} s/s, "
+                             f"missing {r.missing}/{r.frame_sets}")
+            line = f"  {b} backend(s): " + "; ".join(cells)
+            if ("none", b) in by and ("area", b) in by:
+                a, n = by[("area", b)], by[("none", b)]
+                line += (f"; area/none p50 {_ratio(a.p50_ms, n.p50_ms)}, p99 "
+                         f"{_ratio(a.p99_ms, n.p99_ms)}")
+            print(line)
     print("latency: frame-set stamp -> the robot's camera pose received on the last router; "
-          "p50 x/p99 x: vs the first row; missing: frame-sets (robot seen by a camera) with "
-          "no pose; silent: missing beyond the backends' drop counters (shed, "
-          "stale_dropped.camera_pose, sync overflow/late/rate-limited, no_estimate, unassigned "
-          "detections); "
+          "p50 x/p99 x: vs the split's first row; missing: frame-sets (robot seen by a camera) "
+          "with no pose; silent: missing beyond the backends' drop counters (shed, "
+          "stale_dropped.camera_pose, sync overflow/late/rate-limited, no_estimate, "
+          "ownership.withheld, unassigned detections); "
           "dup: poses received twice (two publishers); late: frames this publisher sent "
           "more than one period late")
     return 0 if all(r.silent == 0 and r.duplicates == 0 for r in rows) else 1
