@@ -342,7 +342,8 @@ def build_node(args: argparse.Namespace) -> BackendNode:
         solver = dataclasses.replace(solver, robust_loss=args.robust_loss)
     if args.solver is not None:
         solver = dataclasses.replace(solver, method=args.solver)
-    areas = backend_areas(site, [a for v in args.area for a in v.split(",") if a], args.id)
+    requested = getattr(args, "area", None) or []  # a hand-built Namespace may lack it
+    areas = backend_areas(site, [a for v in requested for a in v.split(",") if a], args.id)
     if areas:
         log.info("backend %s serves the areas %s", args.id, ", ".join(areas))
     return BackendNode(site, args.id, config=dataclasses.replace(config, solver=solver),

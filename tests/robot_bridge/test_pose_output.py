@@ -248,12 +248,18 @@ def test_ros_pose_topic_decodes_at_the_configured_rate(zenoh_pair) -> None:
             if bridge.counters.get("pose_output_fused", 0) > before:
                 sent_stamps.append(now - S // 20)
         assert len(sent_stamps) == 15  # 5 Hz over 3 s
-        got = []
-        assert wait_until(lambda: len(got.extend(
-            iter(lambda: poses.try_recv(), None)) or got) >= 15)
-        msgs = [ts.deserialize_cdr(s.payload.to_bytes(), pwcs) for s in got]
-        # (a warm-up message may still have been in flight when the channel was drained)
-        msgs = [m for m in msgs if m.header.stamp.sec * S + m.header.stamp.nanosec > warm[0]]
+        msgs: list = []
+
+        def all_arrived() -> bool:
+            # (a warm-up message may still have been in flight when the channel was drained:
+            # it is left out, and the wait goes on until the 15 sent ones are all here)
+            for sample in iter(lambda: poses.try_recv(), None):
+                m = ts.deserialize_cdr(sample.payload.to_bytes(), pwcs)
+                if m.header.stamp.sec * S + m.header.stamp.nanosec > warm[0]:
+                    msgs.append(m)
+            return len(msgs) >= 15
+
+        assert wait_until(all_arrived)
         assert [m.header.stamp.sec * S + m.header.stamp.nanosec for m in msgs] == sent_stamps
         m = msgs[-1]
         assert m.__msgtype__ == pwcs and m.header.frame_id == "world"
