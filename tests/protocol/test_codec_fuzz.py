@@ -15,7 +15,7 @@ from protocol import MAX_PAYLOAD_BYTES, DecodeError, decode, encode
 from tests.protocol import strategies as S
 
 _FUZZ = settings(
-    max_examples=800,
+    max_examples=500,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
@@ -69,7 +69,7 @@ json_like = st.recursive(
 )
 
 
-@settings(max_examples=800, deadline=None)
+@settings(max_examples=500, deadline=None)
 @given(
     st.sampled_from(
         [

@@ -26,7 +26,7 @@ from protocol.messages import (
 )
 from tests.protocol import strategies as S
 
-_FUZZ = settings(max_examples=400, deadline=None,
+_FUZZ = settings(max_examples=300, deadline=None,
                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
