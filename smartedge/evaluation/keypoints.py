@@ -102,6 +102,15 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
     return figures
 
 
+def _deployed_pipeline(scenario: Any, model_dir: Path | None, threads: int,
+                       flip: bool | None) -> RobotKeypointPipeline:
+    """The edge's detector + keypoint pipeline of ``model_dir`` (default: the shipped models),
+    keypoints named as the scenario's robot model names them."""
+    model = scenario.site.robot_model(scenario.robot_id)
+    return RobotKeypointPipeline.from_folder(model_dir, threads=threads,
+                                             keypoint_names=model.keypoint_names, flip=flip)
+
+
 def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
                        count: int = 300, modes: Sequence[str] = ("randomized", "site"),
                        scenario_path: Path | None = None, threads: int = 2,
@@ -116,9 +125,7 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
-    model = scenario.site.robot_model(scenario.robot_id)
-    pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads,
-                                                 keypoint_names=model.keypoint_names, flip=flip)
+    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip)
     t0 = time.perf_counter()
     figures: dict[str, dict[str, float]] = {}
     split: dict[str, ErrorBreakdown] = {}
@@ -471,14 +478,13 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
     return figures
 
 
-def held_out_samples(count: int, *, seed: int = DEFAULT_SEED,
-                     scenario_path: Path | None = None,
+def held_out_samples(count: int, scenario: Any, *, seed: int = DEFAULT_SEED,
                      progress: Callable[[str], None] | None = None,
                      ) -> tuple[list[Any], list[float]]:
-    """``count`` views rendered with :data:`simulation.scenes.HELD_OUT_VARIATION` (checked
-    disjoint from the training randomization first) and the robot's distance in each."""
+    """``count`` views of ``scenario``'s robot rendered with
+    :data:`simulation.scenes.HELD_OUT_VARIATION` (checked disjoint from the training
+    randomization first) and the robot's distance in each."""
     from simulation.dataset import SampleGenerator
-    from simulation.scenario import PAPER_SCENARIO, load_scenario
     from simulation.scenes import (
         HELD_OUT_VARIATION,
         RandomizationConfig,
@@ -488,7 +494,6 @@ def held_out_samples(count: int, *, seed: int = DEFAULT_SEED,
 
     check_disjoint(RandomizationConfig(), HELD_OUT_VARIATION)
     say = progress or (lambda line: None)
-    scenario = load_scenario(scenario_path or PAPER_SCENARIO)
     gen = SampleGenerator(scenario, "randomized", seed=seed, randomization=HELD_OUT_VARIATION)
     say(f"rendering {count} views of the held-out renderer variations (seed {seed})")
     samples: list[Any] = []
@@ -516,12 +521,9 @@ def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = D
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
-    model = scenario.site.robot_model(scenario.robot_id)
-    pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads,
-                                                 keypoint_names=model.keypoint_names, flip=flip)
+    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip)
     t0 = time.perf_counter()
-    samples, distances = held_out_samples(count, seed=seed, scenario_path=scenario_path,
-                                          progress=say)
+    samples, distances = held_out_samples(count, scenario, seed=seed, progress=say)
     say(f"running the detector and keypoint networks on {count} views")
     figures = evaluate_held_out_set(pipeline, samples, distances, progress=say)
     return HeldOutEvaluation(figures, count, time.perf_counter() - t0)
