@@ -63,8 +63,9 @@ from typing import Final
 import numpy as np
 
 from backend_service.frame_set import PlanarPose, image_scale, scale_detection
-from backend_service.projection import project_planar, stacked_cameras
+from backend_service.projection import stacked_cameras
 from protocol.camera import CameraModel
+from protocol.geometry import distort_normalized
 from protocol.messages import Detection, RobotDetections
 from protocol.site import Site
 
@@ -315,11 +316,16 @@ class PredictedView:
     box_lo: np.ndarray
     box_hi: np.ndarray
     info: np.ndarray
+    #: the rows (robots) with a keypoint in the image, ascending: the only ones that can take
+    #: a detection of this camera (``sigma_uv`` and ``info`` of the others are not computed)
+    seen: np.ndarray
 
     def rows(self, index: Sequence[int]) -> PredictedView:
         idx = np.asarray(index, dtype=np.intp)
-        return PredictedView(self.uv[idx], self.visible[idx], self.sigma_uv[idx],
-                             self.box_lo[idx], self.box_hi[idx], self.info[:, idx])
+        visible = self.visible[idx]
+        return PredictedView(self.uv[idx], visible, self.sigma_uv[idx], self.box_lo[idx],
+                             self.box_hi[idx], self.info[:, idx],
+                             np.flatnonzero(visible.any(axis=-1)))
 
 
 def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray,
@@ -333,51 +339,83 @@ def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray
     uncertainty)."""
     cams = stacked_cameras(tuple(cameras))
     q0 = np.array([[p.pose.x, p.pose.y, p.pose.theta] for p in predictions], dtype=np.float64)
-    uv, depth = project_planar(cams, keypoints_base_m, q0)  # (R, N, M, 2), (R, N, M)
-    uv0 = np.moveaxis(uv, 1, 0)  # (N, R, M, 2)
     kp = np.asarray(keypoints_base_m, dtype=np.float64)
+    n_cam, n_rob, m = len(cameras), len(q0), len(kp)
     c, s = np.cos(q0[:, 2])[:, None], np.sin(q0[:, 2])[:, None]
     # world points (R, M, 3) and their derivative by theta (x and y move them by unit vectors)
     pw = np.stack([c * kp[:, 0] - s * kp[:, 1] + q0[:, 0, None],
                    s * kp[:, 0] + c * kp[:, 1] + q0[:, 1, None],
-                   np.broadcast_to(kp[:, 2], c.shape[:1] + kp[:, 2].shape)], axis=-1)
+                   np.broadcast_to(kp[:, 2], (n_rob, m))], axis=-1)
     dpw_dtheta = np.stack([-s * kp[:, 0] - c * kp[:, 1], c * kp[:, 0] - s * kp[:, 1],
-                           np.zeros(c.shape[:1] + kp[:, 2].shape)], axis=-1)
-    R_cw = cams.R_cw  # (N, 3, 3)
-    pc = np.einsum("nij,rmj->nrmi", R_cw, pw) + cams.t_cw[:, None, None, :]  # (N, R, M, 3)
-    # camera-frame derivatives (N, R, M, 3) by x, y (the world axes' images) and theta
-    d_by = (np.broadcast_to(R_cw[:, None, None, :, 0], pc.shape),
-            np.broadcast_to(R_cw[:, None, None, :, 1], pc.shape),
-            np.einsum("nij,rmj->nrmi", R_cw, dpw_dtheta))
+                           np.zeros((n_rob, m))], axis=-1)
+    # camera frame (N, R, M, 3); one matrix product (small einsums are slow)
+    pc = (np.matmul(pw.reshape(1, -1, 3), np.swapaxes(cams.R_cw, 1, 2))
+          + cams.t_cw[:, None, :]).reshape(n_cam, n_rob, m, 3)
+    # the pixels as the solver projects them (projection.project_planar)
+    depth = pc[..., 2]
+    xy = pc[..., :2] / np.maximum(depth, 1e-3)[..., None]
+    xyd = distort_normalized(xy, cams.dist[:, None, None, :])
+    K = cams.K[:, None, None]
+    u = K[..., 0, 0] * xyd[..., 0] + K[..., 0, 1] * xyd[..., 1] + K[..., 0, 2]
+    v = K[..., 1, 1] * xyd[..., 1] + K[..., 1, 2]
+    uv0 = np.stack([u, v], axis=-1)  # (N, R, M, 2)
+    w = np.array([cam.width - 1.0 for cam in cameras])[:, None, None]
+    h = np.array([cam.height - 1.0 for cam in cameras])[:, None, None]
+    visible = ((depth > _MIN_DEPTH_M) & (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)
+               & np.isfinite(u) & np.isfinite(v))  # (N, R, M)
+    # The pixel covariance only for the (camera, robot) pairs with a keypoint in the image:
+    # a pair without one costs inf whatever its covariance (no shared keypoint, no box), and
+    # on a large site most robots are in few cameras (zero for the others).
+    sigma_uv = np.zeros((n_cam, n_rob, m, 2, 2))
+    lo = np.full((n_cam, n_rob, 2), np.inf)
+    hi = np.full((n_cam, n_rob, 2), -np.inf)
+    cam_i, rob_i = np.nonzero(visible.any(axis=-1))
+    if cam_i.size:
+        sigma = _pixel_covariance(pc[cam_i, rob_i], cams.R_cw[cam_i], dpw_dtheta[rob_i],
+                                  cams.K[cam_i],
+                                  np.stack([p.covariance for p in predictions])[rob_i])
+        sigma_uv[cam_i, rob_i] = sigma
+        # the box of the visible keypoints, widened by the pose's and the detector's sigmas
+        sig_px = np.sqrt(np.maximum(np.maximum(sigma[..., 0, 0], sigma[..., 1, 1]), 0.0)
+                         + config.detector_sigma_px ** 2)  # (P, M)
+        pad = config.box_margin_sigmas * sig_px[..., None]
+        vis, uv_p = visible[cam_i, rob_i][..., None], uv0[cam_i, rob_i]
+        lo[cam_i, rob_i] = np.where(vis, uv_p - pad, np.inf).min(axis=1)
+        hi[cam_i, rob_i] = np.where(vis, uv_p + pad, -np.inf).max(axis=1)
+    info = _information(sigma_uv, config.detector_sigma_px ** 2)  # (3, N, R, M)
+    seen = visible.any(axis=-1)  # (N, R)
+    return [PredictedView(uv0[i], visible[i], sigma_uv[i], lo[i], hi[i], info[:, i],
+                          np.flatnonzero(seen[i])) for i in range(len(cameras))]
+
+
+def _pixel_covariance(pc: np.ndarray, R_cw: np.ndarray, dpw_dtheta: np.ndarray, K: np.ndarray,
+                      cov: np.ndarray) -> np.ndarray:
+    """(P, M, 2, 2) pixel covariance ``J cov J^T`` of M keypoints for P (camera, pose) pairs:
+    ``pc`` (P, M, 3) the keypoints in the camera frame, ``R_cw`` (P, 3, 3) and ``K`` (P, 3, 3)
+    the cameras, ``dpw_dtheta`` (P, M, 3) the world points' derivative by the heading, ``cov``
+    (P, 3, 3) the poses' covariances; ``J`` the pinhole Jacobian of the pixels by (x, y,
+    theta)."""
+    # camera-frame derivatives (P, M, 3) by x, y (the world axes' images) and theta
+    d_by = (np.broadcast_to(R_cw[:, None, :, 0], pc.shape),
+            np.broadcast_to(R_cw[:, None, :, 1], pc.shape),
+            np.matmul(dpw_dtheta, np.swapaxes(R_cw, 1, 2)))
     z = np.maximum(pc[..., 2], _MIN_DEPTH_M)
-    fx = cams.K[:, 0, 0][:, None, None]
-    fy = cams.K[:, 1, 1][:, None, None]
+    fx, fy = K[:, 0, 0][:, None], K[:, 1, 1][:, None]
     xz, yz = pc[..., 0] / z, pc[..., 1] / z
-    J = np.empty((*pc.shape[:3], 2, 3))  # (N, R, M, 2, 3): pixels by (x, y, theta)
+    J = np.empty((*pc.shape[:2], 2, 3))  # (P, M, 2, 3): pixels by (x, y, theta)
     for k, d in enumerate(d_by):
         J[..., 0, k] = fx * (d[..., 0] - xz * d[..., 2]) / z
         J[..., 1, k] = fy * (d[..., 1] - yz * d[..., 2]) / z
-    cov = np.stack([p.covariance for p in predictions])[:, None, :, :]  # (R, 1, 3, 3)
-    # J cov J^T (N, R, M, 2, 2), written out: batched 2x3 matrix products are slower
-    JC = [[sum(J[..., i, q] * cov[..., q, k] for q in range(3)) for k in range(3)]
+    cov = cov[:, None, :, :]  # (P, 1, 3, 3)
+    # J cov J^T, written out: batched 2x3 matrix products are slower
+    JC = [[sum(J[..., i, r] * cov[..., r, k] for r in range(3)) for k in range(3)]
           for i in range(2)]
-    sigma_uv = np.empty((*pc.shape[:3], 2, 2))
+    out = np.empty((*pc.shape[:2], 2, 2))
     for i in range(2):
         for j in range(i, 2):
-            sigma_uv[..., i, j] = sum(JC[i][k] * J[..., j, k] for k in range(3))
-    sigma_uv[..., 1, 0] = sigma_uv[..., 0, 1]
-    size = np.array([[cam.width - 1.0, cam.height - 1.0] for cam in cameras])[:, None, None, :]
-    visible = ((np.moveaxis(depth, 1, 0) > _MIN_DEPTH_M)
-               & np.all((uv0 >= 0.0) & (uv0 <= size), axis=-1)
-               & np.all(np.isfinite(uv0), axis=-1))
-    sig_px = np.sqrt(np.maximum(np.maximum(sigma_uv[..., 0, 0], sigma_uv[..., 1, 1]), 0.0)
-                     + config.detector_sigma_px ** 2)  # (N, R, M)
-    pad = config.box_margin_sigmas * sig_px[..., None]
-    lo = np.where(visible[..., None], uv0 - pad, np.inf).min(axis=2)  # (N, R, 2)
-    hi = np.where(visible[..., None], uv0 + pad, -np.inf).max(axis=2)
-    info = _information(sigma_uv, config.detector_sigma_px ** 2)  # (3, N, R, M)
-    return [PredictedView(uv0[i], visible[i], sigma_uv[i], lo[i], hi[i], info[:, i])
-            for i in range(len(cameras))]
+            out[..., i, j] = sum(JC[i][k] * J[..., j, k] for k in range(3))
+    out[..., 1, 0] = out[..., 0, 1]
+    return out
 
 
 def _information(sigma_uv: np.ndarray, var_px2: float | np.ndarray) -> np.ndarray:
@@ -415,6 +453,11 @@ class ViewCache:
             return predicted_views([camera], keypoints_base_m, predictions, self.config)[0]
         entries = self._entries.setdefault(id(keypoints_base_m),
                                            collections.deque(maxlen=self._keep))
+        if entries:  # the common case: the same predictions as the image before
+            preds, _, views = entries[-1]
+            if len(preds) == len(predictions) and all(
+                    a is b for a, b in zip(preds, predictions, strict=True)):
+                return views[cam_i]
         for preds, rows, views in entries:
             idx = [rows.get(id(p), -1) for p in predictions]
             if all(i >= 0 and preds[i] is p for i, p in zip(idx, predictions, strict=True)):
@@ -456,6 +499,16 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
         group = [predictions[j] for j in cols]
         view = (views.view(camera, kp, group) if views is not None
                 else predicted_views([camera], kp, group, config)[0])
+        uv, visible, info = view.uv, view.visible, view.info[:, None]  # info (3, 1, R, M)
+        lo, hi = view.box_lo, view.box_hi
+        seen = None
+        if len(view.seen) < len(cols):  # the others are not in this image: inf
+            if not len(view.seen):
+                continue
+            seen = view.seen
+            cols = [cols[k] for k in seen.tolist()]
+            uv, visible, info = uv[seen], visible[seen], info[:, :, seen]
+            lo, hi = lo[seen], hi[seen]
         chosen = [detections[i] for i in dets]
         if len(chosen) == 1:  # the common case: no stacking
             obs = chosen[0].keypoints_px[None]  # (D, M, 2)
@@ -467,25 +520,24 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
             boxes = np.stack([d.bbox_xyxy for d in chosen])
         # the information matrix of each keypoint's residual: the pose-induced pixel covariance
         # plus the detector's pixel noise (its own sigmas where it sends them)
-        info = view.info[:, None]  # (3, 1, R, M)
         if any(d.keypoint_sigmas_px is not None for d in chosen):
             var = np.full(scores.shape, config.detector_sigma_px ** 2)
             for row, d in enumerate(chosen):
                 if d.keypoint_sigmas_px is not None:
                     var[row] = np.maximum(d.keypoint_sigmas_px, config.detector_sigma_px) ** 2
-            info = _information(view.sigma_uv[None], var[:, None, :])  # (3, D, R, M)
+            sigma_uv = view.sigma_uv if seen is None else view.sigma_uv[seen]
+            info = _information(sigma_uv[None], var[:, None, :])  # (3, D, R, M)
         # keypoints are finite (the message's validation); a dropped one has score 0
         confident = scores >= config.min_keypoint_score
-        res = obs[:, None] - view.uv  # (D, R, M, 2)
+        res = obs[:, None] - uv  # (D, R, M, 2)
         rx, ry = res[..., 0], res[..., 1]
         d2 = info[0] * rx * rx + 2.0 * info[1] * rx * ry + info[2] * ry * ry
-        shared = confident[:, None, :] & view.visible  # (D, R, M)
+        shared = confident[:, None, :] & visible  # (D, R, M)
         n_shared = np.count_nonzero(shared, axis=-1)
         # robust mean: each keypoint's distance clipped, so one outlier moves it little
         clipped = np.minimum(np.sqrt(np.maximum(d2, 0.0)), config.clip_distance)
         mean = np.where(shared, clipped, 0.0).sum(axis=-1) / np.maximum(n_shared, 1)
         # the box sanity gate: the detection's box overlaps the widened predicted one
-        lo, hi = view.box_lo, view.box_hi
         overlap = ((boxes[:, None, 0] <= hi[..., 0]) & (boxes[:, None, 2] >= lo[..., 0])
                    & (boxes[:, None, 1] <= hi[..., 1]) & (boxes[:, None, 3] >= lo[..., 1]))
         block = np.where(overlap & (n_shared >= config.min_keypoints), mean, np.inf)
@@ -643,6 +695,16 @@ class DetectionRouter:
         #: the robots that had no prediction for the latest routed image
         self.unpredicted: tuple[str, ...] = ()
         self.views = ViewCache(tuple(site.cameras.values()), self.config)
+
+    def serve_cameras(self, camera_ids: Sequence[str] | None) -> None:
+        """Project the predicted views into ``camera_ids`` only (the cameras whose messages
+        reach this router; ``None``: every camera of the site). A message of another camera is
+        still routed, its view projected on its own."""
+        ids = list(self.site.cameras) if camera_ids is None else list(camera_ids)
+        unknown = sorted(set(ids) - set(self.site.cameras))
+        if unknown:
+            raise ValueError(f"cameras {unknown} are not in site {self.site.name!r}")
+        self.views = ViewCache(tuple(self.site.cameras[c] for c in ids), self.config)
 
     def route(self, msg: RobotDetections,
               predictions: Mapping[str, RobotPrediction | None]) -> RobotDetections:

@@ -463,6 +463,9 @@ class BackendPipeline:
                        solver.error_model.detection_scale_sigma))
         self._future_at: dict[str, int] = {}  # counter -> arrival time of the last drop
         self._fusion_resets_seen: dict[str, int] = {}
+        self._standby = False  # some robot is run by another backend (set_active)
+        #: the robots' predictions for the latest image stamp routed (stamp, by robot)
+        self._predictions: tuple[int, dict[str, RobotPrediction | None]] | None = None
         self._fusion_reset_at: dict[str, int] = {}
 
     # -- inputs ------------------------------------------------------------------------------
@@ -492,10 +495,20 @@ class BackendPipeline:
         (``None``: every robot, the default): several backends share a site's robots, each
         runs the robots it owns. The others keep only what matching detections to robots
         needs: their odometry and the poses their owners publish (:meth:`on_external_pose`),
-        for their predictions; their frame-sets are skipped (counted ``standby.frame_sets``).
+        for their predictions; their detections are not synchronized (counted
+        ``standby.detections``; the windows open when a robot stops being run here are
+        dropped, counted ``standby.frame_sets``).
         A robot that stops being run here loses its pose graph (a later takeover starts a
         fresh one, its first solve from the previous owner's last pose carried forward by the
         odometry: prior source ``external``)."""
+        if all((robot_ids is None or rid in robot_ids) == t.active
+               for rid, t in self.tracks.items()):
+            return  # no change (the service asks on every tick)
+        # the synchronizer keeps windows only for the robots run here; the open windows of
+        # those leaving are skipped like any other frame-set of a robot run elsewhere
+        left = self.sync.synchronize_only(
+            None if robot_ids is None else [r for r in self.tracks if r in robot_ids])
+        self.counters["standby.frame_sets"] += len(left)
         for rid, track in self.tracks.items():
             want = robot_ids is None or rid in robot_ids
             if want == track.active:
@@ -503,6 +516,7 @@ class BackendPipeline:
             track.active = want
             track.averager.reset()
             track.forget_predictions()
+            self._predictions = None
             if want:
                 self.counters["standby.activated"] += 1
                 log.info("running the pipeline of %s", rid)
@@ -511,6 +525,17 @@ class BackendPipeline:
                 if self._fusion_factory is not None:
                     track.fusion = self._fusion_factory(rid)
                 log.info("no longer running the pipeline of %s (another backend does)", rid)
+        self._standby = not all(t.active for t in self.tracks.values())
+
+    def serve_cameras(self, camera_ids: Collection[str] | None) -> None:
+        """The cameras whose messages reach this pipeline (``None``: every camera of the site,
+        the default). A backend serving some areas of a large site subscribes to their cameras
+        only: the robots' predicted views are projected into those, and after a cold start the
+        synchronizer waits for those (not for cameras whose messages never come here)."""
+        ids = None if camera_ids is None else sorted(camera_ids)
+        if self.router is not None:
+            self.router.serve_cameras(ids)
+        self.sync.expect_cameras(ids)
 
     @property
     def active_robots(self) -> list[str]:
@@ -529,6 +554,7 @@ class BackendPipeline:
             self.counters["external_pose.ignored"] += 1
             return
         if track.add_external(est):
+            self._predictions = None  # its prediction is made afresh
             self.counters["external_pose.used"] += 1
         else:
             self.counters["external_pose.out_of_order"] += 1
@@ -544,6 +570,13 @@ class BackendPipeline:
     def on_detections(self, msg: RobotDetections, arrival_ns: int) -> PipelineOutput:
         if self.router is not None and msg.detections:
             msg = self._route(msg)
+        if msg.detections and self._standby:
+            # detections of robots another backend runs: not synchronized here
+            one = next(iter(self.tracks.values())) if len(self.tracks) == 1 else None
+            for det in msg.detections:
+                track = self.tracks.get(det.robot_id) if det.robot_id else one
+                if track is not None and not track.active:
+                    self.counters["standby.detections"] += 1
         return self._solve_all(self.sync.push(msg, arrival_ns), arrival_ns)
 
     def _route(self, msg: RobotDetections) -> RobotDetections:
@@ -554,7 +587,13 @@ class BackendPipeline:
         cam = self.site.cameras.get(msg.camera_id)
         stamp_ns = int(msg.stamp_ns) + (int(cam.clock_offset_ns) if cam is not None else 0)
         cfg = self.config.association
-        predictions = {rid: t.prediction(stamp_ns, cfg) for rid, t in self.tracks.items()}
+        # the images of one frame-set share one stamp: one set of predictions serves them all
+        cached = self._predictions
+        if cached is not None and cached[0] == stamp_ns:
+            predictions = cached[1]
+        else:
+            predictions = {rid: t.prediction(stamp_ns, cfg) for rid, t in self.tracks.items()}
+            self._predictions = (stamp_ns, predictions)
         return self.router.route(msg, predictions)
 
     def poll(self, now_ns: int) -> PipelineOutput:

@@ -99,6 +99,8 @@ class BackendNode(ServiceNode):
         self.areas: tuple[str, ...] = tuple(dict.fromkeys(areas))
         self.site_model = site
         self.pipeline = BackendPipeline(site, config, fusion_config=fusion)
+        if self.areas:
+            self.pipeline.serve_cameras(self.area_map.cameras_of(self.areas))
         self.tick_period_s = tick_period_s
         self._peers: dict[str, bool] = {}
         self._last_now_ns = 0

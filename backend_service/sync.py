@@ -39,6 +39,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+from collections.abc import Collection
 from typing import Final
 
 from backend_service.frame_set import (
@@ -128,6 +129,36 @@ class FrameSetSynchronizer:
         # camera -> arrival times of its recent frames / of those that came late
         self._recent_rx: dict[str, collections.deque[int]] = {}
         self._recent_late: dict[str, collections.deque[int]] = {}
+        #: the robots whose windows are kept (:meth:`synchronize_only`)
+        self._synced: tuple[str, ...] = self.robot_ids
+        #: the cameras presumed live at a cold start (:meth:`expect_cameras`)
+        self._expected: tuple[str, ...] = tuple(site.cameras)
+
+    def synchronize_only(self, robot_ids: Collection[str] | None) -> list[FrameSet]:
+        """Keep windows only for ``robot_ids`` (``None``: every robot, the default): a backend
+        sharing a site's robots synchronizes the robots it runs, and a message's detections of
+        the others cost nothing here. Returns the open windows of the robots left out, emitted
+        now (the caller decides what they are worth); a robot taken back starts with the next
+        message."""
+        keep = set(self.robot_ids if robot_ids is None else robot_ids)
+        out: list[FrameSet] = []
+        for robot_id in self._synced:
+            if robot_id not in keep:
+                for win in self._windows[robot_id]:
+                    self._emit(robot_id, win, out)
+                self._windows[robot_id].clear()
+        self._synced = tuple(r for r in self.robot_ids if r in keep)
+        return out
+
+    def expect_cameras(self, camera_ids: Collection[str] | None) -> None:
+        """The cameras whose messages reach this synchronizer (``None``: every camera of the
+        site, the default): at a cold start these are presumed live, so the first frame-sets
+        wait for them and not for cameras that are never received here."""
+        ids = tuple(self.site.cameras) if camera_ids is None else tuple(camera_ids)
+        unknown = sorted(set(ids) - set(self.site.cameras))
+        if unknown:
+            raise ValueError(f"cameras {unknown} are not in site {self.site.name!r}")
+        self._expected = ids
 
     # -- input -------------------------------------------------------------------------------
 
@@ -152,7 +183,7 @@ class FrameSetSynchronizer:
         if not self._last_seen_ns:
             # Cold start: every site camera is presumed live until it has been silent for
             # camera_timeout_s, so the first frame-sets wait for all of them.
-            self._last_seen_ns = dict.fromkeys(self.site.cameras, now_ns)
+            self._last_seen_ns = dict.fromkeys(self._expected, now_ns)
             self._live = None
         cam = self.site.cameras.get(msg.camera_id)
         if cam is None:
@@ -191,7 +222,7 @@ class FrameSetSynchronizer:
                                                                               now_ns))
         if self._live is not None and msg.camera_id not in self._live:
             self._live = None  # a camera joined
-        for robot_id in self.robot_ids:
+        for robot_id in self._synced:
             self._add(robot_id, msg, stamp, now_ns, scale)
         return self.poll(now_ns)
 
@@ -317,7 +348,7 @@ class FrameSetSynchronizer:
         """Emit every window that is complete or has waited long enough, oldest first."""
         out: list[FrameSet] = []
         live = self.live_cameras(now_ns)
-        for robot_id in self.robot_ids:
+        for robot_id in self._synced:
             windows = self._windows[robot_id]
             while len(windows) > self.max_open_windows:
                 self.counters["overflow"] += 1

@@ -474,3 +474,32 @@ def test_the_backend_status_names_robots_without_prediction_and_contradicted_ids
     assert node.counters()["association.detections_id_contradicted"] == 1
     state, _ = node.state()  # reported once, not forever
     assert state == "ok"
+
+
+def test_a_robot_in_no_image_is_not_projected_further_and_changes_no_cost() -> None:
+    # a site's predicted views compute the pixel covariance only for the (camera, robot) pairs
+    # with a keypoint in the image; a robot a camera cannot see costs inf there, as before
+    near = _prediction("hsr_a", (9.6, 5.9, 0.4), 0.05)
+    far = _prediction("hsr_b", (400.0, -300.0, 0.0), 0.05)  # outside most cameras' views
+    cameras = list(SITE.cameras.values())
+    both = predicted_views(cameras, KEYPOINTS["hsr_a"], [near, far], AssociationConfig())
+    alone = {r: predicted_views(cameras, KEYPOINTS["hsr_a"], [p], AssociationConfig())
+             for r, p in (("near", near), ("far", far))}
+    unseen = 0
+    for i, v2 in enumerate(both):
+        for row, who in ((0, "near"), (1, "far")):
+            v1 = alone[who][i]
+            assert (row in v2.seen.tolist()) == bool(v1.visible[0].any())
+            if v1.visible[0].any():
+                np.testing.assert_allclose(v2.sigma_uv[row], v1.sigma_uv[0], rtol=1e-12)
+                np.testing.assert_allclose(v2.box_lo[row], v1.box_lo[0], rtol=1e-12)
+                np.testing.assert_allclose(v2.info[:, row], v1.info[:, 0], rtol=1e-12)
+            else:
+                unseen += 1
+                assert not np.any(v2.sigma_uv[row]) and np.all(np.isinf(v2.box_lo[row]))
+    assert unseen >= 3
+    assert not alone["far"][cameras.index(CAMERA)].visible.any()
+    det = _detection((9.6, 5.9, 0.4), noise_px=0.5)
+    costs = association_costs(CAMERA, [det], [near, far], KEYPOINTS, AssociationConfig())
+    single = association_costs(CAMERA, [det], [near], KEYPOINTS, AssociationConfig())
+    assert costs[0, 0] == pytest.approx(single[0, 0]) and np.isinf(costs[0, 1])

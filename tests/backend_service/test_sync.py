@@ -142,3 +142,49 @@ def test_memory_is_bounded() -> None:
     assert sync.open_windows <= 8 + 1
     assert sync.counters["overflow"] > 0
     assert len(out) >= 90 and sync.counters["late"] == 0
+
+
+def test_a_backend_of_some_cameras_waits_only_for_them_at_a_cold_start() -> None:
+    # a backend serving an area receives its cameras only: at a cold start it presumes those
+    # live, not the site's others (it would wait sync_max_wait_ms for every frame-set)
+    sync = FrameSetSynchronizer(SITE)
+    sync.expect_cameras(CAMS[:2])
+    out = sync.push(det_msg(CAMS[0], T0), T0 + 5 * MS)
+    assert out == []
+    out = sync.push(det_msg(CAMS[1], T0), T0 + 6 * MS)
+    assert len(out) == 1 and out[0].camera_ids == tuple(CAMS[:2])
+    plain = FrameSetSynchronizer(SITE)
+    for cam in CAMS[:2]:
+        assert plain.push(det_msg(cam, T0), T0 + 6 * MS) == []  # waits for all four
+    try:
+        sync.expect_cameras(["cam_nope"])
+    except ValueError as exc:
+        assert "cam_nope" in str(exc)
+    else:
+        raise AssertionError("an unknown camera was accepted")
+
+
+def test_robots_run_elsewhere_are_not_synchronized_and_come_back_cleanly() -> None:
+    sync = FrameSetSynchronizer(SITE)
+    robot = sync.robot_ids[0]
+    _warm(sync, T0)
+    t1 = T0 + 1000 * MS
+    for cam in CAMS[:2]:
+        assert sync.push(det_msg(cam, t1, seq=1), t1 + 5 * MS) == []
+    assert sync.open_windows == 1
+    # the robot goes to another backend: its open window comes back, nothing more opens
+    left = sync.synchronize_only([])
+    assert len(left) == 1 and left[0].robot_id == robot and left[0].camera_ids == tuple(CAMS[:2])
+    t2 = t1 + 100 * MS
+    emitted = sync.counters["emitted"]
+    for cam in CAMS:
+        assert sync.push(det_msg(cam, t2, seq=2), t2 + 5 * MS) == []
+    assert sync.open_windows == 0 and sync.counters["emitted"] == emitted
+    assert sync.poll(t2 + 1000 * MS) == []
+    # taken back: the next frame is synchronized as before
+    assert sync.synchronize_only(None) == []
+    t3 = t2 + 100 * MS
+    out = []
+    for cam in CAMS:
+        out += sync.push(det_msg(cam, t3, seq=3), t3 + 5 * MS)
+    assert len(out) == 1 and out[0].camera_ids == tuple(CAMS)
