@@ -10,7 +10,9 @@ run ``smartedge edge-agent`` without the backend's dependencies installed.
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from typing import Final, NamedTuple
 
@@ -43,7 +45,25 @@ def run_command(prog: str, command: Command, argv: Sequence[str]) -> int:
             file=sys.stderr,
         )
         return EXIT_UNAVAILABLE
+    unwind_on_sigterm()
     return int(getattr(module, command.function)(list(argv)) or 0)
 
 
-__all__ = ["EXIT_UNAVAILABLE", "Command", "run_command"]
+def _raise_exit(signum: int, _frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
+def unwind_on_sigterm() -> None:
+    """Turn SIGTERM and SIGHUP into ``SystemExit`` (exit 128 + the signal) where they would
+    kill the process outright, so a command stopped by a supervisor, ``kill`` or a closed
+    terminal runs its ``finally`` blocks: a benchmark or the demo then stops the routers and
+    services it started instead of leaving them running. Services install their own handlers
+    afterwards (a clean stop); only in the main thread, and only over the default action."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(sig) is signal.SIG_DFL:
+            signal.signal(sig, _raise_exit)
+
+
+__all__ = ["EXIT_UNAVAILABLE", "Command", "run_command", "unwind_on_sigterm"]
