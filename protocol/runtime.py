@@ -513,6 +513,8 @@ class ZenohRunner:
             log.info("%s %s running", node.service, node.instance_id)
             watchdog = watchdog_period_s()
             next_tick = next_status = next_watchdog = time.monotonic()
+            if not self._status:
+                next_status = math.inf  # never due (the idle wait would spin on it)
             status_seq = 0
             trims_left = 0
             try:
