@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
 from smartedge.introspect import echo_main, format_table, status_main, status_rows, summarize
-from tests.conftest import free_port, stop_process
+from tests.conftest import free_port, stop_process, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +25,23 @@ def agent(tmp_path_factory: pytest.TempPathFactory):
          "--listen", f"tcp/127.0.0.1:{port}", "--connect", f"tcp/127.0.0.1:{port}",
          "--no-multicast-scouting"],
         stdout=log.open("w"), stderr=subprocess.STDOUT)
-    time.sleep(3.0)  # session open, simulation epoch 2 s ahead
+    # session open and the simulation running (its epoch is 2 s ahead): the agent's status and
+    # a detection of cam1 seen by a session of ours (was a fixed 3 s)
+    import zenoh
+
+    from protocol import keys
+    from protocol.session import loopback_config
+
+    seen: set[str] = set()
+    with zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+        session.declare_subscriber(keys.detections_key("paper_lab", "cam1"),
+                                   lambda _s: seen.add("detections"))
+        session.declare_subscriber(keys.status_key("paper_lab", "*", "*"),
+                                   lambda _s: seen.add("status"))
+        assert wait_until(lambda: seen == {"detections", "status"} or proc.poll() is not None,
+                          30.0, 0.05)
+    assert proc.poll() is None, Path(log).read_text()[-2000:]
+    assert seen == {"detections", "status"}, (seen, Path(log).read_text()[-2000:])
     yield port
     assert stop_process(proc, timeout_s=20.0) == 0, Path(log).read_text()[-2000:]
 

@@ -29,10 +29,12 @@ from simulation.publisher import publish_run
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario
 from smartedge.record import Recorder, RecordingError, read_recording, replay_main
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_until
 
 SITE_FILE = Path(__file__).resolve().parents[2] / "simulation" / "sites" / "paper_lab.yaml"
-SIM_S = 14.0
+#: simulated seconds published live (10 s: 600 detections, 200 odometry, 146 camera poses, all
+#: 146 matched offline, 11 statuses; was 14 s)
+SIM_S = 10.0
 
 
 def _spawn(argv: list[str], log: Path) -> subprocess.Popen:
@@ -59,16 +61,34 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     endpoint = f"tcp/127.0.0.1:{port}"
     zargs = ["--mode", "client", "--connect", endpoint, "--no-multicast-scouting"]
     hub = zenoh.open(loopback_config(listen=[endpoint]))
+    site = load_scenario().site.name
+    statuses: list[bytes] = []
+    pose_stamps_ns: list[int] = []
+    hub.declare_subscriber(keys.status_key(site, "backend", "*"),
+                           lambda s: statuses.append(s.payload.to_bytes()))
+    hub.declare_subscriber(keys.camera_pose_key(site, "*"),
+                           lambda s: pose_stamps_ns.append(decode(s.payload.to_bytes()).stamp_ns))
+    # only the recorder (it takes smartedge/**) subscribes to this key; nothing is put on it
+    recorder_probe = hub.declare_publisher(f"{keys.ROOT}/{site}/test_probe/recorder_ready")
     try:
         backend = _spawn(["backend", "--site", str(SITE_FILE), *zargs], tmp / "backend.log")
         recorder = _spawn(["record", str(tmp / "live.mcap"), *zargs], tmp / "record.log")
-        time.sleep(3.0)  # sessions open, subscriptions declared
+        # sessions open, subscriptions declared (was a fixed 3 s): the backend publishes its
+        # status (after its subscriptions), the recorder's subscription reached the hub
+        assert wait_until(lambda: bool(statuses), 60, 0.05), (tmp / "backend.log").read_text()
+        assert wait_until(lambda: recorder_probe.matching_status.matching, 30, 0.05), (
+            tmp / "record.log").read_text()
+        time.sleep(0.2)
         sc = load_scenario()
         # stamps on the wall clock: publish_run paces arrivals from start_stamp_ns at speed 1
         sc = sc.with_overrides(start_stamp_ns=time.time_ns())
         run = SimulationRun(sc, "traj3", seed=3)
         publish_run(hub, run, speed=1.0, accept_corrections=False, until_s=SIM_S)
-        time.sleep(1.5)  # the last frame-sets and estimates
+        # the last frame-sets and estimates (was a fixed 1.5 s): a camera pose of the last
+        # 0.2 s, at most 1.5 s, then the recorder's share of the hub's routing
+        last_ns = sc.start_stamp_ns + round((SIM_S - 0.2) * 1e9)
+        wait_until(lambda: any(t >= last_ns for t in pose_stamps_ns), 1.5, 0.05)
+        time.sleep(0.3)
         _stop(recorder, tmp / "record.log")
         _stop(backend, tmp / "backend.log")
     finally:

@@ -174,7 +174,14 @@ def test_live_record_process_over_zenoh(tmp_path: Path) -> None:
         proc = subprocess.Popen([sys.executable, "-m", "smartedge", "record",
                                  str(tmp_path / "live.mcap"), *zargs],
                                 stdout=log.open("w"), stderr=subprocess.STDOUT)
-        time.sleep(2.5)
+        # the recorder's subscription (it takes smartedge/**) reached the hub (was a fixed
+        # 2.5 s); the probe publisher puts nothing
+        probe = hub.declare_publisher(_messages(0)[0][0])
+        deadline = time.monotonic() + 30
+        while not probe.matching_status.matching:
+            assert time.monotonic() < deadline and proc.poll() is None, log.read_text()
+            time.sleep(0.05)
+        probe.undeclare()
         for k in range(5):
             for key, msg in _messages(k):
                 payload = encode(msg)

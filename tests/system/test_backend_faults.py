@@ -11,16 +11,21 @@ are published in real time (stamps on the wall clock, like
   (``sync.camera.<cam>.future``), none of the others' frames late, the status degraded naming
   the camera, and a camera pose for (nearly) every frame time of the others.
 
+The two faults run side by side, each against its own backend process on its own hub session
+(one module-scoped run: the wall time of one).
+
 ``smartedge bench reliability --probes poisoned_odometry,camera_clock_ahead`` measures the same
 faults with every service running (docs/reliability.md).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -66,8 +71,9 @@ class Backend:
         return [s.detail for s in self.statuses if s.state == "degraded"]
 
 
-@pytest.fixture
-def backend(tmp_path: Path) -> Iterator[Backend]:
+@contextlib.contextmanager
+def running_backend(tmp_path: Path) -> Iterator[Backend]:
+    """A ``smartedge backend`` process connected to its own hub session (its own port)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     hub = zenoh.open(loopback_config(listen=[endpoint]))
     log = tmp_path / "backend.log"
@@ -94,6 +100,81 @@ def backend(tmp_path: Path) -> Iterator[Backend]:
             sub.undeclare()
         hub.close()
     assert proc.returncode == 0, log.read_text()[-3000:]
+
+
+@dataclasses.dataclass
+class FaultRun:
+    """One fault's run: its backend (and what the hub received), the simulated run (its
+    ground truth) and what the fault injector noted."""
+
+    backend: Backend
+    run: Any
+    notes: dict[str, Any]
+
+
+def poisoned_odometry() -> tuple[Callable[[Any, float], list[Any]], dict[str, Any]]:
+    """One odometry stamped 2**63-1 at :data:`FAULT_S`, followed by the genuine one."""
+    notes: dict[str, Any] = {"injected": []}
+
+    def alter(msg: Any, t_s: float) -> list[Any]:
+        if isinstance(msg, Odometry) and t_s >= FAULT_S and not notes["injected"]:
+            notes["injected"].append(t_s)
+            return [dataclasses.replace(msg, stamp_ns=2**63 - 1), msg]
+        return [msg]
+
+    return alter, notes
+
+
+def camera_ahead() -> tuple[Callable[[Any, float], list[Any]], dict[str, Any]]:
+    """:data:`AHEAD_CAMERA`'s stamps 0.5 s ahead from :data:`FAULT_S` on."""
+    notes: dict[str, Any] = {"shifted": [], "others_frames": {}}
+
+    def alter(msg: Any, t_s: float) -> list[Any]:
+        if isinstance(msg, RobotDetections) and t_s >= FAULT_S:
+            if msg.camera_id == AHEAD_CAMERA:
+                notes["shifted"].append(msg.stamp_ns)
+                return [dataclasses.replace(msg, stamp_ns=msg.stamp_ns + NS // 2)]
+            others = notes["others_frames"]
+            others[msg.camera_id] = others.get(msg.camera_id, 0) + 1
+        return [msg]
+
+    return alter, notes
+
+
+#: the faults, each against its own backend process
+FAULTS: dict[str, Callable[[], tuple[Callable[[Any, float], list[Any]], dict[str, Any]]]] = {
+    "poisoned_odometry": poisoned_odometry,
+    "camera_ahead": camera_ahead,
+}
+
+
+@pytest.fixture(scope="module")
+def fault_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, FaultRun]:
+    """Each fault of :data:`FAULTS` against its own backend process on its own hub, the
+    runs side by side (they share nothing but the wall clock; one run's wall time for both)."""
+    results: dict[str, FaultRun] = {}
+    errors: list[BaseException] = []
+    with contextlib.ExitStack() as stack:
+        backends = {name: stack.enter_context(running_backend(tmp_path_factory.mktemp(name)))
+                    for name in FAULTS}
+
+        def one(name: str) -> None:
+            try:
+                alter, notes = FAULTS[name]()
+                results[name] = FaultRun(backends[name], publish(backends[name], alter), notes)
+            except BaseException as exc:  # re-raised below, in the test's thread
+                errors.append(exc)
+
+        threads = [threading.Thread(target=one, args=(name,), name=f"fault-{name}")
+                   for name in FAULTS]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+        assert not any(thread.is_alive() for thread in threads), "a fault run hung"
+    if errors:
+        raise errors[0]
+    return results
 
 
 def publish(b: Backend, alter: Callable[[Any, float], list[Any]]) -> Any:
@@ -138,16 +219,10 @@ def errors_m(run: Any, estimates: list[PoseEstimate]) -> np.ndarray:
     return np.asarray(np.hypot(*(est - truth).T))
 
 
-def test_odometry_stamped_2_63_minus_1_is_counted_and_fusion_goes_on(backend: Backend) -> None:
-    injected: list[float] = []
-
-    def alter(msg: Any, t_s: float) -> list[Any]:
-        if isinstance(msg, Odometry) and t_s >= FAULT_S and not injected:
-            injected.append(t_s)
-            return [dataclasses.replace(msg, stamp_ns=2**63 - 1), msg]
-        return [msg]
-
-    run = publish(backend, alter)
+def test_odometry_stamped_2_63_minus_1_is_counted_and_fusion_goes_on(
+        fault_runs: dict[str, FaultRun]) -> None:
+    fr = fault_runs["poisoned_odometry"]
+    backend, run, injected = fr.backend, fr.run, fr.notes["injected"]
     assert injected
     counters = backend.counters()
     assert counters.get("odometry_future") == 1, counters
@@ -166,19 +241,11 @@ def test_odometry_stamped_2_63_minus_1_is_counted_and_fusion_goes_on(backend: Ba
     assert any("odometry" in r and "ahead" in r for r in backend.reasons()), backend.reasons()
 
 
-def test_one_camera_half_a_second_ahead_starves_no_one(backend: Backend) -> None:
-    shifted: list[int] = []
-    others_frames: dict[str, int] = {}
-
-    def alter(msg: Any, t_s: float) -> list[Any]:
-        if isinstance(msg, RobotDetections) and t_s >= FAULT_S:
-            if msg.camera_id == AHEAD_CAMERA:
-                shifted.append(msg.stamp_ns)
-                return [dataclasses.replace(msg, stamp_ns=msg.stamp_ns + NS // 2)]
-            others_frames[msg.camera_id] = others_frames.get(msg.camera_id, 0) + 1
-        return [msg]
-
-    run = publish(backend, alter)
+def test_one_camera_half_a_second_ahead_starves_no_one(fault_runs: dict[str, FaultRun]) -> None:
+    fr = fault_runs["camera_ahead"]
+    backend, run = fr.backend, fr.run
+    shifted: list[int] = fr.notes["shifted"]
+    others_frames: dict[str, int] = fr.notes["others_frames"]
     counters = backend.counters()
     future = counters.get(f"sync.camera.{AHEAD_CAMERA}.future", 0)
     assert future >= 0.95 * len(shifted), (future, len(shifted))

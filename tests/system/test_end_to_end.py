@@ -119,6 +119,11 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
         assert expected in entities, f"{expected} missing from the recording"
 
 
+#: the restart test's simulated t = 0 after its start (the services start meanwhile; one that
+#: comes up later joins the run where it is; the kill waits for poses and every service's status)
+EPOCH_AHEAD_NS = 4_000_000_000
+
+
 def _popen(argv: list[str], log: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "smartedge", *argv], stdout=log.open("w"), stderr=subprocess.STDOUT
@@ -131,7 +136,8 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
 
     scenario = load_scenario()
     spec = LiveSimSpec(
-        trajectory="traj3", epoch_ns=time.time_ns() + 8_000_000_000, stop_s=4.0, max_speed_mps=0.4
+        trajectory="traj3", epoch_ns=time.time_ns() + EPOCH_AHEAD_NS, stop_s=4.0,
+        max_speed_mps=0.4,
     )
     live = LiveSimulation(spec, scenario)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -156,7 +162,13 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
             monitor.drain()
             return any(e.stamp_ns > t_ns for e in monitor.seen.camera)
 
-        assert wait_until(lambda: camera_poses_after(0), 60, 0.2), "no poses before the kill"
+        def everyone_up() -> bool:  # poses, and a status of every service (as at 8 s ahead)
+            st = monitor.seen.status
+            return (camera_poses_after(0) and {"backend/main", "robot-bridge/hsr"} <= set(st)
+                    and sum(k.startswith("edge-agent/") for k in st) == 3)
+
+        assert wait_until(everyone_up, 60, 0.2), ("no poses before the kill",
+                                                  sorted(monitor.seen.status))
         procs["backend"].send_signal(signal.SIGKILL)
         procs["backend"].wait(10)
         killed_ns = time.time_ns()

@@ -43,6 +43,8 @@ pytestmark = pytest.mark.slow
 RSS_TOLERANCE_MIB = 100
 #: the status is published every second; a gap this long means the worker was pinned
 MAX_STATUS_GAP_S = 3.0
+#: the longest wait after a burst for the RSS to return within tolerance
+SETTLE_S = 2.0
 
 
 def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
@@ -94,7 +96,15 @@ def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
             genuine_frame(hub)
             time.sleep(0.05)
         assert wait_until(lambda: bool(poses), 10), log_path.read_text()[-3000:]
-        time.sleep(2.0)
+        # the baseline once the resident memory holds still (two readings 0.3 s apart within
+        # 1 MiB), at most 2 s (was a fixed 2 s)
+        readings = [rss_mib(backend.pid)]
+
+        def steady() -> bool:
+            readings.append(rss_mib(backend.pid))
+            return abs(readings[-1] - readings[-2]) < 1.0
+
+        wait_until(steady, 2.0, 0.3)
         baseline = rss_mib(backend.pid)
         figures["rss_baseline_mib"] = baseline
         report(f"backend RSS baseline {baseline:.0f} MiB")
@@ -120,7 +130,16 @@ def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
                 sent_s = time.monotonic() - t0
                 done = wait_until(all_accounted, 60, 0.05)
                 handled_s = time.monotonic() - t0
-                time.sleep(2.0)  # let the allocator settle
+                handled_at = time.monotonic()
+
+                def settled() -> bool:  # the allocator gave the memory back
+                    return rss_mib(backend.pid) < baseline + RSS_TOLERANCE_MIB
+
+                # up to SETTLE_S for the allocator to settle (was a fixed 2 s sleep); the
+                # status that counted the last refusal came after the burst, so the status
+                # gap below spans all of it
+                wait_until(settled, SETTLE_S, 0.1)
+                settle_s = time.monotonic() - handled_at
             window = [t for t, _ in statuses if t >= t0 - 1.0]
             gap = max(np.diff(window), default=math.inf)
             settled = rss_mib(backend.pid)
@@ -131,14 +150,15 @@ def probe_backend(tmp_path: Path, cwd: Path = REPO_ROOT,
                 "refused": delta("invalid"), "reasons": reasons,
                 "all_counted": done, "send_s": sent_s, "handled_s": handled_s,
                 "max_status_gap_s": float(gap), "rss_peak_mib": sampler.peak_mib,
-                "rss_settled_mib": settled,
+                "rss_settled_mib": settled, "settle_s": settle_s,
                 "dropped": delta("dropped"),
             }
             report(f"{name}: {len(payloads)} x {len(payloads[0]) / 1e6:.2f} MB: refused "
                    f"{delta('invalid')} {reasons}, dropped (queue full) {delta('dropped')}, "
                    f"sent in {sent_s:.1f} s, all counted after "
                    f"{handled_s:.1f} s, longest status gap {gap:.1f} s, RSS peak "
-                   f"{sampler.peak_mib:.0f} MiB, settled {settled:.0f} MiB "
+                   f"{sampler.peak_mib:.0f} MiB, settled {settled:.0f} MiB after "
+                   f"{settle_s:.1f} s "
                    f"(baseline {baseline:.0f})")
         n_poses = len(poses)
         for _ in range(10):

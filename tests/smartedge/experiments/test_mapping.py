@@ -84,8 +84,9 @@ def test_prior_model_file_is_the_empty_room(scenario, tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def report(scenario, tmp_path_factory: pytest.TempPathFactory):
     """traj3 with feedback (its ground truth, localization and published fused poses), one
-    frame per static camera, a head-camera cloud every 2 s, through the shipped segmentation
-    network."""
+    frame per static camera, a head-camera cloud every 4 s, through the shipped segmentation
+    network (every 4 s rather than 2: 23 clouds, 18 fused, coverage 0.072 static -> 0.240 with
+    the robot, accuracy 0.97; every 2 s: 46, 39, 0.261, 0.97; at twice the time)."""
     from simulation.runner import run_seed
     from smartedge.experiments import (
         default_fusion_factory,
@@ -97,7 +98,7 @@ def report(scenario, tmp_path_factory: pytest.TempPathFactory):
                        fusion_factory=default_fusion_factory(),
                        pipeline_config=paper_pipeline_config(scenario.site, scenario=scenario))
     out = tmp_path_factory.mktemp("mapping")
-    cfg = MappingExperimentConfig(route="traj3", frames_per_camera=1, robot_cloud_rate_hz=0.5,
+    cfg = MappingExperimentConfig(route="traj3", frames_per_camera=1, robot_cloud_rate_hz=0.25,
                                   consistency_rate_hz=0.1, threads=1)
     return run_mapping(scenario, cfg, out, runs=(run, run)), out
 
