@@ -499,8 +499,20 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
         group = [predictions[j] for j in cols]
         view = (views.view(camera, kp, group) if views is not None
                 else predicted_views([camera], kp, group, config)[0])
-        uv, visible, info = view.uv, view.visible, view.info[:, None]  # info (3, 1, R, M)
         lo, hi = view.box_lo, view.box_hi
+        if len(dets) == 1:
+            # the common case, one detection: the box gate over the robots at once, then the
+            # few pairs it lets through one by one (the same arithmetic, no (D, R) arrays)
+            det = detections[dets[0]]
+            x0, y0, x1, y1 = det.bbox_xyxy.tolist()
+            inside = ((x0 <= hi[:, 0]) & (x1 >= lo[:, 0]) & (y0 <= hi[:, 1])
+                      & (y1 >= lo[:, 1]))
+            var_r = (None if det.keypoint_sigmas_px is None else
+                     np.maximum(det.keypoint_sigmas_px, config.detector_sigma_px) ** 2)
+            for r in np.flatnonzero(inside).tolist():
+                costs[dets[0], cols[r]] = _pair_cost(det, view, r, var_r, config)
+            continue
+        uv, visible, info = view.uv, view.visible, view.info[:, None]  # info (3, 1, R, M)
         seen = None
         if len(view.seen) < len(cols):  # the others are not in this image: inf
             if not len(view.seen):
@@ -510,14 +522,9 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
             uv, visible, info = uv[seen], visible[seen], info[:, :, seen]
             lo, hi = lo[seen], hi[seen]
         chosen = [detections[i] for i in dets]
-        if len(chosen) == 1:  # the common case: no stacking
-            obs = chosen[0].keypoints_px[None]  # (D, M, 2)
-            scores = chosen[0].keypoint_scores[None]
-            boxes = chosen[0].bbox_xyxy[None]  # (D, 4)
-        else:
-            obs = np.stack([d.keypoints_px for d in chosen])
-            scores = np.stack([d.keypoint_scores for d in chosen])
-            boxes = np.stack([d.bbox_xyxy for d in chosen])
+        obs = np.stack([d.keypoints_px for d in chosen])  # (D, M, 2)
+        scores = np.stack([d.keypoint_scores for d in chosen])
+        boxes = np.stack([d.bbox_xyxy for d in chosen])  # (D, 4)
         # the information matrix of each keypoint's residual: the pose-induced pixel covariance
         # plus the detector's pixel noise (its own sigmas where it sends them)
         if any(d.keypoint_sigmas_px is not None for d in chosen):
@@ -546,6 +553,23 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
         else:
             costs[np.ix_(dets, cols)] = block
     return costs
+
+
+def _pair_cost(det: Detection, view: PredictedView, r: int, var_px2: np.ndarray | None,
+               config: AssociationConfig) -> float:
+    """:func:`association_costs` of one detection whose box overlaps row ``r`` of ``view``
+    (``var_px2``: the detection's own keypoint variances, floored, or ``None``): the same rules
+    and arithmetic without the (D, R) arrays."""
+    shared = (det.keypoint_scores >= config.min_keypoint_score) & view.visible[r]
+    n_shared = int(np.count_nonzero(shared))
+    if n_shared < config.min_keypoints:
+        return math.inf
+    info = view.info[:, r] if var_px2 is None else _information(view.sigma_uv[r], var_px2)
+    res = det.keypoints_px - view.uv[r]
+    rx, ry = res[:, 0], res[:, 1]
+    d2 = info[0] * rx * rx + 2.0 * info[1] * rx * ry + info[2] * ry * ry
+    clipped = np.minimum(np.sqrt(np.maximum(d2, 0.0)), config.clip_distance)
+    return float(np.where(shared, clipped, 0.0).sum()) / max(n_shared, 1)
 
 
 # -- one image --------------------------------------------------------------------------------

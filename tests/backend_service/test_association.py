@@ -503,3 +503,35 @@ def test_a_robot_in_no_image_is_not_projected_further_and_changes_no_cost() -> N
     costs = association_costs(CAMERA, [det], [near, far], KEYPOINTS, AssociationConfig())
     single = association_costs(CAMERA, [det], [near], KEYPOINTS, AssociationConfig())
     assert costs[0, 0] == pytest.approx(single[0, 0]) and np.isinf(costs[0, 1])
+
+
+def test_the_one_pair_shortcut_gives_the_costs_of_the_general_path() -> None:
+    # one detection takes a shortcut without the (D, R) arrays; its costs must be the general
+    # path's (here with a second detection beside it), box gate, keypoint count, detector
+    # sigmas and clipping included
+    rng = np.random.default_rng(7)
+    cfg = AssociationConfig()
+    checked = finite = 0
+    for k in range(60):
+        true = (9.5 + rng.uniform(-1, 1), 5.9 + rng.uniform(-1, 1), rng.uniform(-3, 3))
+        pred = _prediction("hsr_a", (true[0] + rng.normal(0, 0.1), true[1] + rng.normal(0, 0.1),
+                                     true[2] + rng.normal(0, 0.05)), rng.uniform(0.02, 0.3))
+        det = _detection(true, noise_px=rng.uniform(0.3, 8.0), seed=k)
+        scores = det.keypoint_scores.copy()
+        scores[rng.uniform(size=scores.shape) < 0.3] = 0.0  # some dropped keypoints
+        det = dataclasses.replace(det, keypoint_scores=scores)
+        if k % 3 == 0:
+            det = dataclasses.replace(det, keypoint_sigmas_px=rng.uniform(0.2, 5.0, 12))
+        if k % 7 == 0:  # a box beside the prediction: the gate
+            det = dataclasses.replace(det, bbox_xyxy=det.bbox_xyxy + 300.0)
+        other = _detection((true[0] + 0.8, true[1], true[2]), seed=100 + k)
+        twin = _prediction("hsr_b", (true[0] + rng.uniform(-0.6, 0.6), true[1] + 0.5,
+                                     true[2]), 0.1)
+        one = association_costs(CAMERA, [det], [pred, twin], KEYPOINTS, cfg)[0]
+        general = association_costs(CAMERA, [det, other], [pred, twin], KEYPOINTS, cfg)[0]
+        np.testing.assert_array_equal(np.isinf(one), np.isinf(general))
+        np.testing.assert_allclose(one[np.isfinite(one)], general[np.isfinite(general)],
+                                   rtol=1e-12)
+        checked += 1
+        finite += int(np.isfinite(one).sum())
+    assert checked == 60 and 10 < finite < 120
