@@ -236,6 +236,8 @@ class OwnershipTable:
                              f"({sorted(self.areas.areas) if self.areas else '-'})")
         #: other backends -> the areas their tokens say they serve (none: every area)
         self._member_areas: dict[str, set[str]] = {}
+        #: members() at one now_ns (dropped whenever _members changes)
+        self._members_memo: tuple[int, tuple[str, ...]] | None = None
         #: robot -> (stamp ns, area) of its newest position on the bus
         self._robot_area: dict[str, tuple[int, str | None]] = {}
 
@@ -278,6 +280,7 @@ class OwnershipTable:
             holders.clear()
         self._member_areas.clear()
         self._members = {self.instance_id: now_ns - self.join_delay_ns}
+        self._members_memo = None
         self._synced = False
         return Decision(release=release)
 
@@ -297,9 +300,11 @@ class OwnershipTable:
         if present:
             if instance_id not in self._members:
                 self._members[instance_id] = now_ns
+                self._members_memo = None
                 self.counters["ownership.member_joined"] += 1
                 log.info("backend %s: backend %s joined", self.instance_id, instance_id)
         elif self._members.pop(instance_id, None) is not None:
+            self._members_memo = None
             self.counters["ownership.member_left"] += 1
             log.info("backend %s: backend %s left", self.instance_id, instance_id)
 
@@ -373,9 +378,16 @@ class OwnershipTable:
     # ---------------------------------------------------------------- decisions
 
     def members(self, now_ns: int) -> list[str]:
-        """The backends that count now (appeared at least ``join_delay_s`` ago), sorted."""
-        return sorted(inst for inst, since in self._members.items()
-                      if now_ns - since >= self.join_delay_ns)
+        """The backends that count now (appeared at least ``join_delay_s`` ago), sorted. (Kept
+        for the same ``now_ns`` until a backend joins or leaves: a decision asks once per robot.)
+        """
+        memo = self._members_memo
+        if memo is not None and memo[0] == now_ns:
+            return list(memo[1])
+        out = sorted(inst for inst, since in self._members.items()
+                     if now_ns - since >= self.join_delay_ns)
+        self._members_memo = (now_ns, tuple(out))
+        return out
 
     def candidates(self, robot_id: str, now_ns: int) -> list[str]:
         """The counted backends that may own ``robot_id`` now: those serving its area (and its

@@ -117,8 +117,11 @@ class BackendNode(ServiceNode):
     def subscriptions(self) -> Sequence[Subscription]:
         s = self.site
         delay_s = self.pipeline.config.max_input_delay_s
-        if self.areas:  # only the cameras of its areas: one channel per camera
-            cams = self.area_map.cameras_of(self.areas)
+        cams = self.area_map.cameras_of(self.areas) if self.areas else ()
+        if cams and set(cams) != set(self.site_model.cameras):
+            # only the cameras of its areas: one channel per camera (a backend serving every
+            # camera of the site takes the one wildcard channel below: one Zenoh callback
+            # thread instead of one per camera)
             detections = [Subscription(
                 keys.detections_key(s, cam), RobotDetections, capacity=max(64, 4096 // len(cams)),
                 max_queued_bytes=QUEUE_BYTE_BUDGETS["RobotDetections"] // len(cams),

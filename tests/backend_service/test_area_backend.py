@@ -79,6 +79,20 @@ def test_the_site_puts_each_robot_in_front_of_its_own_areas_cameras() -> None:
         c: len(m.detections) for c, m in msgs.items()}
 
 
+def test_a_backend_serving_every_area_takes_one_wildcard_channel() -> None:
+    # the same messages as one channel per camera, with one Zenoh callback thread
+    from backend_service.service import BackendNode
+
+    site = facility_site()
+    node = BackendNode(site, "b_all", areas=("west", "east"))
+    detection_keys = [s.key_expr for s in node.subscriptions()
+                      if s.message_type is RobotDetections]
+    assert detection_keys == [keys.detections_key(SITE, "*")]
+    east = BackendNode(site, "b_east", areas=("east",))
+    assert [s.key_expr for s in east.subscriptions() if s.message_type is RobotDetections] == [
+        keys.detections_key(SITE, c) for c in EAST]
+
+
 def test_a_backend_with_an_area_receives_and_solves_only_its_areas_cameras() -> None:
     from backend_service.service import BackendNode
     from protocol.runtime import ZenohRunner

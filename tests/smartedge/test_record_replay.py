@@ -158,8 +158,11 @@ def test_offline_pipeline_on_the_recording_gives_the_live_estimates(live_recordi
         if twin is None:
             continue
         matched += 1
+        # the same estimate: the solver stops within its tolerance, and a prior that differs
+        # in the last digits (the fused pose at a receive time a little apart) moves where it
+        # stops by nanometres (seen: 2e-9 rad): 0.1 um / 0.1 urad is still the same solve
         np.testing.assert_allclose([twin.x, twin.y, twin.theta], [e.x, e.y, e.theta],
-                                   atol=1e-9)
+                                   rtol=0.0, atol=1e-7)
     # the receive times of the recorder and the backend differ by a millisecond or so; a
     # frame-set closed by its wait timeout may then differ, nothing else
     assert len(live) > 20 and matched >= 0.9 * len(live), (matched, len(live))

@@ -11,8 +11,10 @@ import sys
 import pytest
 
 CHILD = """
-import time
+import signal, time
 from smartedge.commands import unwind_on_sigterm
+# as started from a terminal (a test run under nohup inherits SIGHUP ignored)
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
 unwind_on_sigterm()
 try:
     print("ready", flush=True)
@@ -33,12 +35,14 @@ def test_a_signalled_command_runs_its_finally_blocks(sig: signal.Signals) -> Non
     assert proc.returncode == 128 + int(sig)
 
 
-def test_a_handler_already_installed_is_kept() -> None:
+def test_a_handler_already_installed_or_an_ignored_signal_is_kept() -> None:
+    # a handler of the program's own, and SIGHUP ignored by nohup, stay as they are
     code = ("import signal\n"
             "from smartedge.commands import unwind_on_sigterm\n"
             "mine = lambda *a: None\n"
             "signal.signal(signal.SIGTERM, mine)\n"
+            "signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
             "unwind_on_sigterm()\n"
             "assert signal.getsignal(signal.SIGTERM) is mine\n"
-            "assert signal.getsignal(signal.SIGHUP) is not signal.SIG_DFL\n")
+            "assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=20)
