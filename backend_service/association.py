@@ -63,9 +63,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.frame_set import PlanarPose, image_scale, scale_detection
-from backend_service.projection import stacked_cameras
+from backend_service.projection import pixels_from_camera_frame, stacked_cameras
 from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized
 from protocol.messages import Detection, RobotDetections
 from protocol.site import Site
 
@@ -305,8 +304,10 @@ class PredictedView:
     """R predicted robots of one keypoint model (M keypoints) as one camera should see them:
     ``uv`` (R, M, 2) pixels, ``visible`` (R, M) in front of the camera and inside the image,
     ``sigma_uv`` (R, M, 2, 2) the pixel covariance the pose covariance gives each keypoint
-    (the pinhole Jacobian of the projection), ``box_lo`` / ``box_hi`` (R, 2) the box of the
-    visible keypoints widened by ``box_margin_sigmas`` pixel sigmas (pose and detector),
+    (the pinhole Jacobian of the projection; zero for a robot with no keypoint in the image,
+    which takes no detection of this camera), ``box_lo`` / ``box_hi`` (R, 2) the box of the
+    visible keypoints widened by ``box_margin_sigmas`` pixel sigmas (pose and detector; inf /
+    -inf without a visible keypoint),
     ``info`` (3, R, M) the entries (uu, uv, vv) of the inverse of ``sigma_uv`` plus the
     detector's pixel noise ``detector_sigma_px`` (the common case's information matrix)."""
 
@@ -316,16 +317,11 @@ class PredictedView:
     box_lo: np.ndarray
     box_hi: np.ndarray
     info: np.ndarray
-    #: the rows (robots) with a keypoint in the image, ascending: the only ones that can take
-    #: a detection of this camera (``sigma_uv`` and ``info`` of the others are not computed)
-    seen: np.ndarray
 
     def rows(self, index: Sequence[int]) -> PredictedView:
         idx = np.asarray(index, dtype=np.intp)
-        visible = self.visible[idx]
-        return PredictedView(self.uv[idx], visible, self.sigma_uv[idx], self.box_lo[idx],
-                             self.box_hi[idx], self.info[:, idx],
-                             np.flatnonzero(visible.any(axis=-1)))
+        return PredictedView(self.uv[idx], self.visible[idx], self.sigma_uv[idx],
+                             self.box_lo[idx], self.box_hi[idx], self.info[:, idx])
 
 
 def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray,
@@ -351,14 +347,9 @@ def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray
     # camera frame (N, R, M, 3); one matrix product (small einsums are slow)
     pc = (np.matmul(pw.reshape(1, -1, 3), np.swapaxes(cams.R_cw, 1, 2))
           + cams.t_cw[:, None, :]).reshape(n_cam, n_rob, m, 3)
-    # the pixels as the solver projects them (projection.project_planar)
-    depth = pc[..., 2]
-    xy = pc[..., :2] / np.maximum(depth, 1e-3)[..., None]
-    xyd = distort_normalized(xy, cams.dist[:, None, None, :])
-    K = cams.K[:, None, None]
-    u = K[..., 0, 0] * xyd[..., 0] + K[..., 0, 1] * xyd[..., 1] + K[..., 0, 2]
-    v = K[..., 1, 1] * xyd[..., 1] + K[..., 1, 2]
-    uv0 = np.stack([u, v], axis=-1)  # (N, R, M, 2)
+    # the pixels as the solver projects them (N, R, M, 2), depths (N, R, M)
+    uv0, depth = pixels_from_camera_frame(pc, cams.K[:, None, None], cams.dist[:, None, None, :])
+    u, v = uv0[..., 0], uv0[..., 1]
     w = np.array([cam.width - 1.0 for cam in cameras])[:, None, None]
     h = np.array([cam.height - 1.0 for cam in cameras])[:, None, None]
     visible = ((depth > _MIN_DEPTH_M) & (u >= 0.0) & (u <= w) & (v >= 0.0) & (v <= h)
@@ -383,9 +374,8 @@ def predicted_views(cameras: Sequence[CameraModel], keypoints_base_m: np.ndarray
         lo[cam_i, rob_i] = np.where(vis, uv_p - pad, np.inf).min(axis=1)
         hi[cam_i, rob_i] = np.where(vis, uv_p + pad, -np.inf).max(axis=1)
     info = _information(sigma_uv, config.detector_sigma_px ** 2)  # (3, N, R, M)
-    seen = visible.any(axis=-1)  # (N, R)
-    return [PredictedView(uv0[i], visible[i], sigma_uv[i], lo[i], hi[i], info[:, i],
-                          np.flatnonzero(seen[i])) for i in range(len(cameras))]
+    return [PredictedView(uv0[i], visible[i], sigma_uv[i], lo[i], hi[i], info[:, i])
+            for i in range(len(cameras))]
 
 
 def _pixel_covariance(pc: np.ndarray, R_cw: np.ndarray, dpw_dtheta: np.ndarray, K: np.ndarray,
@@ -512,34 +502,25 @@ def association_costs(camera: CameraModel, detections: Sequence[Detection],
             for r in np.flatnonzero(inside).tolist():
                 costs[dets[0], cols[r]] = _pair_cost(det, view, r, var_r, config)
             continue
-        uv, visible, info = view.uv, view.visible, view.info[:, None]  # info (3, 1, R, M)
-        seen = None
-        if len(view.seen) < len(cols):  # the others are not in this image: inf
-            if not len(view.seen):
-                continue
-            seen = view.seen
-            cols = [cols[k] for k in seen.tolist()]
-            uv, visible, info = uv[seen], visible[seen], info[:, :, seen]
-            lo, hi = lo[seen], hi[seen]
         chosen = [detections[i] for i in dets]
         obs = np.stack([d.keypoints_px for d in chosen])  # (D, M, 2)
         scores = np.stack([d.keypoint_scores for d in chosen])
         boxes = np.stack([d.bbox_xyxy for d in chosen])  # (D, 4)
         # the information matrix of each keypoint's residual: the pose-induced pixel covariance
         # plus the detector's pixel noise (its own sigmas where it sends them)
+        info = view.info[:, None]  # (3, 1, R, M)
         if any(d.keypoint_sigmas_px is not None for d in chosen):
             var = np.full(scores.shape, config.detector_sigma_px ** 2)
             for row, d in enumerate(chosen):
                 if d.keypoint_sigmas_px is not None:
                     var[row] = np.maximum(d.keypoint_sigmas_px, config.detector_sigma_px) ** 2
-            sigma_uv = view.sigma_uv if seen is None else view.sigma_uv[seen]
-            info = _information(sigma_uv[None], var[:, None, :])  # (3, D, R, M)
+            info = _information(view.sigma_uv[None], var[:, None, :])  # (3, D, R, M)
         # keypoints are finite (the message's validation); a dropped one has score 0
         confident = scores >= config.min_keypoint_score
-        res = obs[:, None] - uv  # (D, R, M, 2)
+        res = obs[:, None] - view.uv  # (D, R, M, 2)
         rx, ry = res[..., 0], res[..., 1]
         d2 = info[0] * rx * rx + 2.0 * info[1] * rx * ry + info[2] * ry * ry
-        shared = confident[:, None, :] & visible  # (D, R, M)
+        shared = confident[:, None, :] & view.visible  # (D, R, M)
         n_shared = np.count_nonzero(shared, axis=-1)
         # robust mean: each keypoint's distance clipped, so one outlier moves it little
         clipped = np.minimum(np.sqrt(np.maximum(d2, 0.0)), config.clip_distance)

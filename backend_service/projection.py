@@ -71,12 +71,20 @@ def project_planar(cams: StackedCameras, keypoints_base_m: np.ndarray,
     zw = np.broadcast_to(kp[None, :, 2], xw.shape)
     pw = np.stack([xw, yw, zw], axis=-1)
     pc = np.einsum("nij,bmj->bnmi", cams.R_cw, pw) + cams.t_cw[None, :, None, :]
+    return pixels_from_camera_frame(pc, cams.K[None, :, None], cams.dist[None, :, None, :])
+
+
+def pixels_from_camera_frame(pc: np.ndarray, K: np.ndarray, dist: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (..., 2) and depths (...) of camera-frame points ``pc`` (..., 3): the pinhole
+    with the lens distortion, ``K`` (..., 3, 3) and ``dist`` (..., k) broadcast against the
+    points' leading axes (the depth is clamped at 1 mm only for the division, as the CasADi
+    formulation does)."""
     z = pc[..., 2]
     zs = np.maximum(z, 1e-3)
     xy = pc[..., :2] / zs[..., None]
-    xyd = distort_normalized(xy, cams.dist[None, :, None, :])
+    xyd = distort_normalized(xy, dist)
     xd, yd = xyd[..., 0], xyd[..., 1]
-    K = cams.K[None, :, None]
     u = K[..., 0, 0] * xd + K[..., 0, 1] * yd + K[..., 0, 2]
     v = K[..., 1, 1] * yd + K[..., 1, 2]
     return np.stack([u, v], axis=-1), z

@@ -489,7 +489,7 @@ def test_a_robot_in_no_image_is_not_projected_further_and_changes_no_cost() -> N
     for i, v2 in enumerate(both):
         for row, who in ((0, "near"), (1, "far")):
             v1 = alone[who][i]
-            assert (row in v2.seen.tolist()) == bool(v1.visible[0].any())
+            np.testing.assert_array_equal(v2.visible[row], v1.visible[0])
             if v1.visible[0].any():
                 np.testing.assert_allclose(v2.sigma_uv[row], v1.sigma_uv[0], rtol=1e-12)
                 np.testing.assert_allclose(v2.box_lo[row], v1.box_lo[0], rtol=1e-12)
