@@ -361,10 +361,9 @@ class RandomizationConfig:
     robot_appearances: int = 8
     robot_color_jitter: float = 0.12
     robot_brightness: tuple[float, float] = (0.75, 1.15)
-    #: the built-in HSR-like robot's arm in other poses (off until the shipped networks are
-    #: trained with it: on, the shipped keypoint network's PCK@2px on randomized views, seed
-    #: 777, fell from above 0.87 to 0.859)
-    robot_arm_poses: bool = False
+    #: the built-in HSR-like robot's arm in other poses (the shipped networks are trained with
+    #: it since 2026-11-27)
+    robot_arm_poses: bool = True
     robot_arm_raise_deg: tuple[float, float] = (0.0, 80.0)
     robot_elbow_deg: tuple[float, float] = (-20.0, 60.0)
     dirt_probability: float = 0.3

@@ -261,14 +261,14 @@ def _batch_loss(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, idx
         target = torch.from_numpy(labels.astype(np.int64)).to(device)
         return F.cross_entropy(model.forward_train(x).float(), target, weight=weights)
     if cfg.kind == "detector":
-        images = data.det_images[idx]
         boxes = frame_to_input(data.boxes[idx], data.frame_size[idx], g.det_w, g.det_h)
         flip = rng.uniform(size=len(idx)) < 0.5
-        images = np.where(flip[:, None, None, None], images[:, :, ::-1], images)
         fx0 = g.det_w - 1 - boxes[:, 2]
         fx1 = g.det_w - 1 - boxes[:, 0]
         boxes = np.where(flip[:, None], np.stack([fx0, boxes[:, 1], fx1, boxes[:, 3]], 1), boxes)
-        x = photometric(_images(images, np.arange(len(idx)), device), gen)
+        x = _images(data.det_images, idx, device, resident)
+        f = torch.from_numpy(flip).to(x.device)[:, None, None, None]
+        x = photometric(torch.where(f, x.flip(-1), x), gen)
         out = model.forward_train(x)
         h, w = out.heat_logits.shape[-2:]
         heat, size, off, mask = (torch.from_numpy(a).to(device)
@@ -353,16 +353,19 @@ def _to_cpu(obj: Any) -> Any:
 
 def _resident_images(cfg: TrainConfig, data: RenderedSet, device: torch.device,
                      say: Callable[[str], None]) -> torch.Tensor | None:
-    """On a GPU, the keypoint crops (uint8) kept on the device when they take at most a
-    quarter of its free memory: batches are then gathered there, not copied per step."""
-    if device.type != "cuda" or cfg.kind != "keypoints":
+    """On a GPU, the training images (uint8: the keypoint crops, or the detector's frames) kept
+    on the device when they take at most a quarter of its free memory: batches are then
+    gathered (and flipped) there, not copied per step."""
+    if device.type != "cuda" or cfg.kind not in ("keypoints", "detector"):
         return None
+    images, what = ((data.crops, "crops") if cfg.kind == "keypoints"
+                    else (data.det_images, "frames"))
     free, _ = torch.cuda.mem_get_info(device)
-    if data.crops.nbytes > free // 4:
-        say(f"crops ({data.crops.nbytes / 1e9:.1f} GB) stay in host memory")
+    if images.nbytes > free // 4:
+        say(f"{what} ({images.nbytes / 1e9:.1f} GB) stay in host memory")
         return None
-    say(f"crops ({data.crops.nbytes / 1e9:.2f} GB) copied to {device}")
-    return torch.from_numpy(np.ascontiguousarray(data.crops)).to(device)
+    say(f"{what} ({images.nbytes / 1e9:.2f} GB) copied to {device}")
+    return torch.from_numpy(np.ascontiguousarray(images)).to(device)
 
 
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,

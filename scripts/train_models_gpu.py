@@ -1,0 +1,136 @@
+"""Train the shipped detector and keypoint network together on one GPU machine, in a fixed time.
+
+Made for a GPU lent for a few minutes (2026-11-27: one H200 with 16 cores). One render of the
+training views serves both networks (the render cache holds the detector's frames and the
+keypoint crops of every view), then `smartedge train detector` and `smartedge train keypoints
+--mirror` run side by side on the one GPU on that cache. Each writes its checkpoint as it goes,
+so a run stopped by its time limit resumes anywhere (`--device cpu` too) with the same command
+and the same --out.
+
+    python scripts/train_models_gpu.py [--work DIR] [--render-s 150] [--train-min 4.5]
+        [--keypoints-init CKPT] [--tiny]
+
+Then, on any machine: `smartedge evaluate keypoints --model DIR/keypoints --calibrate` (the
+confidence -> sigma table of the keypoint card) and copy both into edge_agent/models/.
+Needs the train extra and a headless OpenGL (EGL) driver for the renders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+T0 = time.perf_counter()
+SITE_SEEDS = 3  # site views spread over the site's textures of seeds 2, 3, 4
+SEED = 1  # smartedge train's default --seed: randomized seed 1, held out 1001 and 1002
+
+
+def say(msg: str) -> None:
+    print(f"[{time.perf_counter() - T0:6.1f} s] {msg}", flush=True)
+
+
+def main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--work", default="runs/models_gpu", help="output folder (default "
+                   "runs/models_gpu): cache/, detector/, keypoints/, their logs")
+    p.add_argument("--render-s", type=float, default=150.0, help="time for the renders, "
+                   "held-out sets included (default 150 s)")
+    p.add_argument("--max-views", type=int, default=30000, help="at most so many training "
+                   "views (default 30000)")
+    p.add_argument("--train-min", type=float, default=4.5, help="training time of each "
+                   "network (default 4.5 min; both train at once)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 2,
+                   help="render processes (default: every core)")
+    p.add_argument("--val-views", type=int, default=200, help="held-out views of each kind")
+    p.add_argument("--keypoints-init", metavar="CKPT", help="fine-tune the keypoint network "
+                   "from this checkpoint (its --lr is then halved)")
+    p.add_argument("--detector-batch", type=int, default=64)
+    p.add_argument("--keypoints-batch", type=int, default=128)
+    p.add_argument("--tiny", action="store_true", help="tiny images and a few steps: checks "
+                   "the whole chain in a minute on a CPU")
+    args = p.parse_args(argv)
+
+    from edge_agent.training.data import Geometry, SetSpec, render_set
+    from simulation.render_gl import create_context
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+    from smartedge.sim.training_views import SimulationViews
+
+    work = Path(args.work)
+    ctx = create_context()
+    say(f"GL: {ctx.info.get('GL_RENDERER')} / {ctx.info.get('GL_VERSION')}")
+    ctx.release()
+    sc = load_scenario(PAPER_SCENARIO)
+    views = SimulationViews(str(sc.source_path), sc.site.robot_model(sc.robot_id), None)
+    geom = (Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
+            if args.tiny else Geometry())
+    cache = work / "cache"
+    # held-out sets first, as smartedge train renders them (no jitter, no augmentation)
+    eval_geom = Geometry(**{**geom.__dict__, "crop_jitter": False})
+    val = args.val_views
+    for spec in (SetSpec("randomized", SEED + 1000, val), SetSpec("site", SEED + 1001, val)):
+        render_set(views, [spec], eval_geom, cache, workers=args.workers, augment_clean=False,
+                   progress=say)
+    # a probe round, then as many views as the time allows (2/3 randomized, 1/3 site)
+    unit = 48 if args.tiny else 600
+    t = time.perf_counter()
+    n_rand, n_site = ((2 * unit, unit) if args.tiny else
+                      (200 * max(1, 2 * args.workers // 3), unit * max(1, args.workers // 5)))
+    render_set(views, _specs(n_rand, n_site, SetSpec), geom, cache, workers=args.workers,
+               progress=say)
+    rate = (n_rand + n_site) / (time.perf_counter() - t)
+    left = args.render_s - (time.perf_counter() - T0)
+    total = min(args.max_views, int(n_rand + n_site + max(0.0, left) * rate * 0.9))
+    if not args.tiny:
+        n_site = max(unit, total // 3 // unit * unit)
+        n_rand = max(2 * unit, (total - n_site) // 200 * 200)
+    say(f"render rate {rate:.0f} views/s: {n_rand} randomized + {n_site} site views")
+    render_set(views, _specs(n_rand, n_site, SetSpec), geom, cache, workers=args.workers,
+               progress=say)
+    say("rendering done")
+    (work / "counts.json").write_text(json.dumps({"randomized": n_rand, "site": n_site,
+                                                  "views_per_s": round(rate, 1)}))
+    common = ["--train-views", str(n_rand), "--site-views", str(n_site),
+              "--site-seeds", str(SITE_SEEDS), "--val-views", str(val), "--workers", "1",
+              "--threads", str(max(1, args.workers // 4))]
+    common += ["--tiny", "--steps", "6"] if args.tiny else ["--minutes", str(args.train_min)]
+    runs = {"detector": ["--batch", str(args.detector_batch), "--lr", "2e-3"],
+            "keypoints": ["--batch", str(args.keypoints_batch), "--mirror", "--no-calibration",
+                          "--lr", "1e-3" if args.keypoints_init else "2e-3"]}
+    if args.keypoints_init:
+        runs["keypoints"] += ["--init-from", str(Path(args.keypoints_init).resolve())]
+    procs = {}
+    for kind, extra in runs.items():
+        out = work / kind
+        out.mkdir(parents=True, exist_ok=True)
+        link = out / "cache"
+        if not link.exists():
+            link.symlink_to(cache.resolve())
+        log = open(work / f"{kind}.log", "a")  # noqa: SIM115 (closed below)
+        cmd = [sys.executable, "-m", "smartedge", "train", kind, "--out", str(out), *common,
+               *extra]
+        procs[kind] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log)
+        say(f"started: smartedge train {kind} {' '.join(cmd[5:])}")
+    codes = {}
+    for kind, (proc, log) in procs.items():
+        codes[kind] = proc.wait()
+        log.close()
+        say(f"{kind} exited {codes[kind]}")
+        print((work / f"{kind}.log").read_text()[-2500:], flush=True)
+    return 0 if all(c == 0 for c in codes.values()) else 1
+
+
+def _specs(n_rand: int, n_site: int, spec_type: type) -> list:
+    """The sets `smartedge train` asks for with --train-views/--site-views/--site-seeds."""
+    seeds = [spec_type("site", SEED + 1 + k, n_site // SITE_SEEDS + (k < n_site % SITE_SEEDS))
+             for k in range(SITE_SEEDS)]
+    return [spec_type("randomized", SEED, n_rand), *seeds]
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
