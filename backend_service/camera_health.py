@@ -8,7 +8,9 @@ e ~= J dq + G delta, with the same delta in every frame: a persistent bias the p
 absorb. Per judged frame-set (transport-free, pure numpy):
 
 1. residuals e, the robot-pose Jacobian J and the extrinsic Jacobian G (closed form) of every
-   camera at the joint solution of the solve;
+   camera at the joint solution of the solve; a keypoint far from its view's common shift is
+   a wrong keypoint, not an offset, and is left out (a view left with too few is not judged:
+   :meth:`CameraHealthMonitor._consistent`);
 2. the keypoint noise model ``Sigma``: independent pixel noise s^2 / w (w: the solver's keypoint
    weights, s^2 a running estimate of the residual variance floored at the solver's
    ``covariance_floor_px``; keypoints far from the current offset estimate down-weighted,
@@ -83,6 +85,11 @@ DOMINANCE: Final = 2.0
 DECISION_PERIOD_S: Final = 1.0
 #: a frame-set whose views all repeat the previous ones by more than this is not judged
 MIN_NOVELTY: Final = 0.02
+#: a keypoint further than this many noise sigmas (and at least INLIER_MIN_PX) from its view's
+#: common shift is a wrong keypoint, not evidence of an offset (a small offset moves a view's
+#: keypoints together: a rotation shifts them, a translation adds a little scale and parallax)
+INLIER_SIGMAS: Final = 5.0
+INLIER_MIN_PX: Final = 6.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -431,6 +438,7 @@ class CameraHealthMonitor:
             # offset but a wrong detection (or garbage); weights above 1 are not the solver's
             valid = (np.isfinite(e).all(axis=2) & (np.abs(e) <= MAX_RESIDUAL_PX).all(axis=2)
                      & np.isfinite(w) & (w > 0) & np.isfinite(G).all(axis=(2, 3)))
+        valid = self._consistent(e, valid)
         w = np.where(valid, np.minimum(w, 1.0), 0.0)
         e = np.where(valid[..., None], e, 0.0)
         G = np.where(valid[..., None, None], G, 0.0)
@@ -530,6 +538,31 @@ class CameraHealthMonitor:
             return []
         self._since_decision_s = 0.0
         return self._decide(stamp_ns)
+
+    def _consistent(self, e: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """``valid`` (C, M) less the keypoints that do not move with their view: further than
+        :data:`INLIER_SIGMAS` noise sigmas (at least :data:`INLIER_MIN_PX`) from the view's
+        common shift (the median residual, ``e`` (C, M, 2)), and less every keypoint of a view
+        left with fewer than ``min_keypoints``. A network's gross keypoint errors (an occluded
+        bottom keypoint put on an obstacle's edge, a robot cut by the image border) are tens
+        of pixels on a few keypoints, coherent across a stretch of frames; weighed as
+        residuals, they named unmoved cameras moved by tens of centimetres. Counted
+        ``outlier_keypoints`` and ``inconsistent_views``."""
+        n_valid = valid.sum(axis=1)
+        with np.errstate(invalid="ignore"):
+            masked = np.where(valid[..., None], e, np.nan)
+            shift = np.zeros((e.shape[0], 2))
+            some = n_valid > 0
+            if some.any():
+                shift[some] = np.nanmedian(masked[some], axis=1)
+            dev = np.linalg.norm(e - shift[:, None, :], axis=2)
+            bound = max(INLIER_SIGMAS * math.sqrt(self._s2), INLIER_MIN_PX)
+            inlier = valid & (dev <= bound)
+        self.counters["outlier_keypoints"] += int((valid & ~inlier).sum())
+        need = self.config.min_keypoints
+        enough = inlier.sum(axis=1) >= need
+        self.counters["inconsistent_views"] += int(((n_valid >= need) & ~enough).sum())
+        return inlier & enough[:, None]
 
     def _decide(self, stamp_ns: int) -> list[MovedCamera]:
         """Every camera's offset from the joint equations, each tested against its tolerance
