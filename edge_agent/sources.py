@@ -98,6 +98,7 @@ class PipelineSource:
         self._stats: Any = None
         self._skipped_seen = 0
         self._duplicates_seen = 0
+        self._type_rejected_seen = 0
 
     def rgbd_frame(self) -> Any:
         """The last processed frame if it has depth (``Frame.depth_m``), else ``None``."""
@@ -126,10 +127,16 @@ class PipelineSource:
                 stats.count("frames_skipped", skipped_total - self._skipped_seen)
                 self._skipped_seen = skipped_total
             # several robot types: boxes of two types' detectors on one robot, the weaker dropped
-            dropped = getattr(getattr(self.pipeline, "models", None), "duplicates_dropped", 0)
+            models = getattr(self.pipeline, "models", None)
+            dropped = getattr(models, "duplicates_dropped", 0)
             if dropped > self._duplicates_seen:
                 stats.count("duplicate_boxes_dropped", dropped - self._duplicates_seen)
                 self._duplicates_seen = dropped
+            # ... and boxes whose own model's keypoints were not found (another type's robot)
+            rejected = getattr(models, "type_rejected", 0)
+            if rejected > self._type_rejected_seen:
+                stats.count("boxes_not_of_their_type", rejected - self._type_rejected_seen)
+                self._type_rejected_seen = rejected
         return msg
 
 

@@ -3,9 +3,9 @@
 # (both networks at once, one torch thread each, sharing one render cache), then the semantic
 # segmentation network (one thread, one render worker, its own render sets, three legs), and
 # copy the ONNX files, model cards and export references into edge_agent/models/. Run again to
-# resume after an interruption. The shipped keypoint network now comes from a GPU
-# (scripts/train_keypoints_gpu.sh, mirrored crops and test-time flip): this script copies only
-# the detector and the segmentation network unless KEYPOINTS=1 asks for the CPU keypoint model.
+# resume after an interruption. The shipped detector and keypoint network now come from a GPU
+# (scripts/train_models_gpu.py, since 2026-11-27): this script copies only the segmentation
+# network unless DETECTOR=1 / KEYPOINTS=1 ask for the CPU-trained detector / keypoint model.
 #   scripts/train_shipped_models.sh [OUT] [MINUTES] [SEGMENTATION_MINUTES]
 set -euo pipefail
 OUT=${1:-runs/models}
@@ -38,9 +38,10 @@ smartedge train segmentation --out "$OUT/seg_robot" --init-from "$OUT/seg_ft/seg
     --lr 8e-4 --steps 1863 --site-seeds 8 --robot-views 2000 "${SEG[@]}" \
     > "$OUT/segmentation_robot.log" 2>&1
 mkdir -p edge_agent/models
-kinds=(detector)
+kinds=()
+[ "${DETECTOR:-0}" = 1 ] && kinds+=(detector)
 [ "${KEYPOINTS:-0}" = 1 ] && kinds+=(keypoints)
-for kind in "${kinds[@]}"; do
+for kind in "${kinds[@]+"${kinds[@]}"}"; do
     cp "$OUT/$kind.onnx" "$OUT/$kind.json" "$OUT/$kind.md" "$OUT/$kind.reference.npz" \
         edge_agent/models/
 done

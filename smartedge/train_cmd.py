@@ -17,8 +17,9 @@ Examples::
     smartedge train keypoints --out runs/kp --mirror --batch 128 --minutes 4 --workers 16
     smartedge train keypoints --out runs/husky --robot-mesh husky.urdf --keypoints husky_kp.yaml
 
-The shipped models in ``edge_agent/models/`` were made with ``scripts/train_shipped_models.sh``
-(the keypoint network since 2026-11-26 with ``scripts/train_keypoints_gpu.sh``, on a GPU).
+The shipped detector and keypoint network in ``edge_agent/models/`` were made on a GPU with
+``scripts/train_models_gpu.py`` (2026-11-27), the segmentation network with
+``scripts/train_shipped_models.sh`` on a CPU.
 """
 
 from __future__ import annotations
