@@ -764,6 +764,14 @@ def model_files(folder: Path | str | None = None) -> tuple[Path, Path]:
     return base / "detector.onnx", base / "keypoints.onnx"
 
 
+#: a box whose keypoints the keypoint network finds with a mean confidence below this holds no
+#: robot: the detector's false boxes (a wall corner of one site camera scored 0.3-0.57 in most
+#: of its views) get 0.20-0.24, true boxes 0.29-0.96 (below 0.3: 5 of 650 true boxes on four
+#: held-out sets, robots mostly hidden, whose keypoints carry sigmas of 30 px and more; above
+#: it: 80 % of the false boxes removed; docs/models.md)
+MIN_KEYPOINT_CONFIDENCE: Final = 0.3
+
+
 class RobotKeypointPipeline:
     """Detector → crop → keypoints for one robot model.
 
@@ -774,15 +782,24 @@ class RobotKeypointPipeline:
     because on a 2-core board spinning threads starve the frame pre-processing (measured
     ~2x slower per frame, ``smartedge bench edge``). ``flip``: the keypoint network's
     test-time flip augmentation (:class:`KeypointEstimator`; None: as its card says).
-    ``robot_model``: the site's model name put on every observation (``""``: none)."""
+    ``robot_model``: the site's model name put on every observation (``""``: none).
+    ``min_keypoint_confidence``: a box whose keypoints' mean confidence is below this is not
+    reported (:data:`MIN_KEYPOINT_CONFIDENCE`; counted in :attr:`unconfirmed`); only with a
+    keypoint model whose card calibrates its confidence (``sigma_calibration``), else 0."""
 
     def __init__(self, detector: Path | str | None = None, keypoints: Path | str | None = None,
                  *, threads: int = 2,
                  providers: ExecutionProviders | Sequence[Any] | None = None,
                  keypoint_names: Sequence[str] | None = None, spinning: bool = False,
-                 flip: bool | None = None, robot_model: str = "") -> None:
+                 flip: bool | None = None, robot_model: str = "",
+                 min_keypoint_confidence: float = MIN_KEYPOINT_CONFIDENCE) -> None:
         shipped = default_model_dir()
         self.robot_model = robot_model
+        if not 0.0 <= min_keypoint_confidence < 1.0:
+            raise ValueError(f"min_keypoint_confidence must lie in [0, 1), got "
+                             f"{min_keypoint_confidence}")
+        #: boxes dropped because the keypoint network found no robot in them, since start
+        self.unconfirmed = 0
         #: what both networks were asked to run on (:func:`execution_providers`)
         self.execution = as_execution_providers(providers)
         self.providers = self.execution.names
@@ -792,6 +809,9 @@ class RobotKeypointPipeline:
             shipped / "keypoints.onnx" if keypoints is None else keypoints, threads=threads,
             providers=self.execution, spinning=spinning, flip=flip)
         self.folder = self.keypoints.path.parent
+        # a floor on a confidence means something only where the card calibrates it
+        self.min_keypoint_confidence = (float(min_keypoint_confidence)
+                                        if self.keypoints.calibrated else 0.0)
         kp_names = list(self.keypoints.card.keypoint_names)
         if keypoint_names is not None and list(keypoint_names) != kp_names:
             raise ModelError(
@@ -849,10 +869,18 @@ class RobotKeypointPipeline:
         keypoints = self.keypoints.estimate_many(images_rgb, boxes)
         t2 = time.perf_counter()
         self.times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3)
-        return [[RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
-                                  None if sigma is None else sigma[i], self.robot_model)
-                 for i, b in enumerate(frame_boxes)]
-                for frame_boxes, (kp, conf, sigma) in zip(boxes, keypoints, strict=True)]
+        out = []
+        for frame_boxes, (kp, conf, sigma) in zip(boxes, keypoints, strict=True):
+            found = []
+            for i, b in enumerate(frame_boxes):
+                obs = RobotObservation(b[:4].copy(), float(b[4]), kp[i], conf[i],
+                                       None if sigma is None else sigma[i], self.robot_model)
+                if type_evidence(obs)[0] < self.min_keypoint_confidence:
+                    self.unconfirmed += 1
+                    continue
+                found.append(obs)
+            out.append(found)
+        return out
 
 
 def box_iou(a_xyxy: np.ndarray, b_xyxy: np.ndarray) -> float:

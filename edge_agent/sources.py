@@ -99,6 +99,7 @@ class PipelineSource:
         self._skipped_seen = 0
         self._duplicates_seen = 0
         self._type_rejected_seen = 0
+        self._unconfirmed_seen = 0
 
     def rgbd_frame(self) -> Any:
         """The last processed frame if it has depth (``Frame.depth_m``), else ``None``."""
@@ -132,7 +133,13 @@ class PipelineSource:
             if dropped > self._duplicates_seen:
                 stats.count("duplicate_boxes_dropped", dropped - self._duplicates_seen)
                 self._duplicates_seen = dropped
-            # ... and boxes whose own model's keypoints were not found (another type's robot)
+            # boxes whose keypoints were not found (no robot; on a site with several types:
+            # another type's robot)
+            unconfirmed = sum(getattr(p, "unconfirmed", 0) for p in getattr(
+                models, "pipelines", {"": models}).values())
+            if unconfirmed > self._unconfirmed_seen:
+                stats.count("boxes_without_keypoints", unconfirmed - self._unconfirmed_seen)
+                self._unconfirmed_seen = unconfirmed
             rejected = getattr(models, "type_rejected", 0)
             if rejected > self._type_rejected_seen:
                 stats.count("boxes_not_of_their_type", rejected - self._type_rejected_seen)

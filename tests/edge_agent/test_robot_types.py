@@ -184,8 +184,11 @@ def test_rendered_images_of_each_type_get_their_type(two_type_site: Path) -> Non
                     if d.robot_model == "hsr" and box_iou(d.bbox_xyxy, box_truth) > 0.3]
     # the shipped HSR detector boxes the box base in most of these views (a single-class
     # detector never shown the other type); the HSR keypoint network's low confidence there
-    # says it is not an HSR: dropped and counted
-    assert models.type_rejected >= 2
+    # says it is not an HSR: dropped and counted (below 0.3 by the HSR pipeline's own floor,
+    # below 0.5 as not of its type)
+    hsr_pipeline = models.pipelines["hsr"]
+    assert models.type_rejected + hsr_pipeline.unconfirmed >= 2
+    assert models.type_rejected >= 1
     # the box base's own networks on its image: typed, its keypoints (any score: tiny models)
     found = models.pipelines["box_base"](box_frame.image_rgb, min_score=0.0, max_robots=2)
     assert found and all(o.robot_model == "box_base" and o.keypoints_px.shape == (12, 2)
