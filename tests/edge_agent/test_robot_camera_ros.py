@@ -344,7 +344,10 @@ def test_head_camera_clouds_follow_the_panning_head(sessions: tuple[Any, Any],
         t_img = ta + 40_000_000
         robot.put("tf", head_tf(ta, 0.0, -0.1, 0.0))
         robot.frame(head_view, t_img)
-        early = _tick_for(node, 0.6)
+        # until the frame has arrived and waits for TF (a loaded machine may take a while)
+        early = _tick_until(node, lambda out: bool(out) or node._waiting is not None, 10.0)
+        assert early == [], "a cloud before TF covered the image stamp"
+        early = _tick_for(node, 0.3)  # and it keeps waiting
         assert early == [], "a cloud before TF covered the image stamp"
         assert node._waiting is not None and node._waiting.got.frame.stamp_ns == t_img
         robot.put("tf", head_tf(tb, 0.2, -0.3, 1.0))
@@ -396,9 +399,11 @@ def test_head_camera_clouds_follow_the_panning_head(sessions: tuple[Any, Any],
 
         # the head moves on; a new frame between two new messages gives a new cloud
         tc, td = ta + 5_000_000_000, ta + 5_100_000_000
+        seen_tf = node.counters().get("tf_messages", 0)
         robot.put("tf", head_tf(tc, -0.4, 0.1, 0.0))
         robot.put("tf", head_tf(td, -0.2, 0.0, 0.0))
-        time.sleep(0.2)
+        # both in the buffer before the frame (the frame may only wait tf_wait_ns = 200 ms)
+        _tick_until(node, lambda _: node.counters().get("tf_messages", 0) >= seen_tf + 2, 10.0)
         robot.frame(head_view, tc + 50_000_000)
         cloud = _tick_until(node, bool)[0]
         truth = truth_T_base_cam(-0.3, 0.05, 0.0)
