@@ -959,10 +959,10 @@ class RobotTypesPipeline:
     one its own keypoint network is more confident of, then the higher detector score
     (:func:`suppress_across_models`, :func:`type_evidence`), the other counted in
     :attr:`duplicates_dropped`; a box whose own model's keypoints have a mean confidence
-    below ``min_type_confidence`` (:data:`MIN_TYPE_CONFIDENCE`) is not that model's robot
-    (dropped, counted in :attr:`type_rejected`). The cost is the sum of the models' (measured in
-    docs/models.md, "Several robot types"). Same interface as :class:`RobotKeypointPipeline`
-    where the edge pipeline uses it."""
+    below ``min_type_confidence`` (:data:`MIN_TYPE_CONFIDENCE`; models whose card calibrates
+    the confidence) is not that model's robot (dropped, counted in :attr:`type_rejected`).
+    The cost is the sum of the models' (measured in docs/models.md, "Several robot types").
+    Same interface as :class:`RobotKeypointPipeline` where the edge pipeline uses it."""
 
     def __init__(self, pipelines: Mapping[str, RobotKeypointPipeline], *,
                  nms_iou: float = 0.5, nms_inside: float = 0.6,
@@ -1022,9 +1022,11 @@ class RobotTypesPipeline:
             per_frame = pipe.run_many(images_rgb, min_score=min_score, max_robots=max_robots)
             det_ms += pipe.times.detector_ms
             kp_ms += pipe.times.keypoints_ms
+            # as the pipeline's own floor: only a calibrated confidence is a measure
+            floor = self.min_type_confidence if pipe.keypoints.calibrated else 0.0
             for out, found in zip(merged, per_frame, strict=True):
                 for obs in found:
-                    if type_evidence(obs)[0] < self.min_type_confidence:
+                    if type_evidence(obs)[0] < floor:
                         self.type_rejected += 1
                         continue
                     out.append(obs)
