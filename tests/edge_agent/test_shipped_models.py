@@ -230,3 +230,29 @@ def test_boxes_without_the_robots_keypoints_are_not_reported() -> None:
         assert any(box_iou(o.bbox_xyxy, truth) >= 0.5 for o in pipeline(s.image_rgb))
     with pytest.raises(ValueError, match="min_keypoint_confidence"):
         RobotKeypointPipeline(threads=1, min_keypoint_confidence=1.0)
+
+
+def test_boxes_without_keypoints_are_counted_in_the_agents_status() -> None:
+    """The boxes the keypoint floor drops reach the edge agent's status counters
+    (``boxes_without_keypoints``), through the same path as every per-frame figure."""
+    pytest.importorskip("moderngl")
+    from edge_agent.frames import Frame
+    from edge_agent.models import RobotKeypointPipeline
+    from edge_agent.pipeline import EdgePipeline
+    from edge_agent.sources import PipelineSource
+    from protocol.runtime import Stats
+    from simulation.dataset import SampleGenerator
+    from simulation.scenario import PAPER_SCENARIO, load_scenario
+
+    gen = SampleGenerator(load_scenario(PAPER_SCENARIO), "site", seed=4242)
+    empty = [s for s in gen.samples(list(range(12)))
+             if not s.robots or s.robots[0].bbox_xyxy is None]
+    models = RobotKeypointPipeline(threads=1)
+    source = PipelineSource(EdgePipeline("cam1", models))
+    stats = Stats()
+    source.bind_stats(stats)
+    for k, s in enumerate(empty):
+        msg = source.process(Frame(s.image_rgb, 1_000 + k, k), 1_000 + k, 0)
+        assert msg.detections == ()
+    counted = stats.snapshot_counters().get("boxes_without_keypoints", 0)
+    assert counted == models.unconfirmed >= 2
