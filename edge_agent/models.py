@@ -997,6 +997,12 @@ class RobotTypesPipeline:
         return "+".join(p.model_id for p in self.pipelines.values())
 
     @property
+    def unconfirmed(self) -> int:
+        """Boxes the models' own keypoint floors dropped (:attr:`RobotKeypointPipeline.
+        unconfirmed`), since start."""
+        return sum(p.unconfirmed for p in self.pipelines.values())
+
+    @property
     def providers_used(self) -> list[str]:
         return next(iter(self.pipelines.values())).providers_used
 

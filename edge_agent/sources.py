@@ -96,10 +96,8 @@ class PipelineSource:
         self.pipeline = pipeline
         self.last_frame: Any = None
         self._stats: Any = None
-        self._skipped_seen = 0
-        self._duplicates_seen = 0
-        self._type_rejected_seen = 0
-        self._unconfirmed_seen = 0
+        #: totals already added to the service's counters, per counter
+        self._counted: dict[str, int] = {}
 
     def rgbd_frame(self) -> Any:
         """The last processed frame if it has depth (``Frame.depth_m``), else ``None``."""
@@ -124,27 +122,24 @@ class PipelineSource:
             stats.latency("keypoints", lat.keypoints_s)
             stats.latency("grab_to_detections", max(0, now_ns - frame.stamp_ns) * 1e-9
                           + lat.detector_s + lat.keypoints_s)
-            if skipped_total > self._skipped_seen:
-                stats.count("frames_skipped", skipped_total - self._skipped_seen)
-                self._skipped_seen = skipped_total
-            # several robot types: boxes of two types' detectors on one robot, the weaker dropped
             models = getattr(self.pipeline, "models", None)
-            dropped = getattr(models, "duplicates_dropped", 0)
-            if dropped > self._duplicates_seen:
-                stats.count("duplicate_boxes_dropped", dropped - self._duplicates_seen)
-                self._duplicates_seen = dropped
-            # boxes whose keypoints were not found (no robot; on a site with several types:
-            # another type's robot)
-            unconfirmed = sum(getattr(p, "unconfirmed", 0) for p in getattr(
-                models, "pipelines", {"": models}).values())
-            if unconfirmed > self._unconfirmed_seen:
-                stats.count("boxes_without_keypoints", unconfirmed - self._unconfirmed_seen)
-                self._unconfirmed_seen = unconfirmed
-            rejected = getattr(models, "type_rejected", 0)
-            if rejected > self._type_rejected_seen:
-                stats.count("boxes_not_of_their_type", rejected - self._type_rejected_seen)
-                self._type_rejected_seen = rejected
+            for counter, total in (
+                    ("frames_skipped", skipped_total),
+                    # boxes whose keypoints were not found: no robot
+                    ("boxes_without_keypoints", getattr(models, "unconfirmed", 0)),
+                    # several robot types: boxes of two types' detectors on one robot, the
+                    # weaker dropped; boxes of another type's robot
+                    ("duplicate_boxes_dropped", getattr(models, "duplicates_dropped", 0)),
+                    ("boxes_not_of_their_type", getattr(models, "type_rejected", 0))):
+                self._count_total(stats, counter, total)
         return msg
+
+    def _count_total(self, stats: Any, counter: str, total: int) -> None:
+        """Add to ``counter`` what ``total`` (a running count kept elsewhere) grew by."""
+        seen = self._counted.get(counter, 0)
+        if total > seen:
+            stats.count(counter, total - seen)
+            self._counted[counter] = total
 
 
 class CameraFrameSource(PipelineSource):

@@ -56,10 +56,15 @@ def main(argv: list[str]) -> int:
                    "the whole chain in a minute on a CPU")
     args = p.parse_args(argv)
 
-    from edge_agent.training.data import Geometry, SetSpec, render_set
+    from edge_agent.training.data import Geometry, render_set
     from simulation.render_gl import create_context
     from simulation.scenario import PAPER_SCENARIO, load_scenario
     from smartedge.sim.training_views import SimulationViews
+    from smartedge.train_cmd import set_specs, tiny_geometry
+
+    def train_sets(n_rand: int, n_site: int) -> list:
+        return list(set_specs(seed=SEED, train_views=n_rand, site_views=n_site,
+                              site_seeds=SITE_SEEDS)[0])
 
     work = Path(args.work)
     ctx = create_context()
@@ -67,13 +72,12 @@ def main(argv: list[str]) -> int:
     ctx.release()
     sc = load_scenario(PAPER_SCENARIO)
     views = SimulationViews(str(sc.source_path), sc.site.robot_model(sc.robot_id), None)
-    geom = (Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
-            if args.tiny else Geometry())
+    geom = tiny_geometry() if args.tiny else Geometry()
     cache = work / "cache"
     # held-out sets first, as smartedge train renders them (no jitter, no augmentation)
     eval_geom = Geometry(**{**geom.__dict__, "crop_jitter": False})
     val = args.val_views
-    for spec in (SetSpec("randomized", SEED + 1000, val), SetSpec("site", SEED + 1001, val)):
+    for spec in set_specs(seed=SEED, train_views=0, site_views=0, val_views=val)[1]:
         render_set(views, [spec], eval_geom, cache, workers=args.workers, augment_clean=False,
                    progress=say)
     # a probe round, then as many views as the time allows (2/3 randomized, 1/3 site)
@@ -81,7 +85,7 @@ def main(argv: list[str]) -> int:
     t = time.perf_counter()
     n_rand, n_site = ((2 * unit, unit) if args.tiny else
                       (200 * max(1, 2 * args.workers // 3), unit * max(1, args.workers // 5)))
-    render_set(views, _specs(n_rand, n_site, SetSpec), geom, cache, workers=args.workers,
+    render_set(views, train_sets(n_rand, n_site), geom, cache, workers=args.workers,
                progress=say)
     rate = (n_rand + n_site) / (time.perf_counter() - t)
     left = args.render_s - (time.perf_counter() - T0)
@@ -90,7 +94,7 @@ def main(argv: list[str]) -> int:
         n_site = max(unit, total // 3 // unit * unit)
         n_rand = max(2 * unit, (total - n_site) // 200 * 200)
     say(f"render rate {rate:.0f} views/s: {n_rand} randomized + {n_site} site views")
-    render_set(views, _specs(n_rand, n_site, SetSpec), geom, cache, workers=args.workers,
+    render_set(views, train_sets(n_rand, n_site), geom, cache, workers=args.workers,
                progress=say)
     say("rendering done")
     (work / "counts.json").write_text(json.dumps({"randomized": n_rand, "site": n_site,
@@ -123,13 +127,6 @@ def main(argv: list[str]) -> int:
         say(f"{kind} exited {codes[kind]}")
         print((work / f"{kind}.log").read_text()[-2500:], flush=True)
     return 0 if all(c == 0 for c in codes.values()) else 1
-
-
-def _specs(n_rand: int, n_site: int, spec_type: type) -> list:
-    """The sets `smartedge train` asks for with --train-views/--site-views/--site-seeds."""
-    seeds = [spec_type("site", SEED + 1 + k, n_site // SITE_SEEDS + (k < n_site % SITE_SEEDS))
-             for k in range(SITE_SEEDS)]
-    return [spec_type("randomized", SEED, n_rand), *seeds]
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from protocol.errors import SmartedgeError
 
@@ -92,11 +93,45 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def tiny_geometry() -> Any:
+    """The ``--tiny`` image sizes (smoke tests)."""
+    from edge_agent.training.data import Geometry
+
+    return Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
+
+
+def set_specs(*, seed: int, train_views: int, site_views: int, site_seeds: int = 1,
+              robot_views: int = 0, val_views: int = 200) -> tuple[tuple[Any, ...],
+                                                                  tuple[Any, ...]]:
+    """The rendered sets of a run, (training, held-out): randomized views of ``seed``, the site
+    views spread over ``site_seeds`` texture seeds (``seed`` + 1, + 2, ...), the robot's head
+    camera views over the demo site (texture seed 0) and those seeds; held out: the same kinds
+    at ``seed`` + :data:`HELD_OUT_SEED_OFFSET` (+ 1, + 2). What another tool renders ahead
+    with these sets, ``smartedge train`` finds in its cache."""
+    from edge_agent.training.data import SetSpec
+
+    n_site = max(1, site_seeds)
+    site_sets = [SetSpec("site", seed + 1 + k, site_views // n_site + (k < site_views % n_site))
+                 for k in range(n_site)]
+    # the robot's head camera sees the demo site (texture seed 0) too: train on it as well
+    robot_seeds = [0, *(s.seed for s in site_sets if s.seed != 0)]
+    n_robot = len(robot_seeds)
+    robot_sets = [SetSpec("robot", rseed, robot_views // n_robot + (k < robot_views % n_robot))
+                  for k, rseed in enumerate(robot_seeds)]
+    train_sets = tuple(s for s in (SetSpec("randomized", seed, train_views), *site_sets,
+                                   *robot_sets) if s.count > 0)
+    val_sets = (SetSpec("randomized", seed + HELD_OUT_SEED_OFFSET, val_views),
+                SetSpec("site", seed + HELD_OUT_SEED_OFFSET + 1, val_views))
+    if robot_views > 0:
+        val_sets += (SetSpec("robot", seed + HELD_OUT_SEED_OFFSET + 2, val_views),)
+    return train_sets, val_sets
+
+
 def main(argv: Sequence[str]) -> int:
     args = build_parser().parse_args(list(argv))
     try:
         try:
-            from edge_agent.training.data import Geometry, SetSpec
+            from edge_agent.training.data import Geometry
             from edge_agent.training.train import TrainConfig, train
             from smartedge.sim.training_views import SimulationViews
         except ModuleNotFoundError as exc:
@@ -109,8 +144,7 @@ def main(argv: Sequence[str]) -> int:
         mesh, model = load_user_robot(args.robot_mesh, args.keypoints)
         if model is None:
             model = scenario.site.robot_model(args.robot or scenario.robot_id)
-        geometry = (Geometry(det_w=128, det_h=96, crop_w=64, crop_h=96, frame_w=256, frame_h=192)
-                    if args.tiny else Geometry())
+        geometry = tiny_geometry() if args.tiny else Geometry()
         if args.kind == "segmentation":  # whole frames + label images at the output size
             from edge_agent.training.nets import SemanticSegNet
 
@@ -118,24 +152,9 @@ def main(argv: Sequence[str]) -> int:
             geometry = dataclasses.replace(geometry, crops_per_robot=0,
                                            seg_w=geometry.det_w // stride,
                                            seg_h=geometry.det_h // stride)
-        n_site = max(1, args.site_seeds)
-        site_sets = [SetSpec("site", args.seed + 1 + k,
-                             args.site_views // n_site + (k < args.site_views % n_site))
-                     for k in range(n_site)]
-        # the robot's head camera sees the demo site (texture seed 0) too: train on it as well
-        robot_seeds = [0, *(s.seed for s in site_sets if s.seed != 0)]
-        n_robot = len(robot_seeds)
-        robot_sets = [SetSpec("robot", seed, args.robot_views // n_robot
-                              + (k < args.robot_views % n_robot))
-                      for k, seed in enumerate(robot_seeds)]
-        train_sets = tuple(s for s in (SetSpec("randomized", args.seed, args.train_views),
-                                       *site_sets, *robot_sets)
-                           if s.count > 0)
-        val_sets = (SetSpec("randomized", args.seed + HELD_OUT_SEED_OFFSET, args.val_views),
-                    SetSpec("site", args.seed + HELD_OUT_SEED_OFFSET + 1, args.val_views))
-        if args.robot_views > 0:
-            val_sets += (SetSpec("robot", args.seed + HELD_OUT_SEED_OFFSET + 2,
-                                 args.val_views),)
+        train_sets, val_sets = set_specs(
+            seed=args.seed, train_views=args.train_views, site_views=args.site_views,
+            site_seeds=args.site_seeds, robot_views=args.robot_views, val_views=args.val_views)
         batch = args.batch or (32 if args.kind == "keypoints" else 16)
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
