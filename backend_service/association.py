@@ -441,23 +441,40 @@ class ViewCache:
         cam_i = self._index.get(camera.camera_id)
         if cam_i is None or self.cameras[cam_i] is not camera:
             return predicted_views([camera], keypoints_base_m, predictions, self.config)[0]
+        views, idx = self._views(keypoints_base_m, predictions)
+        return views[cam_i] if idx is None else views[cam_i].rows(idx)
+
+    def cameras_seeing(self, keypoints_base_m: np.ndarray,
+                       predictions: Sequence[RobotPrediction], row: int) -> frozenset[str]:
+        """The cameras of this cache in whose image ``predictions[row]`` has a keypoint
+        predicted: the only ones of them whose detections :func:`associate` can give that
+        robot (a pair with no shared keypoint costs ``inf``)."""
+        views, idx = self._views(keypoints_base_m, predictions)
+        r = row if idx is None else idx[row]
+        return frozenset(cam.camera_id for cam, v in zip(self.cameras, views, strict=True)
+                         if v.box_lo[r, 0] <= v.box_hi[r, 0])
+
+    def _views(self, keypoints_base_m: np.ndarray, predictions: Sequence[RobotPrediction]
+               ) -> tuple[list[PredictedView], list[int] | None]:
+        """The views of ``predictions`` in every camera of the cache, and the rows of
+        ``predictions`` in them (``None``: the same rows)."""
         entries = self._entries.setdefault(id(keypoints_base_m),
                                            collections.deque(maxlen=self._keep))
         if entries:  # the common case: the same predictions as the image before
             preds, _, views = entries[-1]
             if len(preds) == len(predictions) and all(
                     a is b for a, b in zip(preds, predictions, strict=True)):
-                return views[cam_i]
+                return views, None
         for preds, rows, views in entries:
             idx = [rows.get(id(p), -1) for p in predictions]
             if all(i >= 0 and preds[i] is p for i, p in zip(idx, predictions, strict=True)):
-                view = views[cam_i]
-                return view if len(idx) == len(preds) and idx == sorted(idx) else view.rows(idx)
+                same = len(idx) == len(preds) and idx == sorted(idx)
+                return views, None if same else idx
         preds = tuple(predictions)
         views = predicted_views(self.cameras, keypoints_base_m, preds, self.config)
         self.computed += 1
         entries.append((preds, {id(p): i for i, p in enumerate(preds)}, views))
-        return views[cam_i]
+        return views, None
 
 
 def association_costs(camera: CameraModel, detections: Sequence[Detection],
@@ -700,6 +717,7 @@ class DetectionRouter:
         #: the robots that had no prediction for the latest routed image
         self.unpredicted: tuple[str, ...] = ()
         self.views = ViewCache(tuple(site.cameras.values()), self.config)
+        self._outside_views: frozenset[str] = frozenset()  # cameras not in the view cache
 
     def serve_cameras(self, camera_ids: Sequence[str] | None) -> None:
         """Project the predicted views into ``camera_ids`` only (the cameras whose messages
@@ -710,6 +728,24 @@ class DetectionRouter:
         if unknown:
             raise ValueError(f"cameras {unknown} are not in site {self.site.name!r}")
         self.views = ViewCache(tuple(self.site.cameras[c] for c in ids), self.config)
+        self._outside_views = frozenset(self.site.cameras) - set(ids)
+
+    def cameras_seeing(self, robot_id: str,
+                       predictions: Mapping[str, RobotPrediction | None]
+                       ) -> frozenset[str] | None:
+        """The site's cameras whose images :meth:`route` can give unnamed detections of
+        ``robot_id`` with ``predictions`` (robot id -> prediction, as for :meth:`route`): the
+        cameras of the view cache in whose image the robot has a keypoint predicted, and every
+        camera outside the cache. ``None``: any camera (the robot has no prediction, or is no
+        robot of the site)."""
+        kp = self.keypoints_base_m.get(robot_id)
+        if kp is None or predictions.get(robot_id) is None:
+            return None
+        # the robots of its model in route's order: the group association_costs projects
+        group = [p for rid in self.robot_ids
+                 if (p := predictions.get(rid)) is not None and self.keypoints_base_m[rid] is kp]
+        row = next(i for i, p in enumerate(group) if p.robot_id == robot_id)
+        return self.views.cameras_seeing(kp, group, row) | self._outside_views
 
     def route(self, msg: RobotDetections,
               predictions: Mapping[str, RobotPrediction | None]) -> RobotDetections:

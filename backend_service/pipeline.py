@@ -467,6 +467,9 @@ class BackendPipeline:
         #: the robots' predictions for the latest image stamp routed (stamp, by robot)
         self._predictions: tuple[int, dict[str, RobotPrediction | None]] | None = None
         self._fusion_reset_at: dict[str, int] = {}
+        if self.router is not None:
+            # a robot's frame-set waits only for the cameras that can see it
+            self.sync.relevant_cameras = self._cameras_seeing
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -586,15 +589,28 @@ class BackendPipeline:
         assert self.router is not None
         cam = self.site.cameras.get(msg.camera_id)
         stamp_ns = int(msg.stamp_ns) + (int(cam.clock_offset_ns) if cam is not None else 0)
-        cfg = self.config.association
+        return self.router.route(msg, self._predictions_at(stamp_ns))
+
+    def _predictions_at(self, stamp_ns: int) -> dict[str, RobotPrediction | None]:
+        """Every robot's :meth:`RobotTrack.prediction` at ``stamp_ns`` (common clock)."""
         # the images of one frame-set share one stamp: one set of predictions serves them all
         cached = self._predictions
         if cached is not None and cached[0] == stamp_ns:
-            predictions = cached[1]
-        else:
-            predictions = {rid: t.prediction(stamp_ns, cfg) for rid, t in self.tracks.items()}
-            self._predictions = (stamp_ns, predictions)
-        return self.router.route(msg, predictions)
+            return cached[1]
+        cfg = self.config.association
+        predictions = {rid: t.prediction(stamp_ns, cfg) for rid, t in self.tracks.items()}
+        self._predictions = (stamp_ns, predictions)
+        return predictions
+
+    def _cameras_seeing(self, robot_id: str, stamp_ns: int) -> frozenset[str] | None:
+        """The synchronizer's :attr:`~backend_service.sync.FrameSetSynchronizer.relevant_cameras`
+        on a site with several robots: the cameras whose detections the router can give
+        ``robot_id`` at ``stamp_ns`` (those where its prediction has a keypoint in the image;
+        ``None``, any camera, without a prediction). The other cameras' messages cannot add to
+        its frame-set, so it does not wait for them: a robot's pose goes out when the cameras
+        that can see it have reported, not when the whole site has."""
+        assert self.router is not None
+        return self.router.cameras_seeing(robot_id, self._predictions_at(stamp_ns))
 
     def poll(self, now_ns: int) -> PipelineOutput:
         """Emit the frame-sets whose wait is over at ``now_ns`` and solve them."""

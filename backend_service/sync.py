@@ -7,7 +7,10 @@ emitted when
 
 - every *live* camera (one that sent anything within ``camera_timeout_s``) has reported for it,
   either with a message in the window (a detection or "robot not seen") or with a later stamp
-  (it moved on, so it will not contribute), or
+  (it moved on, so it will not contribute); with :attr:`FrameSetSynchronizer.relevant_cameras`
+  set (a site with several robots), only the live cameras that can contribute to this robot's
+  window count: the others' messages are not waited for (counted ``closed_early`` when a window
+  goes out before them, and their messages after it are no ``late`` ones), or
 - it has waited ``sync_max_wait_ms`` since its first message arrived (``now_ns`` clock).
 
 Windows are emitted in stamp order; a message for a window that is already emitted (or older) is
@@ -18,10 +21,11 @@ camera, same stamp), ``future`` (stamp more than the site's ``clock.max_future_m
 scale of it; an exact scale, e.g. a 424x240 stream of an 848x480 calibration, is converted to
 calibrated pixels, see :func:`~backend_service.frame_set.image_scale`),
 ``rate_limited`` (a camera sending faster than ``max_camera_rate_hz``: its excess frames),
-``not_seen`` (message without this robot), ``replaced`` (a camera sent two frames within one
-window; the one closer to the anchor is kept), ``overflow`` (too many open windows: the oldest is
-emitted early), ``empty`` (a window closed with no detection), ``emitted``. Memory is bounded by
-``max_open_windows`` per robot and the site's camera count.
+``not_seen`` (message without this robot), ``after_close`` (a message for a window that went
+out before it, from a camera that could not contribute to it), ``replaced`` (a camera sent two
+frames within one window; the one closer to the anchor is kept), ``overflow`` (too many open
+windows: the oldest is emitted early), ``empty`` (a window closed with no detection),
+``emitted``. Memory is bounded by ``max_open_windows`` per robot and the site's camera count.
 
 Every counter that concerns one camera is also kept per camera (:attr:`camera_counters`), so a
 camera whose frames all come late or ahead is named. Each camera's clock is tracked too
@@ -39,7 +43,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import Final
 
 from backend_service.frame_set import (
@@ -55,7 +59,8 @@ log = logging.getLogger(__name__)
 
 COUNTER_NAMES: Final = (
     "received", "emitted", "late", "duplicate", "future", "unknown_camera", "bad_keypoints",
-    "image_size", "not_seen", "replaced", "overflow", "empty", "rate_limited",
+    "image_size", "not_seen", "replaced", "overflow", "empty", "rate_limited", "closed_early",
+    "after_close",
 )
 #: the counters also kept per camera
 CAMERA_COUNTER_NAMES: Final = (
@@ -76,6 +81,8 @@ class _Window:
     opened_at_ns: int
     observations: dict[str, CameraObservation] = dataclasses.field(default_factory=dict)
     reported: set[str] = dataclasses.field(default_factory=set)
+    #: the cameras that can contribute (``None``: any camera)
+    relevant: frozenset[str] | None = None
 
 
 class FrameSetSynchronizer:
@@ -133,6 +140,14 @@ class FrameSetSynchronizer:
         self._synced: tuple[str, ...] = self.robot_ids
         #: the cameras presumed live at a cold start (:meth:`expect_cameras`)
         self._expected: tuple[str, ...] = tuple(site.cameras)
+        #: ``(robot_id, stamp_ns) -> cameras`` that can hold a detection of that robot at that
+        #: (clock-corrected) stamp, ``None`` for any camera; asked once per window, when it
+        #: opens. ``None`` (the default): every live camera is waited for.
+        self.relevant_cameras: Callable[[str, int], frozenset[str] | None] | None = None
+        #: per robot, the recently emitted windows closed before some live camera reported:
+        #: (anchor, the cameras that could contribute)
+        self._closed_early: dict[str, collections.deque[tuple[int, frozenset[str]]]] = {
+            r: collections.deque(maxlen=8) for r in self.robot_ids}
 
     def synchronize_only(self, robot_ids: Collection[str] | None) -> list[FrameSet]:
         """Keep windows only for ``robot_ids`` (``None``: every robot, the default): a backend
@@ -304,6 +319,11 @@ class FrameSetSynchronizer:
              scale: float = 1.0) -> None:
         emitted = self._emitted_anchor[robot_id]
         if emitted is not None and stamp <= emitted + self.window_ns:
+            for anchor, relevant in self._closed_early[robot_id]:
+                if abs(stamp - anchor) <= self.window_ns and msg.camera_id not in relevant:
+                    # its window did not wait for this camera: it could not contribute
+                    self.counters["after_close"] += 1
+                    return
             self._count(msg.camera_id, "late", now_ns)
             return
         windows = self._windows[robot_id]
@@ -315,6 +335,8 @@ class FrameSetSynchronizer:
                 win, best_gap = w, gap
         if win is None:
             win = _Window(stamp, now_ns)
+            if self.relevant_cameras is not None:
+                win.relevant = self.relevant_cameras(robot_id, stamp)
             windows.append(win)
             windows.sort(key=lambda w: w.anchor_ns)
         win.reported.add(msg.camera_id)
@@ -342,7 +364,10 @@ class FrameSetSynchronizer:
     def _ready(self, win: _Window, live: frozenset[str], now_ns: int) -> bool:
         if now_ns - win.opened_at_ns >= self.max_wait_ns:
             return True
-        return all(self._moved_on(c, win) for c in live - win.reported)
+        pending = live - win.reported
+        if win.relevant is not None:
+            pending &= win.relevant
+        return all(self._moved_on(c, win) for c in pending)
 
     def poll(self, now_ns: int) -> list[FrameSet]:
         """Emit every window that is complete or has waited long enough, oldest first."""
@@ -359,6 +384,10 @@ class FrameSetSynchronizer:
                     ready_idx = i
             # Older windows go out with a newer ready one, so stamps stay monotonic.
             for win in windows[: ready_idx + 1]:
+                if win.relevant is not None and not live <= win.reported | win.relevant:
+                    # live cameras that could not contribute had not reported yet
+                    self.counters["closed_early"] += 1
+                    self._closed_early[robot_id].append((win.anchor_ns, win.relevant))
                 self._emit(robot_id, win, out)
             del windows[: ready_idx + 1]
         return out

@@ -535,3 +535,33 @@ def test_the_one_pair_shortcut_gives_the_costs_of_the_general_path() -> None:
         checked += 1
         finite += int(np.isfinite(one).sum())
     assert checked == 60 and 10 < finite < 120
+
+
+def test_the_cameras_seeing_a_robot_are_the_only_ones_that_can_give_it_a_detection() -> None:
+    # what a robot's frame-set waits for on a site with several robots: the cameras where its
+    # prediction has a keypoint in the image (and any camera outside the view cache)
+    pose = (12.0, 8.0, 0.4)  # seen by cam1, cam2, cam4
+    near = _prediction("hsr_a", pose, 0.05)
+    far = _prediction("hsr_b", (400.0, -300.0, 0.0), 0.05)
+    router = DetectionRouter(SITE)
+    preds = {"hsr_a": near, "hsr_b": far}
+    cameras = list(SITE.cameras.values())
+    views = predicted_views(cameras, KEYPOINTS["hsr_a"], [near, far], AssociationConfig())
+    seeing = {c.camera_id for c, v in zip(cameras, views, strict=True) if v.visible[0].any()}
+    assert CAMERA.camera_id in seeing and len(seeing) < len(cameras)
+    assert router.cameras_seeing("hsr_a", preds) == seeing
+    assert router.cameras_seeing("hsr_b", preds) == {
+        c.camera_id for c, v in zip(cameras, views, strict=True) if v.visible[1].any()}
+    assert router.cameras_seeing("hsr_b", {"hsr_a": near, "hsr_b": None}) is None
+    assert router.cameras_seeing("nobody", preds) is None
+    # the robot as cam1 sees it, reported by every camera: only those seeing it assign it
+    det = _detection(pose)
+    for cam in cameras:
+        out = associate(cam, [det], [near, far], KEYPOINTS)
+        assert (out.outcomes[0].robot_id == "hsr_a") <= (cam.camera_id in seeing)
+    assert associate(CAMERA, [det], [near, far], KEYPOINTS).outcomes[0].robot_id == "hsr_a"
+    # a backend of some cameras: the others are projected on their own, so they count
+    some = sorted(seeing)[:1]
+    router.serve_cameras(some)
+    assert router.cameras_seeing("hsr_a", preds) == (
+        set(some) | (set(SITE.cameras) - set(some)))

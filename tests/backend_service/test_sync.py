@@ -188,3 +188,49 @@ def test_robots_run_elsewhere_are_not_synchronized_and_come_back_cleanly() -> No
     for cam in CAMS:
         out += sync.push(det_msg(cam, t3, seq=3), t3 + 5 * MS)
     assert len(out) == 1 and out[0].camera_ids == tuple(CAMS)
+
+
+def test_a_window_waits_only_for_the_cameras_that_can_see_its_robot() -> None:
+    """With ``relevant_cameras`` (a site with several robots: the cameras where the robot's
+    prediction has a keypoint), a window closes once those cameras reported; a camera that
+    cannot see the robot is not waited for, and its message after the close is counted
+    ``after_close``, not ``late``. A relevant camera after the close is still ``late``, and
+    without a relevant set (no prediction) every live camera is waited for."""
+    asked: list[tuple[str, int]] = []
+    relevant: dict[str, frozenset[str] | None] = {"v": frozenset(CAMS[:2])}
+
+    def hook(robot_id: str, stamp_ns: int) -> frozenset[str] | None:
+        asked.append((robot_id, stamp_ns))
+        return relevant["v"]
+
+    sync = FrameSetSynchronizer(SITE)
+    _warm(sync, T0)
+    sync.relevant_cameras = hook
+    t1 = T0 + 1000 * MS
+    out = sync.push(det_msg(CAMS[0], t1, seq=1), t1 + 5 * MS)
+    assert out == [] and asked == [(next(iter(SITE.robots)), t1)]
+    out = sync.push(det_msg(CAMS[1], t1, seq=1), t1 + 6 * MS)
+    assert len(out) == 1 and out[0].camera_ids == tuple(CAMS[:2])
+    assert sync.counters["closed_early"] == 1
+    late_before = sync.counters["late"]
+    sync.push(det_msg(CAMS[2], t1, seq=1, seen=False), t1 + 7 * MS)
+    sync.push(det_msg(CAMS[3], t1, seq=1), t1 + 8 * MS)
+    assert sync.counters["after_close"] == 2 and sync.counters["late"] == late_before
+    assert all(sync.camera_counters[c]["late"] == 0 for c in CAMS)
+    # a relevant camera whose message comes after the close: late, as ever
+    t2 = t1 + 66 * MS
+    relevant["v"] = frozenset(CAMS[:2])
+    out = sync.push(det_msg(CAMS[0], t2, seq=2), t2 + 5 * MS)
+    out += sync.poll(t2 + 5 * MS + int(SITE.thresholds.sync_max_wait_ms * MS))
+    assert len(out) == 1 and out[0].camera_ids == (CAMS[0],)
+    sync.push(det_msg(CAMS[1], t2, seq=2), t2 + 200 * MS)
+    assert sync.camera_counters[CAMS[1]]["late"] == 1
+    # no relevant set: the window waits for every live camera
+    t3 = t2 + 66 * MS
+    relevant["v"] = None
+    out = []
+    for cam in CAMS[:3]:
+        out += sync.push(det_msg(cam, t3, seq=3), t3 + 210 * MS)
+    assert out == []
+    out = sync.push(det_msg(CAMS[3], t3, seq=3), t3 + 211 * MS)
+    assert len(out) == 1 and out[0].camera_ids == tuple(CAMS)
