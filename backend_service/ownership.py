@@ -79,6 +79,7 @@ from backend_service.areas import AreaMap
 from protocol import keys
 from protocol.errors import ValidationError
 from protocol.runtime import Subscription
+from protocol.session import drain_replies
 from protocol.validation import check_id
 
 log = logging.getLogger(__name__)
@@ -542,6 +543,17 @@ def parse_liveliness(key: str) -> tuple[str, str, str, str] | None:
     return None
 
 
+@dataclasses.dataclass
+class _PendingSync:
+    """The liveliness gets of one :meth:`OwnershipTokens.start_sync`: when they went out, their
+    timeout, each key expression's reply channel, and the replies taken so far."""
+
+    started_s: float
+    timeout_s: float
+    handlers: list[tuple[str, Any]]
+    replies: list[tuple[str, Any]] = dataclasses.field(default_factory=list)
+
+
 class OwnershipTokens:
     """The Zenoh side of :class:`OwnershipTable`: this backend's owner tokens on ``session``.
 
@@ -558,34 +570,75 @@ class OwnershipTokens:
         self.table = table
         self._tokens: dict[str, Any] = {}
         self._area_tokens: dict[str, Any] = {}
+        self._pending: _PendingSync | None = None
 
     def sync(self, now_ns: Callable[[], int], timeout_s: float = DEFAULT_SYNC_TIMEOUT_S) -> int:
         """Ask the bus for the backends and owner tokens that exist and hand them to
-        :meth:`OwnershipTable.resync`; returns how many tokens came back. A failed get (or an
-        error reply) leaves the table unsynced (no claims) and raises."""
-        members: list[str] = []
-        owners: list[tuple[str, str]] = []
-        areas: list[tuple[str, str]] = []
-        started = time.monotonic()
+        :meth:`OwnershipTable.resync`, waiting for the answer (the start-up sync); returns how
+        many tokens came back. A failed get (or an error reply) leaves the table unsynced (no
+        claims) and raises."""
+        self.start_sync(timeout_s)
+        while (n := self.poll_sync(now_ns)) is None:
+            time.sleep(0.002)
+        return n
+
+    def start_sync(self, timeout_s: float = DEFAULT_SYNC_TIMEOUT_S) -> None:
+        """Send the liveliness gets of :meth:`sync` and return at once; :meth:`poll_sync` takes
+        the answer when it is in. The periodic resync runs this way: a get waits for replies
+        through the routers (1-10 ms on a loaded fleet bench), which the worker spent blocked
+        every second, with every robot's frame-sets queued behind it."""
         key_exprs = [keys.alive_key(self.site, BACKEND_SERVICE, "*"),
                      keys.owner_key(self.site, "*", "*")]
         if self.table.areas is not None:
             key_exprs.insert(0, keys.area_key(self.site, "*", "*"))
-        for key_expr in key_exprs:
-            for reply in self.session.liveliness().get(key_expr, timeout=timeout_s):
-                if reply.ok is None:
-                    raise RuntimeError(f"liveliness get {key_expr}: error reply {reply.err}")
-                parsed = parse_liveliness(str(reply.ok.key_expr))
-                if parsed is None or parsed[0] != self.site:
-                    continue
-                if parsed[1] == "alive":
-                    members.append(parsed[3])
-                elif parsed[1] == "area":
-                    areas.append((parsed[2], parsed[3]))
-                else:
-                    owners.append((parsed[2], parsed[3]))
-        if time.monotonic() - started >= 0.9 * timeout_s:  # cut short: maybe not all
-            raise TimeoutError(f"the liveliness get took {time.monotonic() - started:.1f} s")
+        liveliness = self.session.liveliness()
+        self._pending = _PendingSync(
+            time.monotonic(), timeout_s,
+            [(k, liveliness.get(k, timeout=timeout_s)) for k in key_exprs])
+
+    @property
+    def syncing(self) -> bool:
+        """Whether the gets of :meth:`start_sync` are out and not taken yet."""
+        return self._pending is not None
+
+    def poll_sync(self, now_ns: Callable[[], int]) -> int | None:
+        """The answer of :meth:`start_sync`, without waiting: ``None`` while a get is still
+        out; when all are over, the tokens go to :meth:`OwnershipTable.resync` and their
+        count is returned. An error reply or a get cut short by its timeout raises (the table
+        stays as it was)."""
+        pending = self._pending
+        if pending is None:
+            raise RuntimeError("poll_sync without start_sync")
+        over = True
+        try:
+            for key_expr, handler in pending.handlers:
+                replies, done = drain_replies(handler)
+                pending.replies.extend((key_expr, r) for r in replies)
+                over &= done
+        except Exception:
+            self._pending = None  # a broken channel: the next sync starts afresh
+            raise
+        if not over:
+            return None
+        self._pending = None
+        elapsed = time.monotonic() - pending.started_s
+        if elapsed >= 0.9 * pending.timeout_s:  # cut short: maybe not all
+            raise TimeoutError(f"the liveliness get took {elapsed:.1f} s")
+        members: list[str] = []
+        owners: list[tuple[str, str]] = []
+        areas: list[tuple[str, str]] = []
+        for key_expr, reply in pending.replies:
+            if reply.ok is None:
+                raise RuntimeError(f"liveliness get {key_expr}: error reply {reply.err}")
+            parsed = parse_liveliness(str(reply.ok.key_expr))
+            if parsed is None or parsed[0] != self.site:
+                continue
+            if parsed[1] == "alive":
+                members.append(parsed[3])
+            elif parsed[1] == "area":
+                areas.append((parsed[2], parsed[3]))
+            else:
+                owners.append((parsed[2], parsed[3]))
         self.table.resync(members, owners, now_ns(), areas)
         log.debug("backend %s: ownership synced (%d backends, %d owner tokens on the bus)",
                   self.table.instance_id, len(members), len(owners))
@@ -647,6 +700,7 @@ class BackendOwnership:
         self._clock: Callable[[], int] | None = None
         self._next_sync_ns = 0
         self._online = True
+        self._was_synced = False  # whether the table was synced when the gets went out
         #: another backend with this instance id was on the bus at start: publish nothing
         self.duplicate = False
 
@@ -689,26 +743,49 @@ class BackendOwnership:
                           "publishes nothing (give each backend its own --id)", me, me)
                 return
         self.tokens.declare_areas()
-        self._sync()
+        self._sync(wait=True)
 
-    def _sync(self) -> None:
+    def _sync(self, wait: bool = False) -> None:
+        """Start the liveliness gets (``wait``: and take their answer now, the start-up sync;
+        else a later :meth:`tick` takes it, :meth:`_take_sync`)."""
         assert self.tokens is not None and self._clock is not None
         if not session_connected(self.tokens.session):
             return  # nobody to ask: the next tick with a link tries
-        was_synced = self.table.is_synced
+        self._was_synced = self.table.is_synced
         try:
-            n = self.tokens.sync(self._clock)
+            if wait:
+                self._synced(self.tokens.sync(self._clock))
+            else:
+                self.tokens.start_sync()
         except Exception:
-            self.table.counters["ownership.sync_errors"] += 1
-            self._next_sync_ns = self._clock() + round(SYNC_RETRY_S * NS)
-            log.exception("backend %s: the liveliness get of the backends and owner tokens "
-                          "failed%s", self.table.instance_id,
-                          "" if was_synced else "; publishing nothing until it succeeds")
+            self._sync_failed()
+
+    def _take_sync(self) -> None:
+        """The answer of the gets :meth:`_sync` sent, if it is in (never waits)."""
+        assert self.tokens is not None and self._clock is not None
+        try:
+            n = self.tokens.poll_sync(self._clock)
+        except Exception:
+            self._sync_failed()
         else:
-            self._next_sync_ns = self._clock() + self.resync_ns
-            if not was_synced:
-                log.info("backend %s: ownership synced (%d tokens on the bus)",
-                         self.table.instance_id, n)
+            if n is not None:
+                self._synced(n)
+
+    def _sync_failed(self) -> None:
+        assert self._clock is not None
+        was_synced = self.table.is_synced
+        self.table.counters["ownership.sync_errors"] += 1
+        self._next_sync_ns = self._clock() + round(SYNC_RETRY_S * NS)
+        log.exception("backend %s: the liveliness get of the backends and owner tokens "
+                      "failed%s", self.table.instance_id,
+                      "" if was_synced else "; publishing nothing until it succeeds")
+
+    def _synced(self, n: int) -> None:
+        assert self._clock is not None
+        self._next_sync_ns = self._clock() + self.resync_ns
+        if not self._was_synced:
+            log.info("backend %s: ownership synced (%d tokens on the bus)",
+                     self.table.instance_id, n)
 
     def alive(self, key: str, present: bool, now_ns: int) -> bool:
         """One liveliness event of the runner; True when it was the table's (a backend or an
@@ -732,7 +809,9 @@ class BackendOwnership:
                 return decision
             return Decision()
         self._online = True
-        if now_ns >= self._next_sync_ns:  # the first sync, a retry, or the periodic one
+        if self.tokens.syncing:
+            self._take_sync()
+        elif now_ns >= self._next_sync_ns:  # the first sync, a retry, or the periodic one
             self._sync()
         decision = self.table.decide(now_ns)
         if decision:

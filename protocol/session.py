@@ -138,3 +138,20 @@ def loopback_config(listen: Sequence[str] = (), connect: Sequence[str] = ()):
         "scouting": {"multicast": {"enabled": False}},
     }
     return zenoh.Config.from_json5(json.dumps(doc))
+
+
+def drain_replies(handler: Any) -> tuple[list[Any], bool]:
+    """The replies a Zenoh query's channel holds now, without waiting, and whether the query is
+    over (every reply in, or its timeout passed): ``handler`` is what ``get`` returned with the
+    default channel. A worker loop polls a long query with this instead of blocking on it."""
+    import zenoh
+
+    replies = []
+    while True:
+        try:
+            reply = handler.try_recv()
+        except zenoh.ZError:  # empty and closed: the query is over
+            return replies, True
+        if reply is None:
+            return replies, False
+        replies.append(reply)

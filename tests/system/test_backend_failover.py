@@ -490,3 +490,38 @@ def test_a_killed_backend_s_robot_resumes_from_another_real_backend(tmp_path: Pa
     assert handover[0][1:] == (victim, False)  # the owner was killed
     assert any(present and inst != victim for _, inst, present in handover)  # and replaced
     assert resume_ms <= FAILOVER_TARGET_S * 1e3
+
+
+def test_the_periodic_resync_goes_out_and_comes_back_without_blocking(router: str) -> None:
+    """The liveliness gets that correct missed events every second leave at once
+    (``start_sync``) and a later tick takes their answer (``poll_sync``): the worker no longer
+    stands still for their round trip through the routers while frame-sets queue. The answer
+    is the one the blocking start-up sync gives."""
+    import zenoh
+
+    from backend_service.ownership import OwnershipTable, OwnershipTokens
+
+    with zenoh.open(client_config(router)) as other, zenoh.open(client_config(router)) as mine:
+        tokens_on_bus = [other.liveliness().declare_token(keys.alive_key("lab", "backend", "b9")),
+                         other.liveliness().declare_token(keys.owner_key("lab", "r1", "b9"))]
+        time.sleep(0.3)
+        blocking = OwnershipTable("b1", ["r0", "r1"], started_ns=0)
+        assert OwnershipTokens(mine, "lab", blocking).sync(time.time_ns) == 2
+        table = OwnershipTable("b1", ["r0", "r1"], started_ns=0)
+        tokens = OwnershipTokens(mine, "lab", table)
+        t0 = time.perf_counter()
+        tokens.start_sync()
+        sent_s = time.perf_counter() - t0
+        assert tokens.syncing and not table.is_synced
+        answers: list[int | None] = []
+        assert wait_until(lambda: answers.append(tokens.poll_sync(time.time_ns))
+                          or answers[-1] is not None, 5.0, 0.001)
+        assert answers[-1] == 2 and not tokens.syncing and table.is_synced
+        assert sent_s < 0.05  # the gets' round trip was not waited for
+        now = time.time_ns()
+        assert table.members(now) == blocking.members(now) == ["b1", "b9"]
+        assert table.summary(now) == blocking.summary(now)
+        with pytest.raises(RuntimeError, match="without start_sync"):
+            tokens.poll_sync(time.time_ns)
+        for token in tokens_on_bus:
+            token.undeclare()
