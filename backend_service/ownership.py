@@ -53,7 +53,10 @@ sends a message of its own.
   publisher.
 - **Missed events**: a synced backend runs the liveliness get again every ``resync_s`` and
   adds what its subscriptions missed (they do not replay what happened while a session was cut
-  off); it removes nothing on a get's word, only on a vanishing token.
+  off); it removes nothing on a get's word, only on a vanishing token. Only the start-up get
+  is waited for; the periodic one goes out on one tick and its answer is taken on a later one
+  (:meth:`OwnershipTokens.start_sync`, :meth:`OwnershipTokens.poll_sync`), so the worker
+  never stands still for its round trip through the routers.
 
 :class:`OwnershipTable` is the pure part (injected time, no Zenoh): feed it members and owner
 tokens, call :meth:`~OwnershipTable.decide` on the tick and apply what it returns with

@@ -290,11 +290,15 @@ class RobotTrack:
 
     def add_external(self, est: PoseEstimate) -> bool:
         """Another backend's published pose of this robot; False when older than the one
-        kept (messages may overtake each other)."""
+        kept (messages may overtake each other). Like a new odometry or camera estimate of a
+        robot run here, it serves the predictions of the stamps routed after it: the images
+        of a frame-set already being routed keep the predictions they started with (one set
+        of predictions, and one projection into every camera, per frame-set; an owner
+        publishes 20 poses a second, so forgetting them made a backend project every robot
+        into its cameras again several times within one frame-set)."""
         if self.external is not None and est.stamp_ns <= self.external.stamp_ns:
             return False
         self.external = est
-        self.forget_predictions()
         return True
 
     def forget_predictions(self) -> None:
@@ -557,7 +561,6 @@ class BackendPipeline:
             self.counters["external_pose.ignored"] += 1
             return
         if track.add_external(est):
-            self._predictions = None  # its prediction is made afresh
             self.counters["external_pose.used"] += 1
         else:
             self.counters["external_pose.out_of_order"] += 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
 import math
 from collections.abc import Collection
 
@@ -99,6 +100,13 @@ def run_split(run: TwoRobotRun, owners: dict[str, Collection[str]], *, share: bo
 def test_each_backend_runs_its_robot_and_matches_with_the_other_s_published_pose(
         crossing: TwoRobotRun) -> None:
     backends = run_split(crossing, {"b0": ["hsr_a"], "b1": ["hsr_b"]})
+    # the frame times with a detection to route: the cameras' images stamped within the sync
+    # window of each other (on the common clock) are one
+    stamps = sorted(m.stamp_ns + crossing.site.cameras[m.camera_id].clock_offset_ns
+                    for _, m in crossing.messages
+                    if isinstance(m, RobotDetections) and m.detections)
+    window_ns = crossing.site.thresholds.sync_window_ms * 1e6
+    frame_times = 1 + sum(1 for a, b in itertools.pairwise(stamps) if b - a > window_ns)
     for b, own in ((backends["b0"], "hsr_a"), (backends["b1"], "hsr_b")):
         counters = b.pipeline.counter_snapshot()
         assert b.pipeline.active_robots == [own]
@@ -113,6 +121,11 @@ def test_each_backend_runs_its_robot_and_matches_with_the_other_s_published_pose
         assert b.pipeline.sync.counters["emitted"] <= len(b.errors_m[own]) + 5
         assert set(b.errors_m) == {own}  # only its own robot is estimated
         assert len(b.errors_m[own]) > 100 and max(e for _, e in b.errors_m[own]) < 0.1
+        # a pose published by the other backend while a frame-set's images are routed serves
+        # the next frame-set: one projection of the robots into the cameras per frame time
+        assert b.pipeline.router is not None
+        assert b.pipeline.router.views.computed <= frame_times, (
+            b.name, b.pipeline.router.views.computed, frame_times)
 
 
 def test_without_the_other_robot_s_published_pose_its_detections_are_lost(
