@@ -16,7 +16,9 @@ keyframes (``Pose2`` variables of the robot base in the map frame):
   (the odometry buffer is a :class:`~protocol.history.StampedHistory`);
 - memory stays bounded: when keyframes fall out of a sliding window (time and count), the old
   part of the graph is marginalized into a Gaussian prior on the oldest kept keyframe and ISAM2
-  is rebuilt over the kept keyframes.
+  is rebuilt over the kept keyframes. That rebuild costs 10-20 ms; a service defers it
+  (``deferred_marginalization``) to :meth:`PoseGraphFusion.maintain`, which its worker calls when
+  no message waits, so it does not delay the poses of the frame-set being solved.
 
 Initialization: the odometry frame has no anchor in the map frame until the first camera
 estimate (or :meth:`PoseGraphFusion.set_initial_pose`). Before that, odometry is only buffered
@@ -87,7 +89,8 @@ class FusionConfig:
 
     Window: keyframes older than ``window_s`` before the latest one, or beyond
     ``max_keyframes``, are marginalized in batches of ``marginalize_batch`` (so the graph holds
-    at most ``max_keyframes + marginalize_batch - 1`` keyframes).
+    at most ``max_keyframes + marginalize_batch - 1`` keyframes; with deferred marginalization
+    at most ``max_keyframes + 2 * marginalize_batch - 1``).
     """
 
     keyframe_distance_m: float = 0.25
@@ -246,8 +249,16 @@ class _Factor:
     cov_body: np.ndarray
     robust: bool
     index: int = -1
+    #: the GTSAM factor, built once (a marginalization re-adds the kept factors to a new ISAM2)
+    built: gtsam.NonlinearFactor | None = dataclasses.field(default=None, repr=False,
+                                                            compare=False)
 
     def factor(self, config: FusionConfig) -> gtsam.NonlinearFactor:
+        if self.built is None:
+            self.built = self._build(config)
+        return self.built
+
+    def _build(self, config: FusionConfig) -> gtsam.NonlinearFactor:
         noise = gtsam.noiseModel.Gaussian.Covariance(self.cov_body)
         if self.robust:
             threshold = config.robust_threshold
@@ -297,8 +308,14 @@ class PoseGraphFusion:
     """
 
     def __init__(self, robot_id: str, config: FusionConfig | None = None,
-                 clock: ClockPolicy | None = None) -> None:
+                 clock: ClockPolicy | None = None, *,
+                 deferred_marginalization: bool = False) -> None:
         self.robot_id = robot_id
+        #: marginalize in :meth:`maintain`, not inside the call that made the window full
+        #: (until the backlog reaches twice ``marginalize_batch``: then inline, counted
+        #: ``marginalizations_overdue``)
+        self.deferred_marginalization = deferred_marginalization
+        self._marginalization_deferred = False  # one is due (checked by maintain())
         self.config = config if config is not None else FusionConfig()
         self.clock = clock if clock is not None else ClockPolicy()
         # a camera estimate waits for odometry at most one input age ahead of the newest
@@ -327,6 +344,24 @@ class PoseGraphFusion:
     @property
     def num_keyframes(self) -> int:
         return len(self._kfs)
+
+    @property
+    def marginalization_due(self) -> int:
+        """Keyframes the deferred marginalization would drop now (0: none deferred)."""
+        if not self._marginalization_deferred:
+            return 0
+        drop = self._droppable()
+        return drop if drop >= self.config.marginalize_batch else 0
+
+    def maintain(self) -> bool:
+        """Run the deferred marginalization if one is due (the ISAM2 rebuild, 10-20 ms with
+        the default window); True when it ran. A service calls this when its worker has no
+        message waiting."""
+        drop = self.marginalization_due
+        if not drop:
+            return False
+        self._marginalize(drop)
+        return True
 
     @property
     def oldest_keyframe_stamp_ns(self) -> int | None:
@@ -765,6 +800,7 @@ class PoseGraphFusion:
         # reuse slots of factors removed when splitting between factors (bounded graph)
         params.findUnusedFactorSlots = True
         self._isam = gtsam.ISAM2(params)
+        self._marginalization_deferred = False
         self._kfs: list[_Keyframe] = []
         self._kf_stamps: list[int] = []
         self._between: dict[int, _Factor] = {}
@@ -854,14 +890,27 @@ class PoseGraphFusion:
     def _prune_pre_anchor_buffer(self) -> None:
         self._odom.trim_to_age(int(self.config.pre_anchor_buffer_s * _NS_PER_S))
 
-    def _maybe_marginalize(self) -> None:
+    def _droppable(self) -> int:
+        """Keyframes outside the window (time or count), keeping at least the latest."""
+        if not self._kfs:
+            return 0
         cfg = self.config
         n = len(self._kfs)
         horizon = self._kf_stamps[-1] - int(cfg.window_s * _NS_PER_S)
         too_old = bisect.bisect_left(self._kf_stamps, horizon)
-        drop = min(max(too_old, n - cfg.max_keyframes), n - 1)
-        if drop >= cfg.marginalize_batch:
-            self._marginalize(drop)
+        return min(max(too_old, n - cfg.max_keyframes), n - 1)
+
+    def _maybe_marginalize(self) -> None:
+        drop = self._droppable()
+        batch = self.config.marginalize_batch
+        if drop < batch:
+            return
+        if self.deferred_marginalization:
+            if drop < 2 * batch:
+                self._marginalization_deferred = True  # maintain() runs it when idle
+                return
+            self.counters["marginalizations_overdue"] += 1
+        self._marginalize(drop)
 
     def _marginalize(self, drop: int) -> None:
         """Fold keyframes ``[:drop]`` into a Gaussian prior on keyframe ``drop`` (the new root)
@@ -870,6 +919,7 @@ class PoseGraphFusion:
         The prior is what the dropped factors alone say about the root: mean = the root in the
         optimum of the dropped sub-graph, covariance = the root's marginal there. (Using the
         full-graph estimate or marginal would count the kept factors twice.)"""
+        self._marginalization_deferred = False
         values = self._isam.calculateEstimate()
         dropped, kept = self._kfs[:drop], self._kfs[drop:]
         root = kept[0]

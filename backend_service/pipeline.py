@@ -436,7 +436,8 @@ class BackendPipeline:
     def __init__(self, site: Site, config: PipelineConfig | None = None, *,
                  fusion_config: FusionConfig | None = None,
                  fusion_factory: FusionFactory | None = None,
-                 with_fusion: bool = True) -> None:
+                 with_fusion: bool = True,
+                 deferred_upkeep: bool = False) -> None:
         self.site = site
         self.config = config or PipelineConfig.from_site(site)
         if with_fusion and fusion_factory is None:
@@ -445,7 +446,8 @@ class BackendPipeline:
             fcfg = fusion_config or FusionConfig()
 
             def fusion_factory(robot_id: str) -> Fusion:
-                return PoseGraphFusion(robot_id, fcfg, site.clock)
+                return PoseGraphFusion(robot_id, fcfg, site.clock,
+                                       deferred_marginalization=deferred_upkeep)
         self._fusion_factory = fusion_factory if with_fusion else None
 
         self.sync = FrameSetSynchronizer(site)
@@ -622,6 +624,22 @@ class BackendPipeline:
     def flush(self) -> PipelineOutput:
         """Emit and solve every open frame-set (end of a recording)."""
         return self._solve_all(self.sync.flush(), None)
+
+    def maintain(self) -> bool:
+        """One slice of deferred upkeep: the due marginalization of the robot whose pose graph
+        is furthest past its window (``deferred_upkeep``; pose graphs without ``maintain`` have
+        none). True when one ran. The service's worker calls it when no message waits, so the
+        10-20 ms ISAM2 rebuilds of several robots neither stack up in one frame-set nor delay
+        one."""
+        backlog, rid = max(((int(getattr(t.fusion, "marginalization_due", 0)), rid)
+                            for rid, t in self.tracks.items() if t.fusion is not None),
+                           default=(0, ""))
+        if backlog <= 0:
+            return False
+        ran = bool(self.tracks[rid].fusion.maintain())  # type: ignore[union-attr]
+        if ran:
+            self.counters["upkeep.marginalizations"] += 1
+        return ran
 
     def on_odometry(self, odom: Odometry) -> PipelineOutput:
         track = self._track(odom.robot_id)

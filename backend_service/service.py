@@ -98,7 +98,8 @@ class BackendNode(ServiceNode):
                              f"{sorted(self.area_map.areas) or '-'})")
         self.areas: tuple[str, ...] = tuple(dict.fromkeys(areas))
         self.site_model = site
-        self.pipeline = BackendPipeline(site, config, fusion_config=fusion)
+        # pose-graph marginalizations run when the worker is idle (idle()), not in a frame-set
+        self.pipeline = BackendPipeline(site, config, fusion_config=fusion, deferred_upkeep=True)
         if self.areas:
             self.pipeline.serve_cameras(self.area_map.cameras_of(self.areas))
         self.tick_period_s = tick_period_s
@@ -175,6 +176,9 @@ class BackendNode(ServiceNode):
             self._input_delays.append(recv_ns - stamp_ns)
             self._delay_floor_ns = max(0, min(self._input_delays))
         return self._publish(self.pipeline.feed(message, recv_ns), recv_ns)
+
+    def idle(self, now_ns: int) -> bool:
+        return self.pipeline.maintain()
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         self._last_now_ns = max(self._last_now_ns, now_ns)

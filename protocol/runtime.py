@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import gc
 import logging
 import math
 import os
@@ -140,6 +141,12 @@ class ServiceNode:
         return ()
 
     tick_period_s: float = 0.05
+
+    def idle(self, now_ns: int) -> bool:
+        """Called when no received message waits: one slice of deferred upkeep (the backend's
+        pose-graph marginalizations), so that it never delays a message. Return True when a
+        slice ran: the runner looks at its channels again before the next one."""
+        return False
 
     def state(self) -> tuple[str, str]:
         """(state, detail) for the status message; override to report degradation."""
@@ -508,6 +515,11 @@ class ZenohRunner:
                 keys.alive_key(node.site, node.service, node.instance_id)
             )
             status_key = keys.status_key(node.site, node.service, node.instance_id)
+            # what start-up made (modules, the site, compiled solvers, Zenoh's handles) lives as
+            # long as the service: out of the collector's view, so that a full collection scans
+            # only what the service made since (one took 147 ms in a fleet backend without this)
+            gc.collect()
+            gc.freeze()
             sd_notify("READY=1")
             self.started.set()
             log.info("%s %s running", node.service, node.instance_id)
@@ -525,6 +537,8 @@ class ZenohRunner:
                         key, present = liveliness_events.popleft()
                         node.alive(key, present)
                     for sub, channel in channels:
+                        if not channel:
+                            continue  # empty (a length read, no lock): most of them, mostly
                         for _ in range(64):  # bounded per pass: fairness between keys
                             if self._stop.is_set():  # a stop waits for one message, not a pass
                                 break
@@ -561,6 +575,14 @@ class ZenohRunner:
                         next_watchdog = now + watchdog
                         sd_notify("WATCHDOG=1")
                     if not busy:
+                        try:
+                            upkeep = node.idle(time.time_ns())
+                        except Exception:
+                            upkeep = False
+                            node.stats.count("handler_errors")
+                            log.exception("%s idle upkeep failed", node.service)
+                        if upkeep:
+                            continue  # the channels first, then the next slice
                         timeout = max(0.0, min(next_tick, next_status) - time.monotonic())
                         self._wake.wait(min(timeout, 0.05))
             finally:
@@ -618,10 +640,20 @@ class ScriptedRunner:
         return out
 
     def tick(self, now_ns: int) -> list[Outgoing]:
+        """The node's tick at ``now_ns``, then its idle upkeep (a scripted run has no message
+        waiting between two calls, as a worker between two bursts)."""
         self._now_ns = now_ns
         out = list(self.node.tick(now_ns) or ())
         self.published.extend(out)
+        self.idle()
         return out
+
+    def idle(self) -> int:
+        """Run the node's idle upkeep until it has none left; the number of slices."""
+        slices = 0
+        while self.node.idle(self._now_ns):
+            slices += 1
+        return slices
 
 
 def run_node(

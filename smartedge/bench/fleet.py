@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import logging
 import math
@@ -302,6 +303,9 @@ class RowResult:
     received: dict[str, int]  # backend -> camera messages its synchronizer received (all run)
     areas: dict[str, str]  # backend -> the areas it served ("all": every camera)
     load1: float = math.nan  # the machine's 1-minute load average at the end of the span
+    #: how long after its stamp a measured camera frame was all sent (ms): p99 and max. The
+    #: latency includes it; a figure near the latency's tail says the publisher was behind
+    send_lag_ms: tuple[float, float] = (math.nan, math.nan)
 
     @property
     def silent(self) -> int:
@@ -388,21 +392,34 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
             measured_from = prepared.start_ns + round(warmup_s * 1e9)
             late, period_ns = 0, round(1e9 / rate_hz)
             cpu0: dict[str, float] = {}
-            for stamp, msgs in prepared.frames:
-                if not cpu0 and stamp >= measured_from:
-                    cpu0 = {name: _cpu_s(p.pid) for name, p in procs.items()}
-                    cpu0["bench"] = _cpu_s(os.getpid())
-                    t_cpu0 = time.monotonic()
-                while (now := time.time_ns()) < stamp:
-                    time.sleep(min(0.002, (stamp - now) * 1e-9))
-                if now - stamp > period_ns:
-                    late += 1
-                for key, payload, cell in msgs:
-                    pub = pubs.get(key)
-                    if pub is None:
-                        session = sessions[0 if cell < 0 else cell % n_routers]
-                        pub = pubs[key] = session.declare_publisher(key, **qos)
-                    pub.put(payload)
+            lag_ns: list[int] = []  # how late each measured camera frame went out
+            # the encoded frames are kept to the end: out of the collector's view, and no
+            # collection while sending (a full one of this process took tens of ms: every
+            # robot's latency in that frame, and the monitor's arrival stamps, would carry it)
+            gc.collect()
+            gc.freeze()
+            gc.disable()
+            try:
+                for stamp, msgs in prepared.frames:
+                    if not cpu0 and stamp >= measured_from:
+                        cpu0 = {name: _cpu_s(p.pid) for name, p in procs.items()}
+                        cpu0["bench"] = _cpu_s(os.getpid())
+                        t_cpu0 = time.monotonic()
+                    while (now := time.time_ns()) < stamp:
+                        time.sleep(min(0.002, (stamp - now) * 1e-9))
+                    if now - stamp > period_ns:
+                        late += 1
+                    for key, payload, cell in msgs:
+                        pub = pubs.get(key)
+                        if pub is None:
+                            session = sessions[0 if cell < 0 else cell % n_routers]
+                            pub = pubs[key] = session.declare_publisher(key, **qos)
+                        pub.put(payload)
+                    if cpu0 and msgs and msgs[0][2] >= 0:  # a camera frame, all sent
+                        lag_ns.append(time.time_ns() - stamp)
+            finally:
+                gc.enable()
+                gc.unfreeze()
             span_s = time.monotonic() - t_cpu0
             end_ns = time.time_ns()
             load1 = os.getloadavg()[0]
@@ -456,7 +473,9 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
         counters=counters, stage_ms=stage_ms, owners=owners,
         statuses_in_span=in_span, unreadable_statuses=bad_status[0], missing_at=missing_at,
         received=received, areas={k: ",".join(v) or "all" for k, v in served.items()},
-        load1=load1)
+        load1=load1,
+        send_lag_ms=((float(np.percentile(lag_ns, 99)) * 1e-6, max(lag_ns) * 1e-6) if lag_ns
+                     else (math.nan, math.nan)))
 
 
 def _ratio(a: float, b: float) -> str:
@@ -474,7 +493,8 @@ def print_row(r: RowResult, base: RowResult | None) -> None:
     print(f"{'':>8}CPU s/s: backends {backends:.2f} ("
           + ", ".join(f"{v:.2f}" for k, v in r.cpu.items() if k.startswith("backend"))
           + f"), routers {routers:.2f}, publisher+monitor {r.cpu['bench']:.2f}; machine load "
-          f"average {r.load1:.1f} (1 min, {os.cpu_count()} cores)")
+          f"average {r.load1:.1f} (1 min, {os.cpu_count()} cores); frames sent after their "
+          f"stamp p99 {r.send_lag_ms[0]:.1f} ms, max {r.send_lag_ms[1]:.1f} ms")
     print(f"{'':>8}backend stage p99 ms: "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(r.stage_ms.items())))
     print(f"{'':>8}counters: " + (", ".join(f"{k} {v}" for k, v in sorted(r.counters.items()))
@@ -501,6 +521,11 @@ class CpuResult:
     camera_messages: int
     robots_run: int
     cpu_s_per_s: float
+    #: the longest single message (decode, route, solve, fuse) in that half, ms: a stall every
+    #: frame-set in the queue behind it waits for
+    longest_message_ms: float = math.nan
+    #: the longest tick with the idle upkeep after it (the backend's deferred marginalizations)
+    longest_tick_ms: float = math.nan
 
 
 def in_process_cpu(split: str, n_backends: int, n_routers: int, n_robots: int,
@@ -552,11 +577,16 @@ def _one_backend_cpu(site: Site, layout: FleetLayout, prepared: PreparedRun, spl
     half_ns = prepared.start_ns + round(seconds * 0.5e9)
     cpu0: float | None = None
     cams = 0
+    longest_message = longest_tick = 0.0
+    clock = time.perf_counter
     for stamp, msgs in prepared.frames:
         if cpu0 is None and stamp >= half_ns:
             cpu0 = time.process_time()
         recv_ns = stamp + 2_000_000
-        runner.tick(recv_ns)
+        t = clock()
+        runner.tick(recv_ns)  # the tick, then the idle upkeep
+        if cpu0 is not None:
+            longest_tick = max(longest_tick, clock() - t)
         for key, payload, _cell in msgs:
             if key not in subs:
                 subs[key] = runner._match(key)
@@ -565,10 +595,13 @@ def _one_backend_cpu(site: Site, layout: FleetLayout, prepared: PreparedRun, spl
                 continue  # not subscribed: Zenoh would not deliver it
             if cpu0 is not None and sub.message_type is RobotDetections:
                 cams += 1
+            t = clock()
             dispatch(node, sub, key, payload, recv_ns)
+            if cpu0 is not None:
+                longest_message = max(longest_message, clock() - t)
     cpu = time.process_time() - (cpu0 or 0.0)
     return CpuResult(split, name, ",".join(areas) or "all", cams, len(robots),
-                     cpu / (seconds * 0.5))
+                     cpu / (seconds * 0.5), longest_message * 1e3, longest_tick * 1e3)
 
 
 def main(argv: Sequence[str]) -> int:
@@ -609,7 +642,8 @@ def main(argv: Sequence[str]) -> int:
           f"{args.odom_rate:g} Hz, {args.routers} routers in a chain, {args.seconds:g} s "
           f"measured per row after {args.warmup:g} s")
     if args.cpu_only:
-        print(f"{'split':>6}{'backends':>9}  backend  areas     camera msgs  robots  CPU s/s")
+        print(f"{'split':>6}{'backends':>9}  backend  areas     camera msgs  robots  CPU s/s"
+              f"  longest msg / tick ms")
         with tempfile.TemporaryDirectory(prefix="smartedge-bench-fleet-") as tmp:
             for split in splits:
                 for b in counts:
@@ -617,12 +651,16 @@ def main(argv: Sequence[str]) -> int:
                                          args.rate, args.odom_rate, args.seconds, Path(tmp))
                     for r in res:
                         print(f"{split:>6}{b:>9}  {r.backend:<8} {r.areas:<9}"
-                              f"{r.camera_messages:>12}{r.robots_run:>8}{r.cpu_s_per_s:>9.3f}",
+                              f"{r.camera_messages:>12}{r.robots_run:>8}{r.cpu_s_per_s:>9.3f}"
+                              f"{r.longest_message_ms:>11.1f} / {r.longest_tick_ms:.1f}",
                               flush=True)
                     print(f"{'':>15}sum {sum(r.cpu_s_per_s for r in res):.3f} s/s, busiest "
                           f"{max(r.cpu_s_per_s for r in res):.3f} s/s", flush=True)
         print("CPU s/s: CPU seconds of the backend per second of traffic (second half of "
-              "--seconds); camera msgs: camera messages it was handed in that half")
+              "--seconds); camera msgs: camera messages it was handed in that half; longest "
+              "msg / tick: the longest single message and the longest tick with its idle "
+              "upkeep in that half (a pose graph's window fills after about 27 s at 15 Hz: "
+              "--seconds 60 shows its marginalizations)")
         return 0
     rows: list[RowResult] = []
     with tempfile.TemporaryDirectory(prefix="smartedge-bench-fleet-") as tmp:

@@ -233,6 +233,55 @@ def test_marginalization_matches_the_full_graph():
     assert ratio.min() > 0.99 and ratio.max() < 1.01, (ratio.min(), ratio.max())
 
 
+def test_deferred_marginalization_waits_for_maintain_and_matches_inline():
+    """A service's pose graph marginalizes in maintain() (its worker's idle time), never inside
+    the call that filled the window until the backlog reaches twice the batch; the poses are
+    those of the inline marginalization."""
+    config = FusionConfig(robust_kernel="none", window_s=5.0, max_keyframes=20,
+                          marginalize_batch=5)
+
+    def run(deferred: bool, maintain_every: int | None) -> tuple[np.ndarray, PoseGraphFusion,
+                                                                  list[int]]:
+        rng = np.random.default_rng(1)
+        fusion = PoseGraphFusion(ROBOT, config, deferred_marginalization=deferred)
+        out, sizes = [], []
+        for i in range(30 * 40):
+            t = i / 30
+            o = fusion.add_odometry(_odom(T0 + int(t * 1e9), 0.2 * t, seq=i))
+            if i % 15 == 5:
+                x = 0.2 * (t - 0.1) + rng.normal(0, 0.2)
+                r = fusion.add_camera_estimate(_camera(T0 + int(t * 1e9) - 100 * MS, x,
+                                                       rng.normal(0, 0.2), sigma_m=0.2))
+                o = r or o
+            sizes.append(fusion.num_keyframes)
+            if maintain_every and i % maintain_every == 0:
+                while fusion.maintain():
+                    pass
+            if o is not None:
+                out.append((o.x, o.y, math.sqrt(o.covariance[0, 0])))
+        return np.array(out), fusion, sizes
+
+    inline, _, inline_sizes = run(False, None)
+    # no maintain(): only the overdue backlog marginalizes, inside the calls, and is counted
+    never, never_fusion, never_sizes = run(True, None)
+    assert never_fusion.counters["marginalizations_overdue"] >= 5
+    assert never_fusion.counters["marginalizations"] == never_fusion.counters[
+        "marginalizations_overdue"]
+    assert max(never_sizes) <= config.max_keyframes + 2 * config.marginalize_batch - 1
+    assert max(never_sizes) > max(inline_sizes)
+    # maintain() every 10 odometry messages: nothing overdue, the window is kept
+    kept, fusion, sizes = run(True, 10)
+    assert fusion.counters["marginalizations_overdue"] == 0
+    assert fusion.counters["marginalizations"] >= 10
+    assert fusion.marginalization_due == 0
+    assert max(sizes) <= config.max_keyframes + 2 * config.marginalize_batch - 1
+    assert kept.shape == inline.shape == never.shape
+    assert np.abs(kept[:, :2] - inline[:, :2]).max() < 0.002
+    ratio = kept[:, 2] / inline[:, 2]
+    assert ratio.min() > 0.99 and ratio.max() < 1.01, (ratio.min(), ratio.max())
+    assert not PoseGraphFusion(ROBOT).maintain()  # nothing to do on an empty graph
+
+
 def test_garbage_is_counted_never_raised():
     fusion = PoseGraphFusion(ROBOT)
     _straight_line(fusion, 0.5, speed_m_s=0.0)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import threading
+import time
 
 import pytest
 
@@ -97,3 +99,76 @@ def test_zenoh_runner_survives_garbage_and_publishes_status() -> None:
         assert not thread.is_alive()
         assert wait_until(lambda: any("DELETE" in a for a in alive), 10)
         assert wait_until(lambda: any(s.state == "stopping" for s in statuses), 5)
+
+
+class UpkeepNode(EchoNode):
+    """An echo node with deferred upkeep: ``slices`` idle slices of 5 ms each."""
+
+    def __init__(self, site: str, instance_id: str, slices: int) -> None:
+        super().__init__(site, instance_id)
+        self.left = slices
+        self.calls: list[int] = []
+
+    def idle(self, now_ns):
+        self.calls.append(now_ns)
+        if self.left < 0:
+            raise RuntimeError("upkeep bug")  # contained and counted like a handler's
+        if self.left == 0:
+            return False
+        self.left -= 1
+        time.sleep(0.005)
+        return True
+
+
+def test_scripted_runner_runs_the_idle_upkeep_after_a_tick() -> None:
+    node = UpkeepNode(SITE, "main", slices=3)
+    runner = ScriptedRunner(node)
+    runner.feed(keys.odom_key(SITE, "hsr"), encode(Odometry("hsr", 2, 1, 3.0, 4.0, 0.5)))
+    assert node.left == 3  # a message is not idle time
+    runner.tick(10)
+    assert node.left == 0 and len(node.calls) == 4  # three slices, then "nothing left"
+    assert runner.idle() == 0
+
+
+def test_zenoh_runner_runs_idle_upkeep_between_messages_and_freezes_start_up() -> None:
+    """The worker runs the node's idle upkeep when nothing waits, slice by slice, and answers a
+    message between two slices; an upkeep error is counted, the service runs on; what start-up
+    made is out of the garbage collector's view (gc.freeze)."""
+    from protocol.session import loopback_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    node = UpkeepNode(SITE, "main", slices=200)  # 1 s of upkeep in 5 ms slices
+    runner = ZenohRunner(node, loopback_config(listen=[endpoint]), status=False)
+    thread = threading.Thread(target=runner.run, daemon=True)
+    thread.start()
+    try:
+        assert runner.started.wait(10)
+        assert gc.get_freeze_count() > 0
+        poses: list[tuple[float, object]] = []
+        with zenoh.open(loopback_config(connect=[endpoint])) as client:
+            client.declare_subscriber(keys.pose_key(SITE, "*"), lambda s: poses.append(
+                (time.monotonic(), decode(s.payload.to_bytes()))))
+            pub = client.declare_publisher(keys.odom_key(SITE, "hsr"),
+                                           congestion_control=zenoh.CongestionControl.BLOCK)
+            assert wait_until(lambda: len(node.calls) > 5, 10)
+            sent = []
+            for i in range(5):  # answered while the upkeep still has slices left
+                sent.append(time.monotonic())
+                pub.put(encode(Odometry("hsr", 10 + i, i, 1.0 + i, 2.0, 0.1)))
+                time.sleep(0.05)
+            assert wait_until(lambda: len(poses) == 5, 10)
+            assert node.left > 0
+            # each within a few slices of its sending, not after the whole second of upkeep
+            assert max(rx - tx for (rx, _), tx in zip(poses, sent, strict=True)) < 0.5
+            assert wait_until(lambda: node.left == 0, 10)
+            node.left = -1  # the next slice raises
+            pub.put(encode(Odometry("hsr", 99, 99, 5.0, 2.0, 0.1)))
+            assert wait_until(lambda: node.stats.snapshot_counters().get("handler_errors", 0)
+                              >= 1, 10)
+            node.left = 0
+            pub.put(encode(Odometry("hsr", 100, 100, 6.0, 2.0, 0.1)))
+            assert wait_until(lambda: any(p.x == 6.0 for _, p in poses), 10)
+    finally:
+        runner.stop()
+        thread.join(10)
+        gc.unfreeze()
