@@ -620,8 +620,12 @@ def main(argv: Sequence[str]) -> int:
                         help="comma-separated ways to split the facility over the backends: "
                         "none (every backend receives every camera), area (each backend the "
                         "cameras of its routers' areas); one set of rows each")
-    parser.add_argument("--warmup", type=float, default=4.0,
-                        help="unmeasured start per row (ownership settles, robots localize)")
+    parser.add_argument("--warmup", type=float, default=30.0,
+                        help="unmeasured start per row: ownership settles, robots localize, "
+                        "and every robot's pose graph fills its window (400 keyframes, about "
+                        "27 s at 15 Hz), so the row measures a backend as it runs for hours "
+                        "(its marginalizations included); a shorter warm-up measures a young "
+                        "backend")
     parser.add_argument("--cpu-only", action="store_true",
                         help="no processes, no Zenoh: each backend's CPU per second of traffic "
                         "in this process, per split and backend count (independent of the "
