@@ -126,7 +126,7 @@ class FusionConfig:
     relinearize_threshold: float = 0.01
 
     window_s: float = 300.0
-    max_keyframes: int = 400
+    max_keyframes: int = 200
     marginalize_batch: int = 50
     pre_anchor_buffer_s: float = 10.0
 

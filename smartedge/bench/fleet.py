@@ -622,8 +622,9 @@ def main(argv: Sequence[str]) -> int:
                         "cameras of its routers' areas); one set of rows each")
     parser.add_argument("--warmup", type=float, default=30.0,
                         help="unmeasured start per row: ownership settles, robots localize, "
-                        "and every robot's pose graph fills its window (400 keyframes, about "
-                        "27 s at 15 Hz), so the row measures a backend as it runs for hours "
+                        "and every robot's pose graph fills its window (200 keyframes, about "
+                        "13 s at 15 Hz) and has marginalized a few times, so the row measures "
+                        "a backend as it runs for hours "
                         "(its marginalizations included); a shorter warm-up measures a young "
                         "backend")
     parser.add_argument("--cpu-only", action="store_true",
@@ -663,8 +664,8 @@ def main(argv: Sequence[str]) -> int:
         print("CPU s/s: CPU seconds of the backend per second of traffic (second half of "
               "--seconds); camera msgs: camera messages it was handed in that half; longest "
               "msg / tick: the longest single message and the longest tick with its idle "
-              "upkeep in that half (a pose graph's window fills after about 27 s at 15 Hz: "
-              "--seconds 60 shows its marginalizations)")
+              "upkeep in that half (a pose graph's window fills after about 13 s at 15 Hz: "
+              "--seconds 40 shows its marginalizations)")
         return 0
     rows: list[RowResult] = []
     with tempfile.TemporaryDirectory(prefix="smartedge-bench-fleet-") as tmp:
