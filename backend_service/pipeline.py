@@ -429,15 +429,17 @@ class BackendPipeline:
 
     ``fusion_factory``: builds one pose graph per robot (default: GTSAM's
     :class:`~backend_service.fusion.PoseGraphFusion` with ``fusion_config``); pass ``None``
-    explicitly through ``with_fusion=False`` for camera estimates only. Not thread-safe: one
-    worker loop drives it.
+    explicitly through ``with_fusion=False`` for camera estimates only. ``deferred_upkeep``
+    (default): the pose graphs' marginalizations wait for :meth:`maintain` (the service's idle
+    time; :meth:`step` runs it), inline only once overdue; ``False``: inline, in the message
+    that filled the window. Not thread-safe: one worker loop drives it.
     """
 
     def __init__(self, site: Site, config: PipelineConfig | None = None, *,
                  fusion_config: FusionConfig | None = None,
                  fusion_factory: FusionFactory | None = None,
                  with_fusion: bool = True,
-                 deferred_upkeep: bool = False) -> None:
+                 deferred_upkeep: bool = True) -> None:
         self.site = site
         self.config = config or PipelineConfig.from_site(site)
         if with_fusion and fusion_factory is None:
@@ -569,9 +571,13 @@ class BackendPipeline:
 
     def step(self, message: Message, arrival_ns: int) -> PipelineOutput:
         """What the service does when ``message`` arrives at ``arrival_ns``: its clock tick
-        first (:meth:`poll`), then the message (:meth:`feed`). Replays and experiments drive
-        the pipeline with this, message by message in arrival order."""
+        first (:meth:`poll`), the idle upkeep the worker runs before a message arrives
+        (:meth:`maintain`), then the message (:meth:`feed`). Replays and experiments drive
+        the pipeline with this, message by message in arrival order, and so compute what the
+        service does."""
         out = self.poll(arrival_ns)
+        while self.maintain():  # the worker's idle upkeep between two messages
+            pass
         out += self.feed(message, arrival_ns)
         return out
 

@@ -99,7 +99,7 @@ class BackendNode(ServiceNode):
         self.areas: tuple[str, ...] = tuple(dict.fromkeys(areas))
         self.site_model = site
         # pose-graph marginalizations run when the worker is idle (idle()), not in a frame-set
-        self.pipeline = BackendPipeline(site, config, fusion_config=fusion, deferred_upkeep=True)
+        self.pipeline = BackendPipeline(site, config, fusion_config=fusion)
         if self.areas:
             self.pipeline.serve_cameras(self.area_map.cameras_of(self.areas))
         self.tick_period_s = tick_period_s

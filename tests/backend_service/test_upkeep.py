@@ -51,8 +51,7 @@ def test_a_deferred_pipeline_marginalizes_only_in_maintain() -> None:
 
 
 def test_an_inline_pipeline_keeps_marginalizing_in_the_message() -> None:
-    """Replays and experiments (no idle time) keep the inline marginalization."""
-    pipe = BackendPipeline(SITE, fusion_config=SMALL_WINDOW)
+    pipe = BackendPipeline(SITE, fusion_config=SMALL_WINDOW, deferred_upkeep=False)
     fusion = pipe.tracks[ROBOT].fusion
     pipe.feed(_odom(0), T0 + 5 * MS)
     fusion.set_initial_pose(_initial(T0))
@@ -79,3 +78,18 @@ def test_the_backend_node_runs_marginalizations_as_idle_upkeep() -> None:
     assert fusion.counters["marginalizations_overdue"] == 0
     assert node.counters()["upkeep.marginalizations"] == fusion.counters["marginalizations"]
     assert fusion.num_keyframes <= SMALL_WINDOW.max_keyframes + 2 * SMALL_WINDOW.marginalize_batch
+
+
+def test_step_runs_the_upkeep_between_the_tick_and_the_message() -> None:
+    """Replays and experiments drive the pipeline with step(): the marginalizations run where
+    the service's worker runs them, before the next message, never overdue."""
+    pipe = BackendPipeline(SITE, fusion_config=SMALL_WINDOW)
+    fusion = pipe.tracks[ROBOT].fusion
+    assert fusion.deferred_marginalization
+    pipe.step(_odom(0), T0 + 5 * MS)
+    fusion.set_initial_pose(_initial(T0))
+    for i in range(1, 400):
+        pipe.step(_odom(i), T0 + i * 33 * MS + 5 * MS)
+    assert fusion.counters["marginalizations"] >= 3
+    assert fusion.counters["marginalizations_overdue"] == 0
+    assert pipe.counters["upkeep.marginalizations"] == fusion.counters["marginalizations"]
