@@ -432,12 +432,22 @@ class ZenohRunner:
         self._received_bytes = 0
 
     def stop(self, *_: object) -> None:
+        """Stop the worker loop (from another thread; a signal handler: :meth:`_on_signal`)."""
         self._stop.set()
         self._wake.set()
 
+    def _on_signal(self, *_: object) -> None:
+        """SIGINT / SIGTERM. Python runs the handler in the main thread between two bytecodes
+        of the worker loop, which may be inside the wake event's lock (clearing it, or in its
+        wait): setting that event here would wait for the lock forever, and the service would
+        hang until killed (seen once in a CI run: a backend that did not stop within 20 s).
+        Only the stop flag then, whose lock the loop never takes; its wait is bounded
+        (50 ms), so it sees the flag on its next pass."""
+        self._stop.set()
+
     def install_signal_handlers(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self.stop)
+            signal.signal(sig, self._on_signal)
 
     def _publisher(self, key: str, reliable: bool) -> Any:
         import zenoh

@@ -180,8 +180,14 @@ def main(argv: Sequence[str]) -> int:
     # message it denies at trace level (RUST_LOG=trace, verbose); without RUST_LOG, errors only
     zenoh.init_log_from_env_or("error")
     stop = threading.Event()
+
+    def on_signal(*_: object) -> None:
+        # the handler runs in the main thread, which may be inside stop.wait() holding the
+        # event's lock: setting it here could wait for that lock forever; a thread waits instead
+        threading.Thread(target=stop.set, daemon=True).start()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     try:
         run_router(config, stop, status_period_s=args.status_period)
     except zenoh.ZError as exc:

@@ -172,3 +172,22 @@ def test_zenoh_runner_runs_idle_upkeep_between_messages_and_freezes_start_up() -
         runner.stop()
         thread.join(10)
         gc.unfreeze()
+
+
+def test_the_signal_handler_never_waits_for_the_worker_loops_lock() -> None:
+    """SIGTERM runs its handler in the main thread between two bytecodes of the worker loop,
+    maybe while the loop holds the wake event's lock: the handler must not take that lock
+    (it hung a backend until it was killed)."""
+    from protocol.session import loopback_config
+
+    runner = ZenohRunner(EchoNode(SITE, "main"), loopback_config())
+
+    def interrupted_inside_the_lock() -> None:
+        with runner._wake._cond:  # where the loop is when clearing or waiting on the event
+            runner._on_signal(15, None)
+
+    thread = threading.Thread(target=interrupted_inside_the_lock, daemon=True)
+    thread.start()
+    thread.join(2)
+    assert not thread.is_alive(), "the signal handler waited for the worker loop's lock"
+    assert runner._stop.is_set()
