@@ -635,8 +635,8 @@ class BackendPipeline:
         """One slice of deferred upkeep: the due marginalization of the robot whose pose graph
         is furthest past its window (``deferred_upkeep``; pose graphs without ``maintain`` have
         none). True when one ran. The service's worker calls it when no message waits, so the
-        10-20 ms ISAM2 rebuilds of several robots neither stack up in one frame-set nor delay
-        one."""
+        ISAM2 rebuilds of several robots (~8 ms each, more on a loaded host) neither stack up in
+        one frame-set nor delay one."""
         backlog, rid = max(((int(getattr(t.fusion, "marginalization_due", 0)), rid)
                             for rid, t in self.tracks.items() if t.fusion is not None),
                            default=(0, ""))
