@@ -652,41 +652,93 @@ def associate(camera: CameraModel, detections: Sequence[Detection],
         for i in free:
             outcomes[i] = DetectionOutcome("", "no_prediction", math.inf)
     elif free:
-        pairs, total = _gated_assignment(costs, cfg.gate)
-        threshold = -math.log(cfg.ambiguity_ratio)
-        # candidates per detection (row) and per robot (column): a pair has a rival when either
-        # has another one; only then can the assignment without it be as good
-        gated = costs <= cfg.gate
-        per_row = gated.sum(axis=1).tolist()
-        per_col = gated.sum(axis=0).tolist()
-        for row, col in pairs:
-            c1 = float(costs[row, col])
-            reason = "assigned"
-            pred = candidates[col]
-            if (None in unpredicted_models
-                    or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
-                    pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
-                # an identical robot without a prediction may be the one seen here
-                reason = "ambiguous"
-            elif per_row[row] > 1 or per_col[col] > 1:
-                blocked = costs.copy()
-                blocked[row, col] = np.inf
-                _, alt_total = _gated_assignment(blocked, cfg.gate)
-                if alt_total - total < threshold:
-                    reason = "ambiguous"
-            i = free[row]
-            if reason == "assigned":
-                by_robot[robot_ids[col]] = i
-                outcomes[i] = DetectionOutcome(robot_ids[col], "assigned", c1)
-            else:
-                outcomes[i] = DetectionOutcome("", "ambiguous", c1)
-        for row, i in enumerate(free):
-            if outcomes[i] is None:
-                best = float(costs[row].min()) if costs.shape[1] else math.inf
-                outcomes[i] = DetectionOutcome("", "unassigned", best)
+        # one unnamed detection (the common case) in closed form, several by the assignment
+        rows = (_one_detection(costs[0], candidates, keypoints_base_m, unpredicted_models, cfg),
+                ) if len(free) == 1 else _assign_rows(costs, candidates, keypoints_base_m,
+                                                      unpredicted_models, cfg)
+        for i, outcome in zip(free, rows, strict=True):
+            outcomes[i] = outcome
+            if outcome.reason == "assigned":
+                by_robot[outcome.robot_id] = i
     final = tuple(o if o is not None else DetectionOutcome("", "unassigned", math.inf)
                   for o in outcomes)
     return Association(final, robot_ids, costs, by_robot)
+
+
+def _assign_rows(costs: np.ndarray, candidates: Sequence[RobotPrediction],
+                 keypoints_base_m: Mapping[str, np.ndarray],
+                 unpredicted_models: set[int | None], cfg: AssociationConfig
+                 ) -> list[DetectionOutcome]:
+    """The outcome of each unnamed detection (row of ``costs`` (D, R) over ``candidates``):
+    the gated optimal assignment, each pair ambiguous when an identical robot without a
+    prediction may be the one seen, or when the best assignment without the pair is within
+    ``-ln(ambiguity_ratio)`` of it; rows left out are unassigned (with their least cost)."""
+    out: list[DetectionOutcome | None] = [None] * costs.shape[0]
+    pairs, total = _gated_assignment(costs, cfg.gate)
+    threshold = -math.log(cfg.ambiguity_ratio)
+    # candidates per detection (row) and per robot (column): a pair has a rival when either
+    # has another one; only then can the assignment without it be as good
+    gated = costs <= cfg.gate
+    per_row = gated.sum(axis=1).tolist()
+    per_col = gated.sum(axis=0).tolist()
+    for row, col in pairs:
+        c1 = float(costs[row, col])
+        reason = "assigned"
+        pred = candidates[col]
+        if (None in unpredicted_models
+                or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
+                pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
+            # an identical robot without a prediction may be the one seen here
+            reason = "ambiguous"
+        elif per_row[row] > 1 or per_col[col] > 1:
+            blocked = costs.copy()
+            blocked[row, col] = np.inf
+            _, alt_total = _gated_assignment(blocked, cfg.gate)
+            if alt_total - total < threshold:
+                reason = "ambiguous"
+        out[row] = (DetectionOutcome(pred.robot_id, "assigned", c1) if reason == "assigned"
+                    else DetectionOutcome("", "ambiguous", c1))
+    for row in range(costs.shape[0]):
+        if out[row] is None:
+            best = float(costs[row].min()) if costs.shape[1] else math.inf
+            out[row] = DetectionOutcome("", "unassigned", best)
+    return out  # type: ignore[return-value]
+
+
+def _one_detection(costs: np.ndarray, candidates: Sequence[RobotPrediction],
+                   keypoints_base_m: Mapping[str, np.ndarray],
+                   unpredicted_models: set[int | None], cfg: AssociationConfig
+                   ) -> DetectionOutcome:
+    """The outcome of a lone unnamed detection with cost row ``costs`` (R,) over
+    ``candidates``: exactly what :func:`_assign_rows` decides for one row, without running
+    the assignment twice (a camera of a fleet mostly sees one robot at a time).
+
+    The gated assignment of one row takes the first column of least ``cost² / 2`` among those
+    within the gate (every other column costs more than any gated one); blocking it, the
+    assignment takes the least of the other gated columns, so the pair is ambiguous when a
+    second gated column lies within ``-ln(ambiguity_ratio)`` of it. A column has no other row
+    to rival it. The same arithmetic (``0.5 * cost²``) as :func:`_gated_assignment`, so ties
+    and rounding fall the same way (tests/backend_service/test_association.py compares the
+    two on random rows)."""
+    gated = np.flatnonzero(costs <= cfg.gate)
+    if gated.size == 0:
+        best = float(costs.min()) if costs.size else math.inf
+        return DetectionOutcome("", "unassigned", best)
+    nll = 0.5 * np.square(costs[gated])
+    k = int(np.argmin(nll))  # the first of the least, as the Hungarian method's scan
+    col = int(gated[k])
+    c1 = float(costs[col])
+    pred = candidates[col]
+    if (None in unpredicted_models
+            or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
+            pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
+        # an identical robot without a prediction may be the one seen here
+        return DetectionOutcome("", "ambiguous", c1)
+    if gated.size > 1:
+        rival = float(np.delete(nll, k).min())
+        if rival - float(nll[k]) < -math.log(cfg.ambiguity_ratio):
+            return DetectionOutcome("", "ambiguous", c1)
+    return DetectionOutcome(pred.robot_id, "assigned", c1)
 
 
 # -- on the wire ------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from backend_service import association
 from backend_service.association import (
     AssociationConfig,
     DetectionRouter,
@@ -535,6 +536,35 @@ def test_the_one_pair_shortcut_gives_the_costs_of_the_general_path() -> None:
         checked += 1
         finite += int(np.isfinite(one).sum())
     assert checked == 60 and 10 < finite < 120
+
+
+
+def test_one_detections_decision_is_the_assignments() -> None:
+    # a lone unnamed detection is decided in closed form; on random cost rows (ties, values
+    # within and beyond the gate and the ambiguity margin, vague predictions, robots of the
+    # site without a prediction) it must decide exactly as the gated assignment of one row
+    rng = np.random.default_rng(11)
+    cfg = AssociationConfig()
+    kp_b = KEYPOINTS["hsr_a"].copy()  # another model's keypoints (another object)
+    models = {"hsr_a": KEYPOINTS["hsr_a"], "hsr_b": KEYPOINTS["hsr_a"], "hsr_c": kp_b}
+    margin = -math.log(cfg.ambiguity_ratio)
+    reasons: collections.Counter[str] = collections.Counter()
+    for _ in range(600):
+        n = int(rng.integers(1, 4))
+        ids = list(models)[:n]
+        preds = [_prediction(rid, (9.5, 5.9, 0.0), float(rng.choice([0.03, 0.3])))
+                 for rid in ids]
+        base = rng.uniform(0.0, cfg.gate * 1.2)
+        row = base + rng.choice([0.0, 0.5 * margin / max(base, 0.1), 3.0, np.inf], size=n)
+        if rng.uniform() < 0.2:
+            row[rng.integers(n)] = row[0]  # an exact tie
+        unpredicted = [set(), {None}, {id(KEYPOINTS["hsr_a"])}, {id(kp_b)}][rng.integers(4)]
+        fast = association._one_detection(row, preds, models, unpredicted, cfg)
+        general = association._assign_rows(row[None, :], preds, models, unpredicted, cfg)[0]
+        assert (fast.robot_id, fast.reason) == (general.robot_id, general.reason)
+        assert fast.cost == general.cost or (math.isinf(fast.cost) and math.isinf(general.cost))
+        reasons[fast.reason] += 1
+    assert min(reasons[r] for r in ("assigned", "ambiguous", "unassigned")) > 50, reasons
 
 
 def test_the_cameras_seeing_a_robot_are_the_only_ones_that_can_give_it_a_detection() -> None:
