@@ -9,7 +9,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import MutableMapping, Sequence
 from typing import Final
 
 from smartedge import __version__
@@ -101,7 +101,33 @@ def _configure_logging(level: str, fmt: str) -> None:
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), handlers=[handler])
 
 
+#: environment defaults every ``smartedge`` command starts with (a value already set wins).
+#: ``OPENBLAS_NUM_THREADS=1``: numpy's BLAS on the calling thread only. Its matrices here are
+#: small (3 x 3 to a few hundred elements), a service's parallelism is its processes, and
+#: OpenBLAS's worker thread, once woken by a call it chose to split, busy-waits for the next
+#: one with sched_yield for a long while: on a loaded host it takes a core's share from the
+#: services. In the fleet benchmark each backend's worker thread burnt 40-110 ms of CPU in
+#: bursts every few seconds, every backend at once, and those bursts were the latency tail
+#: (docs/benchmarks.md, "The BLAS thread"). Read when numpy loads, so set before any import.
+PROCESS_DEFAULTS: Final = {"OPENBLAS_NUM_THREADS": "1"}
+
+
+def apply_process_defaults(environ: MutableMapping[str, str] | None = None) -> dict[str, str]:
+    """Set :data:`PROCESS_DEFAULTS` in ``environ`` (default ``os.environ``, and so in the
+    processes this one starts) where unset; returns what it set. Effective only before numpy
+    is imported in this process (a warning says so otherwise)."""
+    env = os.environ if environ is None else environ
+    applied = {k: v for k, v in PROCESS_DEFAULTS.items() if k not in env}
+    env.update(applied)
+    if applied and environ is None and "numpy" in sys.modules:
+        logging.getLogger(__name__).warning(
+            "numpy was imported before the process defaults %s were set: its BLAS keeps its "
+            "threads in this process (its children get them)", applied)
+    return applied
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    apply_process_defaults()
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(
         prog="smartedge",

@@ -142,3 +142,41 @@ def test_a_closed_pipe_ends_the_command_without_a_traceback() -> None:
     err = err_bytes.decode()
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
     assert proc.returncode == cli.EXIT_BROKEN_PIPE
+
+
+_THREADS_AFTER_A_COMMAND = """
+import os, sys
+from smartedge import cli
+rc = cli.main(["site", "check", sys.argv[1]])
+import numpy  # the command imported it: its BLAS is loaded
+a = numpy.random.default_rng(0).random((600, 600))
+a @ a  # large enough for OpenBLAS to split it over its threads, when it has any
+print(rc, os.environ.get("OPENBLAS_NUM_THREADS"), len(os.listdir("/proc/self/task")))
+"""
+
+
+@pytest.mark.parametrize("preset", [None, "2"])
+def test_commands_run_numpys_blas_on_one_thread_unless_told_otherwise(preset) -> None:
+    # the default keeps OpenBLAS from starting its worker thread (one that busy-waits after
+    # a split call: the fleet backends' latency tail); a value the user set is kept
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    proc = subprocess.run([sys.executable, "-c", _THREADS_AFTER_A_COMMAND, str(EXAMPLE_SITE)],
+                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr
+    rc, value, threads = proc.stdout.split()[-3:]
+    assert rc == "0"
+    if preset is None:
+        assert (value, threads) == ("1", "1")
+    else:
+        assert value == preset and int(threads) > 1  # its worker thread(s)
+
+
+def test_process_defaults_do_not_override_and_say_what_they_set() -> None:
+    env = {"OPENBLAS_NUM_THREADS": "4"}
+    assert cli.apply_process_defaults(env) == {} and env["OPENBLAS_NUM_THREADS"] == "4"
+    env = {}
+    assert cli.apply_process_defaults(env) == {"OPENBLAS_NUM_THREADS": "1"} == env
