@@ -31,7 +31,12 @@ Measured per backend count (one row each, everything restarted):
   to the counters the backends report for what they dropped (``shed``, ``stale_dropped``, sync
   overflow, ``no_estimate``): a frame-set missing without a counter is dropped *silently*;
 - two publishers: a (robot, stamp) pose received more than once;
-- CPU per process (seconds of CPU per second over the measured span, from /proc).
+- CPU per process (seconds of CPU per second over the measured span, from /proc), and each
+  backend's by thread: its worker, Zenoh's runtime, and the rest (callback threads, a BLAS
+  library's: busy there is work nobody scheduled);
+- the worst frames (when in the span, how late their slowest pose): a tail that comes back at
+  the same moments in every run is triggered by the traffic, not by the host;
+- with ``--latencies CSV``, every measured pose's latency, for plots and for comparing runs.
 """
 
 from __future__ import annotations
@@ -268,6 +273,36 @@ def _cpu_s(pid: int) -> float:
         return math.nan
 
 
+#: thread names (``/proc/<pid>/task/<tid>/comm``) of Zenoh's runtime in a Python process
+ZENOH_THREAD_PREFIXES: Final = ("app-", "net-", "tx-", "rx-", "acc-", "Watchdog")
+THREAD_CLASSES: Final = ("worker", "zenoh", "other")
+
+
+def _thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds so far of a service's threads by class: ``worker`` (the main thread, where
+    the runner's loop runs), ``zenoh`` (Zenoh's runtime threads), ``other`` (the rest: the
+    subscriptions' callback threads, a BLAS library's, a compiler's); empty when /proc cannot
+    tell. A busy ``other`` is work nobody scheduled: numpy's BLAS thread spinning after a
+    split call was the fleet's latency tail (docs/benchmarks.md, "The BLAS thread")."""
+    out = dict.fromkeys(THREAD_CLASSES, 0.0)
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return {}
+    for tid in tasks:
+        try:
+            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        except OSError:
+            continue  # the thread ended
+        name = stat[stat.find("(") + 1:stat.rfind(")")]
+        fields = stat.rsplit(")", 1)[1].split()
+        cls = ("worker" if int(tid) == pid else
+               "zenoh" if name.startswith(ZENOH_THREAD_PREFIXES) else "other")
+        out[cls] += (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
 def _wait_listening(proc: subprocess.Popen, port: int, timeout_s: float, log: Path) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -306,6 +341,10 @@ class RowResult:
     #: how long after its stamp a measured camera frame was all sent (ms): p99 and max. The
     #: latency includes it; a figure near the latency's tail says the publisher was behind
     send_lag_ms: tuple[float, float] = (math.nan, math.nan)
+    #: backend -> CPU s per s of its threads by class (:func:`_thread_cpu_s`)
+    thread_cpu: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
+    #: every measured pose: (robot, its frame-set's stamp in s into the span, latency ms)
+    latencies: list[tuple[str, float, float]] = dataclasses.field(default_factory=list)
 
     @property
     def silent(self) -> int:
@@ -404,6 +443,8 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
                     if not cpu0 and stamp >= measured_from:
                         cpu0 = {name: _cpu_s(p.pid) for name, p in procs.items()}
                         cpu0["bench"] = _cpu_s(os.getpid())
+                        threads0 = {name: _thread_cpu_s(p.pid) for name, p in procs.items()
+                                    if name.startswith("backend")}
                         t_cpu0 = time.monotonic()
                     while (now := time.time_ns()) < stamp:
                         time.sleep(min(0.002, (stamp - now) * 1e-9))
@@ -425,6 +466,11 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
             load1 = os.getloadavg()[0]
             cpu = {name: (_cpu_s(p.pid) - cpu0[name]) / span_s for name, p in procs.items()}
             cpu["bench"] = (_cpu_s(os.getpid()) - cpu0["bench"]) / span_s
+            thread_cpu = {}
+            for name, before in threads0.items():
+                after = _thread_cpu_s(procs[name].pid)
+                if before and after:
+                    thread_cpu[name] = {c: (after[c] - before[c]) / span_s for c in before}
             time.sleep(2.5)  # the last poses, and a status with the final counters
         finally:
             for s in sessions:
@@ -437,8 +483,9 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
         if isinstance(est, PoseEstimate) and "multi_frame" not in est.flags:
             got.setdefault((robot, est.stamp_ns), []).append(rx)
     expected = {fs for fs in prepared.seen if fs[1] >= measured_from}
-    lat = np.array([(rxs[0] - st) * 1e-6 for (rid, st), rxs in got.items()
-                    if (rid, st) in expected])
+    latencies = sorted((rid, (st - measured_from) * 1e-9, (rxs[0] - st) * 1e-6)
+                       for (rid, st), rxs in got.items() if (rid, st) in expected)
+    lat = np.array([ms for _, _, ms in latencies])
     counters: dict[str, int] = {}
     stage_ms: dict[str, float] = {}
     owners: dict[str, str] = {}
@@ -475,11 +522,34 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
         received=received, areas={k: ",".join(v) or "all" for k, v in served.items()},
         load1=load1,
         send_lag_ms=((float(np.percentile(lag_ns, 99)) * 1e-6, max(lag_ns) * 1e-6) if lag_ns
-                     else (math.nan, math.nan)))
+                     else (math.nan, math.nan)),
+        thread_cpu=thread_cpu, latencies=latencies)
 
 
 def _ratio(a: float, b: float) -> str:
     return f"{a / b:.2f}x" if b > 0 and math.isfinite(a) and math.isfinite(b) else "-"
+
+
+def worst_frames(latencies: Sequence[tuple[str, float, float]], n: int = 5
+                 ) -> list[tuple[float, float]]:
+    """The ``n`` frame times (s into the span) whose slowest pose was slowest, with that
+    latency (ms), in time order: a tail that comes back at the same moments of the traffic
+    in every run is work the traffic triggers, not the host."""
+    slowest: dict[float, float] = {}
+    for _, t, ms in latencies:
+        key = round(t, 3)
+        slowest[key] = max(slowest.get(key, 0.0), ms)
+    return sorted(sorted(slowest.items(), key=lambda kv: -kv[1])[:n])
+
+
+def write_latencies(path: Path, rows: Sequence[RowResult]) -> None:
+    """Every measured pose of ``rows`` as CSV: split, backends, robot, stamp (s into the
+    span), latency (ms)."""
+    with path.open("w") as f:
+        f.write("split,backends,robot,stamp_s,latency_ms\n")
+        for r in rows:
+            for rid, t, ms in r.latencies:
+                f.write(f"{r.split},{r.backends},{rid},{t:.3f},{ms:.3f}\n")
 
 
 def print_row(r: RowResult, base: RowResult | None) -> None:
@@ -495,6 +565,15 @@ def print_row(r: RowResult, base: RowResult | None) -> None:
           + f"), routers {routers:.2f}, publisher+monitor {r.cpu['bench']:.2f}; machine load "
           f"average {r.load1:.1f} (1 min, {os.cpu_count()} cores); frames sent after their "
           f"stamp p99 {r.send_lag_ms[0]:.1f} ms, max {r.send_lag_ms[1]:.1f} ms")
+    if r.thread_cpu:
+        print(f"{'':>8}backend threads CPU s/s (worker / zenoh / other): " + "; ".join(
+            f"{k.removeprefix('backend')} " + " / ".join(f"{v.get(c, math.nan):.2f}"
+                                                        for c in THREAD_CLASSES)
+            for k, v in sorted(r.thread_cpu.items())))
+    worst = worst_frames(r.latencies)
+    if worst:
+        print(f"{'':>8}worst frames (s into the span: slowest pose ms): "
+              + ", ".join(f"{t:.2f}: {ms:.0f}" for t, ms in worst))
     print(f"{'':>8}backend stage p99 ms: "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(r.stage_ms.items())))
     print(f"{'':>8}counters: " + (", ".join(f"{k} {v}" for k, v in sorted(r.counters.items()))
@@ -627,6 +706,9 @@ def main(argv: Sequence[str]) -> int:
                         "a backend as it runs for hours "
                         "(its marginalizations included); a shorter warm-up measures a young "
                         "backend")
+    parser.add_argument("--latencies", type=Path, metavar="CSV",
+                        help="write every measured pose's latency (split, backends, robot, "
+                        "stamp s into the span, ms) to this CSV file")
     parser.add_argument("--cpu-only", action="store_true",
                         help="no processes, no Zenoh: each backend's CPU per second of traffic "
                         "in this process, per split and backend count (independent of the "
@@ -682,6 +764,9 @@ def main(argv: Sequence[str]) -> int:
                 print_row(r, first)
                 first = first or r
                 rows.append(r)
+    if args.latencies is not None:
+        write_latencies(args.latencies, rows)
+        print(f"latencies of {sum(len(r.latencies) for r in rows)} poses: {args.latencies}")
     if len(splits) > 1:
         print("side by side (p50 / p99 ms, CPU of the backends s/s; ratio area / none):")
         by = {(r.split, r.backends): r for r in rows}
@@ -704,5 +789,6 @@ def main(argv: Sequence[str]) -> int:
           "stale_dropped.camera_pose, sync overflow/late/rate-limited, no_estimate, "
           "ownership.withheld, unassigned detections); "
           "dup: poses received twice (two publishers); late: frames this publisher sent "
-          "more than one period late")
+          "more than one period late; backend threads: the worker, Zenoh's runtime, the rest "
+          "(callback threads, numpy's BLAS)")
     return 0 if all(r.silent == 0 and r.duplicates == 0 for r in rows) else 1

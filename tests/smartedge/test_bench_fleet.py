@@ -66,3 +66,29 @@ def test_two_backends_on_two_routers_split_the_robots_and_measure_latency(
     assert r.counters.get("external_pose.used", 0) > 20, r.counters
     assert all(v >= 0 for v in r.cpu.values()) and set(r.cpu) >= {"router0", "router1",
                                                                   "backend0", "backend1"}
+    # each backend's CPU by thread: the worker did the work; the classes sum to the process
+    assert set(r.thread_cpu) == {"backend0", "backend1"}, r.thread_cpu
+    for name, by_class in r.thread_cpu.items():
+        assert by_class["worker"] > 0 and min(by_class.values()) >= 0, by_class
+        assert sum(by_class.values()) == pytest.approx(r.cpu[name], abs=0.05), (by_class, r.cpu)
+    assert len(r.latencies) == r.poses and all(0 <= t <= 3.5 for _, t, _ in r.latencies)
+
+
+def test_worst_frames_and_the_latency_csv(tmp_path: Path) -> None:
+    from smartedge.bench.fleet import RowResult, worst_frames, write_latencies
+
+    lat = [("r0", 0.0, 20.0), ("r1", 0.0, 90.0), ("r0", 0.0667, 30.0), ("r1", 0.0667, 25.0),
+           ("r0", 4.333, 70.0), ("r1", 4.333, 10.0)]
+    # the frames whose slowest pose was slowest, in time order
+    assert worst_frames(lat, 2) == [(0.0, 90.0), (4.333, 70.0)]
+    assert worst_frames([]) == []
+    row = RowResult(backends=3, split="area", p50_ms=25.0, p99_ms=90.0, max_ms=90.0, poses=6,
+                    frame_sets=6, missing=0, accounted=0, duplicates=0, late_publish=0, cpu={},
+                    counters={}, stage_ms={}, owners={}, statuses_in_span={},
+                    unreadable_statuses=0, missing_at=[], received={}, areas={},
+                    latencies=lat)
+    out = tmp_path / "lat.csv"
+    write_latencies(out, [row])
+    lines = out.read_text().splitlines()
+    assert lines[0] == "split,backends,robot,stamp_s,latency_ms" and len(lines) == 7
+    assert lines[2] == "area,3,r1,0.000,90.000"
