@@ -665,6 +665,16 @@ def associate(camera: CameraModel, detections: Sequence[Detection],
     return Association(final, robot_ids, costs, by_robot)
 
 
+def _twin_may_be_seen(pred: RobotPrediction, keypoints_base_m: Mapping[str, np.ndarray],
+                      unpredicted_models: set[int | None], cfg: AssociationConfig) -> bool:
+    """An identical robot without a prediction (one of ``pred``'s model, or of an unknown
+    model: ``None`` in ``unpredicted_models``) may be the one seen where ``pred``, known only
+    roughly (position sigma above ``vague_sigma_xy_m``), is expected."""
+    return (None in unpredicted_models
+            or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
+            pred.sigma_xy_m() > cfg.vague_sigma_xy_m)
+
+
 def _assign_rows(costs: np.ndarray, candidates: Sequence[RobotPrediction],
                  keypoints_base_m: Mapping[str, np.ndarray],
                  unpredicted_models: set[int | None], cfg: AssociationConfig
@@ -685,10 +695,7 @@ def _assign_rows(costs: np.ndarray, candidates: Sequence[RobotPrediction],
         c1 = float(costs[row, col])
         reason = "assigned"
         pred = candidates[col]
-        if (None in unpredicted_models
-                or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
-                pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
-            # an identical robot without a prediction may be the one seen here
+        if _twin_may_be_seen(pred, keypoints_base_m, unpredicted_models, cfg):
             reason = "ambiguous"
         elif per_row[row] > 1 or per_col[col] > 1:
             blocked = costs.copy()
@@ -729,10 +736,7 @@ def _one_detection(costs: np.ndarray, candidates: Sequence[RobotPrediction],
     col = int(gated[k])
     c1 = float(costs[col])
     pred = candidates[col]
-    if (None in unpredicted_models
-            or id(keypoints_base_m[pred.robot_id]) in unpredicted_models) and (
-            pred.sigma_xy_m() > cfg.vague_sigma_xy_m):
-        # an identical robot without a prediction may be the one seen here
+    if _twin_may_be_seen(pred, keypoints_base_m, unpredicted_models, cfg):
         return DetectionOutcome("", "ambiguous", c1)
     if gated.size > 1:
         rival = float(np.delete(nll, k).min())

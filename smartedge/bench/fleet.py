@@ -264,11 +264,17 @@ def client_config(endpoint: str) -> Any:
     return zenoh.Config.from_json5(json.dumps(doc))
 
 
+def _stat_cpu_s(stat: str) -> float:
+    """CPU seconds (user + system) in the text of a /proc ``stat`` file (a process's or a
+    thread's)."""
+    fields = stat.rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _cpu_s(pid: int) -> float:
     """CPU seconds (user + system) of a process so far; NaN when /proc cannot tell."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        return _stat_cpu_s(Path(f"/proc/{pid}/stat").read_text())
     except (OSError, ValueError, IndexError):
         return math.nan
 
@@ -285,7 +291,6 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
     tell. A busy ``other`` is work nobody scheduled: numpy's BLAS thread spinning after a
     split call was the fleet's latency tail (docs/benchmarks.md, "The BLAS thread")."""
     out = dict.fromkeys(THREAD_CLASSES, 0.0)
-    tick = os.sysconf("SC_CLK_TCK")
     try:
         tasks = os.listdir(f"/proc/{pid}/task")
     except OSError:
@@ -296,10 +301,9 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
         except OSError:
             continue  # the thread ended
         name = stat[stat.find("(") + 1:stat.rfind(")")]
-        fields = stat.rsplit(")", 1)[1].split()
         cls = ("worker" if int(tid) == pid else
                "zenoh" if name.startswith(ZENOH_THREAD_PREFIXES) else "other")
-        out[cls] += (int(fields[11]) + int(fields[12])) / tick
+        out[cls] += _stat_cpu_s(stat)
     return out
 
 
