@@ -8,7 +8,7 @@
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
-                                 [--breakdown] [--held-out-variations]
+                                 [--detector-flip] [--breakdown] [--held-out-variations]
     smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
     smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
                              [--no-feedback] [--min-sigma-m M] [--types]
@@ -175,6 +175,7 @@ def _keypoints(args: argparse.Namespace) -> int:
             held = evaluate_held_out_variations(args.model, seed=args.seed, count=args.count,
                                                 scenario_path=args.scenario,
                                                 threads=args.threads, flip=args.flip,
+                                                detector_flip=args.detector_flip,
                                                 progress=lambda line: print(line, flush=True))
         except (ModelError, OSError, ValueError, RandomizationError) as exc:
             print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
@@ -197,7 +198,8 @@ def _keypoints(args: argparse.Namespace) -> int:
     try:
         result = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
                                     scenario_path=args.scenario, threads=args.threads,
-                                    flip=args.flip, breakdown=args.breakdown,
+                                    flip=args.flip, detector_flip=args.detector_flip,
+                                    breakdown=args.breakdown,
                                     progress=lambda line: print(line, flush=True))
     except (ModelError, OSError, ValueError) as exc:
         print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
@@ -301,6 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_kp.add_argument("--flip", action=argparse.BooleanOptionalAction, default=None,
                       help="with (--flip) or without (--no-flip) the keypoint network's "
                       "test-time flip augmentation (default: as the model's card says)")
+    p_kp.add_argument("--detector-flip", action=argparse.BooleanOptionalAction, default=None,
+                      help="the same for the detector (default: as its card says)")
     p_kp.add_argument("--breakdown", action="store_true", help="also per keypoint (bias, "
                       "spread) and per distance (common shift and scale, the rest)")
     p_kp.add_argument("--held-out-variations", action="store_true",

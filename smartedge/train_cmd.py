@@ -88,9 +88,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-from", metavar="CKPT", help="fine-tune: start from the weights of "
                    "an earlier run's <kind>.ckpt (same kind and image sizes) with a fresh "
                    "optimizer and schedule; use a lower --lr")
+    p.add_argument("--detector-input", metavar="WxH", type=_input_size,
+                   help="detector / segmentation: the network's input size (default 424x240, "
+                   "half of an 848x480 frame); both divisible by 8. A larger input finds "
+                   "smaller (farther) robots at more compute per frame; --init-from a "
+                   "checkpoint of another input size works (the networks are fully "
+                   "convolutional)")
     p.add_argument("--tiny", action="store_true",
                    help="tiny images (smoke test: checks the whole chain in seconds)")
     return p
+
+
+def _input_size(text: str) -> tuple[int, int]:
+    """``WxH`` → (w, h), each a positive multiple of 8 (the networks' coarsest stride)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WxH, e.g. 640x360") from None
+    if w <= 0 or h <= 0 or w % 8 or h % 8:
+        raise argparse.ArgumentTypeError(f"{text!r}: width and height must be positive "
+                                         "multiples of 8")
+    return w, h
 
 
 def tiny_geometry() -> Any:
@@ -145,6 +163,12 @@ def main(argv: Sequence[str]) -> int:
         if model is None:
             model = scenario.site.robot_model(args.robot or scenario.robot_id)
         geometry = tiny_geometry() if args.tiny else Geometry()
+        if args.detector_input:
+            if args.kind == "keypoints":
+                raise SmartedgeError("--detector-input is for the detector and the "
+                                     "segmentation network (the keypoint network sees crops)")
+            geometry = dataclasses.replace(geometry, det_w=args.detector_input[0],
+                                           det_h=args.detector_input[1])
         if args.kind == "segmentation":  # whole frames + label images at the output size
             from edge_agent.training.nets import SemanticSegNet
 

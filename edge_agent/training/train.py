@@ -507,17 +507,37 @@ def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
     try:
         saved = torch.load(path, map_location="cpu", weights_only=False)
         other = saved["state"]
-        if other.get("identity", identity) != identity:  # older checkpoints have none
+        theirs = other.get("identity", identity)  # older checkpoints have none
+        resized = _input_resize(theirs, identity)
+        if theirs != identity and resized is None:
             raise TrainingError(f"{path}: checkpoint of another configuration "
-                                f"({other.get('identity')}, now {identity})")
+                                f"({theirs}, now {identity})")
         model.load_state_dict(saved["model"])
     except TrainingError:
         raise
     except Exception as exc:  # torch raises many types for a bad or foreign file
         raise TrainingError(f"{path}: cannot initialize from this checkpoint ({exc})") from None
-    say(f"initialized from {path.name} ({other['step']} steps)")
+    note = f", input {resized}" if resized else ""
+    say(f"initialized from {path.name} ({other['step']} steps{note})")
     return [*other.get("history", []),
-            f"fine-tuned from that checkpoint ({other['step']} steps) with a fresh optimizer"]
+            f"fine-tuned from that checkpoint ({other['step']} steps{note}) with a fresh "
+            "optimizer"]
+
+
+def _input_resize(theirs: dict[str, Any], ours: dict[str, Any]) -> str | None:
+    """``"424x240 -> 640x360"`` when two checkpoint identities differ only in the whole-frame
+    input size of a fully convolutional network (detector, segmentation: the same weights run
+    at any size), else None."""
+    if theirs.get("kind") != ours.get("kind") or ours.get("kind") == "keypoints":
+        return None
+    a, b = dict(theirs.get("geometry", {})), dict(ours.get("geometry", {}))
+    size_keys = ("det_w", "det_h", "seg_w", "seg_h")
+    if ({k: v for k, v in a.items() if k not in size_keys}
+            != {k: v for k, v in b.items() if k not in size_keys}):
+        return None
+    if (a.get("det_w"), a.get("det_h")) == (b.get("det_w"), b.get("det_h")):
+        return None
+    return f"{a.get('det_w')}x{a.get('det_h')} -> {b.get('det_w')}x{b.get('det_h')}"
 
 
 def _save_checkpoint(path: Path, model: torch.nn.Module, opt: Any, state: dict[str, Any],
@@ -752,8 +772,10 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
               "keypoint_names": list(model_def.keypoint_names), "metrics": metrics,
               "onnx_check": diffs, "training": training}
     if cfg.kind == "detector":
+        # every detector trains on mirrored frames too (_batch_loss), so it runs with flip
+        # test-time augmentation by default
         return DetectorCard(input_w=g.det_w, input_h=g.det_h, stride=RobotDetector.stride,
-                            **common)
+                            flip_tta=True, **common)
     if cfg.kind == "segmentation":
         return SegmentationCard(input_w=g.det_w, input_h=g.det_h, output_w=g.seg_w,
                                 output_h=g.seg_h, classes=list(SEMANTIC_CLASSES), **common)

@@ -103,29 +103,33 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
 
 
 def _deployed_pipeline(scenario: Any, model_dir: Path | None, threads: int,
-                       flip: bool | None) -> RobotKeypointPipeline:
+                       flip: bool | None, detector_flip: bool | None = None
+                       ) -> RobotKeypointPipeline:
     """The edge's detector + keypoint pipeline of ``model_dir`` (default: the shipped models),
     keypoints named as the scenario's robot model names them."""
     model = scenario.site.robot_model(scenario.robot_id)
     return RobotKeypointPipeline.from_folder(model_dir, threads=threads,
-                                             keypoint_names=model.keypoint_names, flip=flip)
+                                             keypoint_names=model.keypoint_names, flip=flip,
+                                             detector_flip=detector_flip)
 
 
 def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
                        count: int = 300, modes: Sequence[str] = ("randomized", "site"),
                        scenario_path: Path | None = None, threads: int = 2,
-                       flip: bool | None = None, breakdown: bool = False,
+                       flip: bool | None = None, detector_flip: bool | None = None,
+                       breakdown: bool = False,
                        progress: Callable[[str], None] | None = None) -> KeypointEvaluation:
     """Render ``count`` held-out views per mode from ``seed`` and evaluate the models of
     ``model_dir`` (default: the shipped ones); ``flip``: with the keypoint network's test-time
-    flip augmentation or without (None: as the model's card says); ``breakdown``: also
+    flip augmentation or without (None: as the model's card says); ``detector_flip``: the same
+    for the detector; ``breakdown``: also
     :func:`error_breakdown` per set."""
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
-    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip)
+    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip, detector_flip)
     t0 = time.perf_counter()
     figures: dict[str, dict[str, float]] = {}
     split: dict[str, ErrorBreakdown] = {}
@@ -512,6 +516,7 @@ def held_out_samples(count: int, scenario: Any, *, seed: int = DEFAULT_SEED,
 def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
                                  count: int = 200, scenario_path: Path | None = None,
                                  threads: int = 2, flip: bool | None = None,
+                                 detector_flip: bool | None = None,
                                  progress: Callable[[str], None] | None = None,
                                  ) -> HeldOutEvaluation:
     """Render ``count`` views of the held-out renderer variations from ``seed`` and evaluate
@@ -521,7 +526,7 @@ def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = D
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
-    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip)
+    pipeline = _deployed_pipeline(scenario, model_dir, threads, flip, detector_flip)
     t0 = time.perf_counter()
     samples, distances = held_out_samples(count, scenario, seed=seed, progress=say)
     say(f"running the detector and keypoint networks on {count} views")

@@ -88,3 +88,69 @@ def test_the_card_decides_the_default(tmp_path) -> None:  # type: ignore[no-unty
     old = KeypointEstimator(tmp_path / "keypoints.onnx", threads=1)
     assert old.flip is False and old.card.flip_tta is False
     assert KeypointEstimator(tmp_path / "keypoints.onnx", threads=1, flip=True).flip is True
+
+
+# --- the detector's test-time flip ------------------------------------------------------------
+
+
+def test_fused_boxes_average_both_passes_and_halve_a_one_sided_box() -> None:
+    from edge_agent.models import fuse_flipped_detections
+
+    direct = np.array([[10.0, 20.0, 50.0, 80.0, 0.8],     # the robot, both passes see it
+                       [200.0, 10.0, 230.0, 60.0, 0.5]])  # seen in this orientation only
+    mirrored = np.array([[12.0, 20.0, 52.0, 80.0, 0.6]])
+    fused = fuse_flipped_detections(direct, mirrored, min_score=0.2, max_detections=8)
+    assert fused.shape == (2, 5)
+    np.testing.assert_allclose(fused[0, 4], 0.7)
+    np.testing.assert_allclose(fused[0, 0], (10 * 0.8 + 12 * 0.6) / 1.4)
+    np.testing.assert_allclose(fused[1], [200.0, 10.0, 230.0, 60.0, 0.25])
+    # the floor applies to the fused score: the one-sided box is gone at 0.3
+    assert len(fuse_flipped_detections(direct, mirrored, 0.3, 8)) == 1
+    # which pass is "direct" does not matter
+    np.testing.assert_allclose(fuse_flipped_detections(mirrored, direct, 0.2, 8), fused)
+    # two peaks of one pass on one robot count once: the pass's best
+    twice = np.concatenate([direct, [[11.0, 21.0, 51.0, 81.0, 0.7]]])
+    np.testing.assert_allclose(fuse_flipped_detections(twice, mirrored, 0.2, 8)[0, 4], 0.7)
+    assert fuse_flipped_detections(np.zeros((0, 5)), np.zeros((0, 5)), 0.3, 8).shape == (0, 5)
+
+
+def test_mirrored_render_gives_mirrored_boxes_with_the_detectors_flip(site_view) -> None:  # type: ignore[no-untyped-def]
+    from edge_agent.models import Detector, box_iou
+
+    image = site_view.image_rgb
+    w = image.shape[1]
+    mirrored = np.ascontiguousarray(image[:, ::-1])
+    det = Detector(default_model_dir() / "detector.onnx", threads=1)
+    assert det.flip is True  # the shipped card says so
+    boxes = det.detect(image, min_score=0.3)
+    boxes_m = det.detect(mirrored, min_score=0.3)
+    assert len(boxes) >= 1 and len(boxes) == len(boxes_m)
+    want = boxes.copy()
+    want[:, 0], want[:, 2] = w - 1 - boxes[:, 2], w - 1 - boxes[:, 0]
+    np.testing.assert_allclose(boxes_m, want, atol=1e-3)
+    # the box is the robot's
+    assert box_iou(boxes[0, :4], np.asarray(site_view.robots[0].bbox_xyxy)) > 0.7
+    # without the flip the two orientations differ: the test above is not trivially true
+    plain = Detector(default_model_dir() / "detector.onnx", threads=1, flip=False)
+    p, p_m = plain.detect(image), plain.detect(mirrored)
+    assert np.max(np.abs(p_m[0, [0, 2]] - (w - 1 - p[0, [2, 0]]))) > 1e-3 or abs(
+        p_m[0, 4] - p[0, 4]) > 1e-4
+
+
+def test_the_detector_card_decides_its_flip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import json
+    import shutil
+
+    from edge_agent.models import Detector, RobotKeypointPipeline
+
+    shipped = default_model_dir()
+    for f in ("detector.onnx", "detector.json"):
+        shutil.copy(shipped / f, tmp_path / f)
+    doc = json.loads((tmp_path / "detector.json").read_text())
+    doc.pop("flip_tta")
+    (tmp_path / "detector.json").write_text(json.dumps(doc))
+    old = Detector(tmp_path / "detector.onnx", threads=1)
+    assert old.flip is False and old.card.flip_tta is False
+    assert Detector(tmp_path / "detector.onnx", threads=1, flip=True).flip is True
+    pipe = RobotKeypointPipeline(threads=1, detector_flip=False)
+    assert pipe.detector.flip is False and pipe.keypoints.flip is True

@@ -254,6 +254,33 @@ def test_running_the_command_again_resumes(tiny_models: Path, tmp_path: Path,
     assert card.metrics == card_before["metrics"]  # same weights, same held-out figures
 
 
+def test_a_detector_fine_tuned_at_another_input_size(tiny_models: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """``--detector-input WxH --init-from`` a checkpoint of another input size: the fully
+    convolutional detector starts from those weights, its card records the new input, the
+    resize and the test-time flip; the keypoint network (crops) and a malformed size are
+    refused with the reason."""
+    from smartedge.cli import main
+    from tests.edge_agent.conftest import TINY_ARGS
+
+    out = tmp_path / "wide"
+    w, h = DET_W + 32, DET_H + 24
+    code = main(["train", "detector", "--out", str(out), *TINY_ARGS, "--detector-input",
+                 f"{w}x{h}", "--init-from", str(tiny_models / "detector.ckpt")])
+    assert code == 0
+    said = capsys.readouterr().out
+    assert f"input {DET_W}x{DET_H} -> {w}x{h}" in said
+    card = DetectorCard.read(out / "detector.json")
+    assert (card.input_w, card.input_h) == (w, h) and card.flip_tta is True
+    assert any(f"{DET_W}x{DET_H} -> {w}x{h}" in line for line in card.training["history"])
+    assert main(["train", "keypoints", "--out", str(tmp_path / "kp"), *TINY_ARGS,
+                 "--detector-input", "640x360"]) == 1
+    assert "--detector-input is for the detector" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "detector", "--out", str(tmp_path / "bad"), "--detector-input", "641x360"])
+    assert "multiples of 8" in capsys.readouterr().err
+
+
 def test_check_onnxruntime_catches_a_model_mismatch(tmp_path: Path) -> None:
     """An ONNX file checked against the torch model it came from passes (and writes the
     reference outputs); checked against a differently initialised model it raises
