@@ -281,6 +281,29 @@ def test_a_detector_fine_tuned_at_another_input_size(tiny_models: Path, tmp_path
     assert "multiples of 8" in capsys.readouterr().err
 
 
+def test_shards_load_into_one_allocation_as_concatenated(tiny_models: Path,
+                                                        tmp_path: Path) -> None:
+    """``RenderedSet.load_many`` gives exactly what loading every shard and concatenating
+    them gives (crop rows still point at their own views), and names a broken shard."""
+    import dataclasses
+
+    from edge_agent.training.data import RenderedSet
+
+    paths = sorted((tiny_models / "cache").glob("*.npz"))
+    assert len(paths) >= 2
+    want = RenderedSet.concatenate([RenderedSet.load(p) for p in paths])
+    got = RenderedSet.load_many(paths)
+    for f in dataclasses.fields(RenderedSet):
+        a, b = getattr(want, f.name), getattr(got, f.name)
+        assert a.dtype == b.dtype and a.shape == b.shape, f.name
+        np.testing.assert_array_equal(a, b, err_msg=f.name)
+    assert got.crop_view.max() >= len(RenderedSet.load(paths[0]).det_images)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz: not a readable render shard"):
+        RenderedSet.load_many([paths[0], bad])
+
+
 def test_check_onnxruntime_catches_a_model_mismatch(tmp_path: Path) -> None:
     """An ONNX file checked against the torch model it came from passes (and writes the
     reference outputs); checked against a differently initialised model it raises
