@@ -300,7 +300,7 @@ def test_shards_load_into_one_allocation_as_concatenated(tiny_models: Path,
     assert got.crop_view.max() >= len(RenderedSet.load(paths[0]).det_images)
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match="bad.npz: not a readable render shard"):
+    with pytest.raises(ValueError, match=r"bad\.npz: not a readable render shard"):
         RenderedSet.load_many([paths[0], bad])
 
 
