@@ -154,3 +154,17 @@ def test_the_detector_card_decides_its_flip(tmp_path) -> None:  # type: ignore[n
     assert Detector(tmp_path / "detector.onnx", threads=1, flip=True).flip is True
     pipe = RobotKeypointPipeline(threads=1, detector_flip=False)
     assert pipe.detector.flip is False and pipe.keypoints.flip is True
+
+
+def test_the_iou_matrix_is_box_iou_of_every_pair() -> None:
+    from edge_agent.models import _iou_matrix, box_iou
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 100, (12, 2))
+    boxes = np.concatenate([xy, xy + rng.uniform(0, 40, (12, 2))], axis=1)
+    boxes[3] = boxes[2]  # identical pair
+    boxes[5, 2:] = boxes[5, :2]  # empty box
+    m = _iou_matrix(boxes)
+    want = np.array([[box_iou(a, b) for b in boxes] for a in boxes])
+    np.testing.assert_allclose(m, want, atol=1e-12)
+    assert m[2, 3] == 1.0 and m[5, 5] == 0.0
