@@ -53,7 +53,9 @@ sends a message of its own.
   publisher.
 - **Missed events**: a synced backend runs the liveliness get again every ``resync_s`` and
   adds what its subscriptions missed (they do not replay what happened while a session was cut
-  off); it removes nothing on a get's word, only on a vanishing token. Only the start-up get
+  off); it removes nothing on a get's word, only on a vanishing token, and it does not bring
+  back a token whose vanishing event came after the get went out (the answer predates it; a
+  hand-over during a get would otherwise wait for a gone token for good). Only the start-up get
   is waited for; the periodic one goes out on one tick and its answer is taken on a later one
   (:meth:`OwnershipTokens.start_sync`, :meth:`OwnershipTokens.poll_sync`), so the worker
   never stands still for its round trip through the routers.
@@ -225,6 +227,12 @@ class OwnershipTable:
         self._members: dict[str, int] = {self.instance_id: started_ns}
         #: robot -> other backends whose owner token for it is in sight
         self._tokens: dict[str, set[str]] = {r: set() for r in self.robots}
+        #: vanishing tokens, numbered: a liveliness get's answer taken after such an event may
+        #: still hold the token (the routers answered before it vanished); :meth:`resync`
+        #: must not bring it back (``("owner", robot, instance)``, ``("alive", instance, "")``,
+        #: ``("area", area, instance)`` -> event number)
+        self.vanish_seq = 0
+        self._vanished: dict[tuple[str, str, str], int] = {}
         #: robots whose owner token this backend holds -> when it claimed them
         self._held: dict[str, int] = {}
         #: robots another backend held since this one last published them (for takeovers)
@@ -248,7 +256,8 @@ class OwnershipTable:
     # ---------------------------------------------------------------- inputs
 
     def resync(self, members: Iterable[str], owner_tokens: Iterable[tuple[str, str]],
-               now_ns: int, area_tokens: Iterable[tuple[str, str]] = ()) -> None:
+               now_ns: int, area_tokens: Iterable[tuple[str, str]] = (),
+               since_vanish_seq: int | None = None) -> None:
         """The answer of a liveliness get: backends (``members``) and owner tokens
         (``(robot, instance)``) on the bus. It adds what the events missed and removes nothing:
         a get's answer can lack tokens that stand (seen with zenoh 1.10 under load), so only a
@@ -256,17 +265,33 @@ class OwnershipTable:
         table is not synced yet (at start, after :meth:`forget`) were there before: they count
         at once; later ones are new and count after the join delay. This backend's own tokens
         are ignored. ``area_tokens``: ``(area, instance)`` of the area tokens on the bus.
+        ``since_vanish_seq``: :attr:`vanish_seq` when the get went out; a token whose vanishing
+        event came after that is not brought back (the answer predates the event: a hand-over
+        during a periodic get would otherwise wait for a token that is gone, for good).
         Claims may begin."""
+        since = self.vanish_seq if since_vanish_seq is None else since_vanish_seq
+
+        def gone(kind: str, a: str, b: str = "") -> bool:
+            return self._vanished.get((kind, a, b), -1) > since
+
         for area, inst in area_tokens:
-            self.on_area_token(area, inst, True)
+            if not gone("area", area, inst):
+                self.on_area_token(area, inst, True)
         established = not self._synced
         for inst in sorted(set(members) - {self.instance_id}):
-            if inst not in self._members:
+            if inst not in self._members and not gone("alive", inst):
                 self.on_member(inst, True, now_ns - (self.join_delay_ns if established else 0))
         for robot, inst in owner_tokens:
-            if robot in self._tokens and inst not in self._tokens[robot]:
+            if (robot in self._tokens and inst not in self._tokens[robot]
+                    and not gone("owner", robot, inst)):
                 self.on_owner_token(robot, inst, True)
+        # what vanished before this get went out cannot be in a later answer's way
+        self._vanished = {k: v for k, v in self._vanished.items() if v > since}
         self._synced = True
+
+    def _vanish(self, kind: str, a: str, b: str = "") -> None:
+        self.vanish_seq += 1
+        self._vanished[(kind, a, b)] = self.vanish_seq
 
     @property
     def is_synced(self) -> bool:
@@ -307,7 +332,9 @@ class OwnershipTable:
                 self._members_memo = None
                 self.counters["ownership.member_joined"] += 1
                 log.info("backend %s: backend %s joined", self.instance_id, instance_id)
-        elif self._members.pop(instance_id, None) is not None:
+            return
+        self._vanish("alive", instance_id)
+        if self._members.pop(instance_id, None) is not None:
             self._members_memo = None
             self.counters["ownership.member_left"] += 1
             log.info("backend %s: backend %s left", self.instance_id, instance_id)
@@ -330,7 +357,9 @@ class OwnershipTable:
                 self._publishing.discard(robot_id)
                 log.warning("backend %s: %s also claims %s; publishing of it stopped",
                             self.instance_id, instance_id, robot_id)
-        elif instance_id in holders:
+            return
+        self._vanish("owner", robot_id, instance_id)
+        if instance_id in holders:
             holders.discard(instance_id)
             if not holders:
                 self.counters["ownership.owner_lost"] += 1
@@ -346,6 +375,7 @@ class OwnershipTable:
         if present:
             self._member_areas.setdefault(instance_id, set()).add(area)
         else:
+            self._vanish("area", area, instance_id)
             served = self._member_areas.get(instance_id)
             if served is not None:
                 served.discard(area)
@@ -554,6 +584,8 @@ class _PendingSync:
     started_s: float
     timeout_s: float
     handlers: list[tuple[str, Any]]
+    #: the table's vanish_seq when the gets went out (OwnershipTable.resync)
+    vanish_seq: int = 0
     replies: list[tuple[str, Any]] = dataclasses.field(default_factory=list)
 
 
@@ -595,9 +627,10 @@ class OwnershipTokens:
         if self.table.areas is not None:
             key_exprs.insert(0, keys.area_key(self.site, "*", "*"))
         liveliness = self.session.liveliness()
+        seq = self.table.vanish_seq  # before the gets: what vanishes after may be in the answer
         self._pending = _PendingSync(
             time.monotonic(), timeout_s,
-            [(k, liveliness.get(k, timeout=timeout_s)) for k in key_exprs])
+            [(k, liveliness.get(k, timeout=timeout_s)) for k in key_exprs], seq)
 
     @property
     def syncing(self) -> bool:
@@ -642,7 +675,7 @@ class OwnershipTokens:
                 areas.append((parsed[2], parsed[3]))
             else:
                 owners.append((parsed[2], parsed[3]))
-        self.table.resync(members, owners, now_ns(), areas)
+        self.table.resync(members, owners, now_ns(), areas, since_vanish_seq=pending.vanish_seq)
         log.debug("backend %s: ownership synced (%d backends, %d owner tokens on the bus)",
                   self.table.instance_id, len(members), len(owners))
         return len(members) + len(owners) + len(areas)

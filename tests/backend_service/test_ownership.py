@@ -313,6 +313,42 @@ def test_a_claim_waits_until_no_other_owner_token_is_in_sight() -> None:
     assert table.counters["ownership.takeovers"] == 1
 
 
+def test_a_get_answered_before_a_token_vanished_does_not_bring_it_back() -> None:
+    """A periodic liveliness get goes out, the old owner lets go (its token's vanishing event
+    arrives), then the get's answer is taken: it still lists the token (the routers answered
+    first). The answer must not bring it back, else the new owner waits for a token that is
+    gone, for good: a robot nobody publishes (seen once in CI as a hand-over between areas).
+    The same holds for a backend that leaves during a get; what vanished before the get went
+    out is forgotten at that resync."""
+
+    def table_after_handover(believe_the_answer: bool) -> OwnershipTable:
+        # hsr is pinned to b1 (on an area split: b1's area); b0 held it and lets go
+        table = OwnershipTable("b1", ["hsr"], started_ns=0, pinned={"hsr": "b1"},
+                               confirm_s=0.0, join_delay_s=0.0)
+        table.resync(["b0", "b2"], [("hsr", "b0")], 0)
+        assert table.decide(MS) == Decision()
+        assert "b0 to vanish" in table.pending(MS)["hsr"]
+        sent = table.vanish_seq  # the next get goes out
+        table.on_owner_token("hsr", "b0", False)
+        table.on_member("b2", False, 2 * MS)
+        table.resync(["b0", "b2"], [("hsr", "b0")], 3 * MS,
+                     since_vanish_seq=table.vanish_seq if believe_the_answer else sent)
+        return table
+
+    table = table_after_handover(believe_the_answer=False)
+    assert table.members(3 * MS) == ["b0", "b1"]
+    assert table.decide(4 * MS) == Decision(claim=("hsr",))
+    assert table.may_publish("hsr", 4 * MS) and table.pending(4 * MS) == {}
+    # a get sent after the events is believed (b2 is back), and nothing older is kept
+    table.resync(["b0", "b2"], [], 5 * MS, since_vanish_seq=table.vanish_seq)
+    assert table.members(5 * MS) == ["b0", "b1", "b2"]
+    assert table._vanished == {}
+    # the answer taken as it came (the rule before): the claim waits for good
+    stuck = table_after_handover(believe_the_answer=True)
+    assert stuck.decide(4 * MS) == Decision() and not stuck.may_publish("hsr", 1_000 * MS)
+    assert "b0 to vanish" in stuck.pending(1_000 * MS)["hsr"]
+
+
 def test_a_resync_adds_what_the_events_missed_and_removes_nothing() -> None:
     table = OwnershipTable("b1", ["hsr", "hsr2"], started_ns=0, join_delay_s=0.5)
     table.resync(["b1", "b2"], [("hsr", "b2")], 100 * MS)  # at start: b2 was there before
