@@ -8,7 +8,12 @@ so a run stopped by its time limit resumes anywhere (`--device cpu` too) with th
 and the same --out.
 
     python scripts/train_models_gpu.py [--work DIR] [--render-s 150] [--train-min 4.5]
-        [--keypoints-init CKPT] [--tiny]
+        [--keypoints-init CKPT] [--site-seeds 3] [--detector-input WxH] [--tiny]
+
+``--detector-input WxH`` trains the detector at another input size: its frames are rendered a
+second time at that size (the same views; the render budget covers both), and it trains from
+scratch on them. ``--site-seeds N`` spreads the site views over N texture seeds (the site
+figure of docs/models.md grows with them).
 
 Then, on any machine: `smartedge evaluate keypoints --model DIR/keypoints --calibrate` (the
 confidence -> sigma table of the keypoint card) and copy both into edge_agent/models/.
@@ -18,6 +23,7 @@ Needs the train extra and a headless OpenGL (EGL) driver for the renders.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -26,8 +32,14 @@ import time
 from pathlib import Path
 
 T0 = time.perf_counter()
-SITE_SEEDS = 3  # site views spread over the site's textures of seeds 2, 3, 4
+SITE_SEEDS = 3  # default: site views spread over the site's textures of seeds 2, 3, 4
 SEED = 1  # smartedge train's default --seed: randomized seed 1, held out 1001 and 1002
+
+
+def _input_size(text: str) -> tuple[int, int]:
+    from smartedge.train_cmd import _input_size as parse
+
+    return parse(text)
 
 
 def say(msg: str) -> None:
@@ -50,6 +62,10 @@ def main(argv: list[str]) -> int:
     p.add_argument("--val-views", type=int, default=200, help="held-out views of each kind")
     p.add_argument("--keypoints-init", metavar="CKPT", help="fine-tune the keypoint network "
                    "from this checkpoint (its --lr is then halved)")
+    p.add_argument("--site-seeds", type=int, default=SITE_SEEDS,
+                   help=f"texture seeds of the site views (default {SITE_SEEDS})")
+    p.add_argument("--detector-input", metavar="WxH", type=_input_size,
+                   help="the detector's input size (default 424x240)")
     p.add_argument("--detector-batch", type=int, default=64)
     p.add_argument("--keypoints-batch", type=int, default=128)
     p.add_argument("--tiny", action="store_true", help="tiny images and a few steps: checks "
@@ -64,7 +80,7 @@ def main(argv: list[str]) -> int:
 
     def train_sets(n_rand: int, n_site: int) -> list:
         return list(set_specs(seed=SEED, train_views=n_rand, site_views=n_site,
-                              site_seeds=SITE_SEEDS)[0])
+                              site_seeds=args.site_seeds)[0])
 
     work = Path(args.work)
     ctx = create_context()
@@ -73,34 +89,43 @@ def main(argv: list[str]) -> int:
     sc = load_scenario(PAPER_SCENARIO)
     views = SimulationViews(str(sc.source_path), sc.site.robot_model(sc.robot_id), None)
     geom = tiny_geometry() if args.tiny else Geometry()
+    # the geometries to render: the keypoint network's (and the default detector's), and the
+    # detector's own when --detector-input differs (smartedge train then finds both cached)
+    geoms = [geom]
+    if args.detector_input and args.detector_input != (geom.det_w, geom.det_h):
+        geoms.append(dataclasses.replace(geom, det_w=args.detector_input[0],
+                                         det_h=args.detector_input[1]))
     cache = work / "cache"
     # held-out sets first, as smartedge train renders them (no jitter, no augmentation)
-    eval_geom = Geometry(**{**geom.__dict__, "crop_jitter": False})
     val = args.val_views
-    for spec in set_specs(seed=SEED, train_views=0, site_views=0, val_views=val)[1]:
-        render_set(views, [spec], eval_geom, cache, workers=args.workers, augment_clean=False,
-                   progress=say)
+    for g in geoms:
+        eval_geom = dataclasses.replace(g, crop_jitter=False)
+        for spec in set_specs(seed=SEED, train_views=0, site_views=0, val_views=val)[1]:
+            render_set(views, [spec], eval_geom, cache, workers=args.workers,
+                       augment_clean=False, progress=say)
     # a probe round, then as many views as the time allows (2/3 randomized, 1/3 site)
     unit = 48 if args.tiny else 600
     t = time.perf_counter()
     n_rand, n_site = ((2 * unit, unit) if args.tiny else
                       (200 * max(1, 2 * args.workers // 3), unit * max(1, args.workers // 5)))
-    render_set(views, train_sets(n_rand, n_site), geom, cache, workers=args.workers,
-               progress=say)
-    rate = (n_rand + n_site) / (time.perf_counter() - t)
+    for g in geoms:
+        render_set(views, train_sets(n_rand, n_site), g, cache, workers=args.workers,
+                   progress=say)
+    rate = (n_rand + n_site) / (time.perf_counter() - t)  # views of every geometry
     left = args.render_s - (time.perf_counter() - T0)
     total = min(args.max_views, int(n_rand + n_site + max(0.0, left) * rate * 0.9))
     if not args.tiny:
         n_site = max(unit, total // 3 // unit * unit)
         n_rand = max(2 * unit, (total - n_site) // 200 * 200)
     say(f"render rate {rate:.0f} views/s: {n_rand} randomized + {n_site} site views")
-    render_set(views, train_sets(n_rand, n_site), geom, cache, workers=args.workers,
-               progress=say)
+    for g in geoms:
+        render_set(views, train_sets(n_rand, n_site), g, cache, workers=args.workers,
+                   progress=say)
     say("rendering done")
     (work / "counts.json").write_text(json.dumps({"randomized": n_rand, "site": n_site,
                                                   "views_per_s": round(rate, 1)}))
     common = ["--train-views", str(n_rand), "--site-views", str(n_site),
-              "--site-seeds", str(SITE_SEEDS), "--val-views", str(val), "--workers", "1",
+              "--site-seeds", str(args.site_seeds), "--val-views", str(val), "--workers", "1",
               "--threads", str(max(1, args.workers // 4))]
     common += ["--tiny", "--steps", "6"] if args.tiny else ["--minutes", str(args.train_min)]
     runs = {"detector": ["--batch", str(args.detector_batch), "--lr", "2e-3"],
@@ -108,6 +133,8 @@ def main(argv: list[str]) -> int:
                           "--lr", "1e-3" if args.keypoints_init else "2e-3"]}
     if args.keypoints_init:
         runs["keypoints"] += ["--init-from", str(Path(args.keypoints_init).resolve())]
+    if len(geoms) > 1:
+        runs["detector"] += ["--detector-input", f"{geoms[1].det_w}x{geoms[1].det_h}"]
     procs = {}
     for kind, extra in runs.items():
         out = work / kind
