@@ -37,9 +37,9 @@ SEED = 1  # smartedge train's default --seed: randomized seed 1, held out 1001 a
 
 
 def _input_size(text: str) -> tuple[int, int]:
-    from smartedge.train_cmd import _input_size as parse
+    from smartedge.train_cmd import parse_input_size
 
-    return parse(text)
+    return parse_input_size(text)
 
 
 def say(msg: str) -> None:

@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-from", metavar="CKPT", help="fine-tune: start from the weights of "
                    "an earlier run's <kind>.ckpt (same kind and image sizes) with a fresh "
                    "optimizer and schedule; use a lower --lr")
-    p.add_argument("--detector-input", metavar="WxH", type=_input_size,
+    p.add_argument("--detector-input", metavar="WxH", type=parse_input_size,
                    help="detector / segmentation: the network's input size (default 424x240, "
                    "half of an 848x480 frame); both divisible by 8. A larger input finds "
                    "smaller (farther) robots at more compute per frame; --init-from a "
@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _input_size(text: str) -> tuple[int, int]:
+def parse_input_size(text: str) -> tuple[int, int]:
     """``WxH`` → (w, h), each a positive multiple of 8 (the networks' coarsest stride)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
