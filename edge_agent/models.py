@@ -685,7 +685,7 @@ class Detector:
                               for im in images_rgb]))
         n = len(images_rgb)
         if self.flip:
-            x = np.ascontiguousarray(np.concatenate([x, x[..., ::-1]]))
+            x = np.concatenate([x, x[..., ::-1]])  # the mirror images, as a batch after
         peaks, size, offset = self.session.run(None, {"image": x})
         out = []
         for i, image_rgb in enumerate(images_rgb):

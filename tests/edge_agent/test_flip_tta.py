@@ -4,6 +4,10 @@ left keypoint where its right partner was, mirrored), which fails if the swap we
 
 from __future__ import annotations
 
+import json
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -75,19 +79,23 @@ def test_mirrored_render_gives_mirrored_keypoints_with_flip(site_view) -> None: 
 def test_the_card_decides_the_default(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """The estimator flips when its card says the model was trained for it (the shipped one),
     not otherwise; a card written before the field existed reads as no flip."""
-    import json
-    import shutil
-
-    shipped = default_model_dir()
-    assert KeypointEstimator(shipped / "keypoints.onnx", threads=1).flip is True
-    for f in ("keypoints.onnx", "keypoints.json"):
-        shutil.copy(shipped / f, tmp_path / f)
-    doc = json.loads((tmp_path / "keypoints.json").read_text())
-    doc.pop("flip_tta")
-    (tmp_path / "keypoints.json").write_text(json.dumps(doc))
-    old = KeypointEstimator(tmp_path / "keypoints.onnx", threads=1)
+    assert KeypointEstimator(default_model_dir() / "keypoints.onnx", threads=1).flip is True
+    onnx = _shipped_without_flip_field("keypoints", tmp_path)
+    old = KeypointEstimator(onnx, threads=1)
     assert old.flip is False and old.card.flip_tta is False
-    assert KeypointEstimator(tmp_path / "keypoints.onnx", threads=1, flip=True).flip is True
+    assert KeypointEstimator(onnx, threads=1, flip=True).flip is True
+
+
+def _shipped_without_flip_field(kind: str, folder: Path) -> Path:
+    """A copy of the shipped ``kind`` model in ``folder`` whose card has no ``flip_tta`` (as
+    cards written before the field existed); returns the copy's .onnx path."""
+    for suffix in (".onnx", ".json"):
+        shutil.copy(default_model_dir() / f"{kind}{suffix}", folder / f"{kind}{suffix}")
+    card = folder / f"{kind}.json"
+    doc = json.loads(card.read_text())
+    doc.pop("flip_tta")
+    card.write_text(json.dumps(doc))
+    return folder / f"{kind}.onnx"
 
 
 # --- the detector's test-time flip ------------------------------------------------------------
@@ -138,20 +146,12 @@ def test_mirrored_render_gives_mirrored_boxes_with_the_detectors_flip(site_view)
 
 
 def test_the_detector_card_decides_its_flip(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    import json
-    import shutil
-
     from edge_agent.models import Detector, RobotKeypointPipeline
 
-    shipped = default_model_dir()
-    for f in ("detector.onnx", "detector.json"):
-        shutil.copy(shipped / f, tmp_path / f)
-    doc = json.loads((tmp_path / "detector.json").read_text())
-    doc.pop("flip_tta")
-    (tmp_path / "detector.json").write_text(json.dumps(doc))
-    old = Detector(tmp_path / "detector.onnx", threads=1)
+    onnx = _shipped_without_flip_field("detector", tmp_path)
+    old = Detector(onnx, threads=1)
     assert old.flip is False and old.card.flip_tta is False
-    assert Detector(tmp_path / "detector.onnx", threads=1, flip=True).flip is True
+    assert Detector(onnx, threads=1, flip=True).flip is True
     pipe = RobotKeypointPipeline(threads=1, detector_flip=False)
     assert pipe.detector.flip is False and pipe.keypoints.flip is True
 
