@@ -85,9 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-amp", action="store_true", help="train in float32 on a GPU too "
                    "(default: bf16 autocast where the GPU supports it; never on a CPU)")
     p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
-    p.add_argument("--init-from", metavar="CKPT", help="fine-tune: start from the weights of "
-                   "an earlier run's <kind>.ckpt (same kind and image sizes) with a fresh "
-                   "optimizer and schedule; use a lower --lr")
+    p.add_argument("--init-from", metavar="CKPT|ONNX|shipped", help="fine-tune: start from "
+                   "the weights of an earlier run's <kind>.ckpt (same kind and image sizes) or "
+                   "of an exported <kind>.onnx with its card (`shipped`: the model smartedge "
+                   "ships; keypoint networks are matched by keypoint name, so keypoints can be "
+                   "added) with a fresh optimizer and schedule; use a lower --lr")
     p.add_argument("--detector-input", metavar="WxH", type=parse_input_size,
                    help="detector / segmentation: the network's input size (default 424x240, "
                    "half of an 848x480 frame); both divisible by 8. A larger input finds "
@@ -180,9 +182,14 @@ def main(argv: Sequence[str]) -> int:
             seed=args.seed, train_views=args.train_views, site_views=args.site_views,
             site_seeds=args.site_seeds, robot_views=args.robot_views, val_views=args.val_views)
         batch = args.batch or (32 if args.kind == "keypoints" else 16)
+        init_from = args.init_from
+        if init_from == "shipped":
+            from edge_agent.models import default_model_dir
+
+            init_from = str(default_model_dir() / f"{args.kind}.onnx")
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
-                          workers=args.workers, init_from=args.init_from,
+                          workers=args.workers, init_from=init_from,
                           device=args.device, amp=False if args.no_amp else None,
                           leg_steps=args.leg_steps, mirror=args.mirror)
         mesh_name = (Path(args.robot_mesh).name if args.robot_mesh else

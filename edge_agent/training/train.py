@@ -9,6 +9,7 @@ model card (``<kind>.json`` read by the edge pipeline, ``<kind>.md`` for people)
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import platform
@@ -41,6 +42,7 @@ from edge_agent.models import (
 )
 from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
 from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector, SemanticSegNet
+from edge_agent.training.onnx_init import OnnxInitError, init_from_onnx
 from protocol.errors import SmartedgeError
 from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
 
@@ -73,7 +75,8 @@ class TrainConfig:
     checkpoint_every: int = 200
     seed: int = 0
     #: fine-tune: start from the weights of this checkpoint (``<kind>.ckpt`` of an earlier run
-    #: of the same kind and geometry) with a fresh optimizer and schedule
+    #: of the same kind and geometry) or exported model (``<kind>.onnx``, e.g. a shipped one:
+    #: :mod:`edge_agent.training.onnx_init`) with a fresh optimizer and schedule
     init_from: str | None = None
     #: ``auto`` (CUDA when torch sees a GPU), ``cpu`` or ``cuda`` (``cuda:N``)
     device: str = "auto"
@@ -370,11 +373,13 @@ def _resident_images(cfg: TrainConfig, data: RenderedSet, device: torch.device,
 
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
                  say: Callable[[str], None], render_s: float | None = None,
-                 mirror_perm: np.ndarray | None = None) -> dict[str, Any]:
+                 mirror_perm: np.ndarray | None = None, robot_model: Any = None
+                 ) -> dict[str, Any]:
     """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists, on any device (the
     checkpoint holds CPU tensors and the random generators' states). Returns the run's record
     (steps, training wall time, the first run's render time, losses, ``phases``: where and how
-    long each leg trained)."""
+    long each leg trained). ``robot_model`` (keypoints, ``--init-from`` an ONNX file): the
+    keypoints' names and positions, to match the file's keypoints by name."""
     device = resolve_device(cfg.device)
     amp = _use_amp(cfg, device)
     torch.set_num_threads(cfg.threads)
@@ -389,7 +394,9 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
     identity = {"kind": cfg.kind, "geometry": _geometry_identity(cfg.geometry)}
     state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": [],
                              "identity": identity, "render_wall_s": render_s}
-    if cfg.init_from and not ckpt.exists():
+    if cfg.init_from and not ckpt.exists() and Path(cfg.init_from).suffix == ".onnx":
+        state["history"] = _init_from_onnx(cfg, model, data, robot_model, say)
+    elif cfg.init_from and not ckpt.exists():
         state["history"] = _init_weights(Path(cfg.init_from), model, identity, device, say)
     saved_rng: dict[str, Any] | None = None
     if ckpt.exists():
@@ -522,6 +529,37 @@ def _init_weights(path: Path, model: torch.nn.Module, identity: dict[str, Any],
     return [*other.get("history", []),
             f"fine-tuned from that checkpoint ({other['step']} steps{note}) with a fresh "
             "optimizer"]
+
+
+#: training images the batch norms of an ONNX starting point are unfolded on
+ONNX_CALIBRATION_IMAGES: int = 64
+
+
+def _init_from_onnx(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet,
+                    robot_model: Any, say: Callable[[str], None]) -> list[str]:
+    """Start from an exported model (:mod:`edge_agent.training.onnx_init`); returns the history
+    lines: the file's card's history, when there is one, then this start."""
+    path = Path(cfg.init_from or "")
+    images = data.crops if cfg.kind == "keypoints" else data.det_images
+    pick = np.random.default_rng(cfg.seed).choice(
+        len(images), size=min(ONNX_CALIBRATION_IMAGES, len(images)), replace=False)
+    names = xyz = None
+    if robot_model is not None:
+        names, xyz = robot_model.keypoint_names, np.asarray(robot_model.keypoints_base_m)
+    try:
+        info = init_from_onnx(model, path, _to_tensor(images[np.sort(pick)]),
+                              keypoint_names=names, keypoints_base_m=xyz)
+    except OnnxInitError as exc:
+        raise TrainingError(str(exc)) from None
+    say(info.summary())
+    history: list[str] = []
+    try:
+        history = list(json.loads(card_path(path).read_text(encoding="utf-8"))
+                       .get("training", {}).get("history", []))
+    except (OSError, ValueError, AttributeError):
+        say(f"{card_path(path)}: no readable model card, the new card's history starts here")
+    return [*history, f"fine-tuned from the exported {path.name} with a fresh optimizer: "
+            + info.summary().removeprefix(f"initialized from {path.name} ")]
 
 
 def _input_resize(theirs: dict[str, Any], ours: dict[str, Any]) -> str | None:
@@ -716,7 +754,8 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
         f"device {device_description(resolve_device(cfg.device))}")
     perm = (mirror_permutation(model_def.keypoint_names)
             if cfg.mirror and cfg.kind == "keypoints" else None)
-    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s, perm)
+    state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s, perm,
+                         robot_model=model_def)
     t_eval = time.perf_counter()
     metrics = validate(cfg, model, val)
     for name, figures in metrics.items():
