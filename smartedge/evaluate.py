@@ -9,7 +9,7 @@
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
                                  [--detector-flip] [--breakdown] [--held-out-variations]
-    smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N]
+    smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N] [--pairs]
     smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
                              [--no-feedback] [--min-sigma-m M] [--types]
     smartedge evaluate compare NAME=DIR [NAME=DIR ...]
@@ -345,6 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="pixel noise per keypoint (default 0.5, the shipped network's "
                       "held-out median error)")
     p_kc.add_argument("--add", type=int, default=4, help="candidates to add (default 4)")
+    p_kc.add_argument("--pairs", action="store_true", help="add candidates in left/right "
+                      "mirror pairs, as a keypoint network trained on mirrored crops needs")
     p_fl = sub.add_parser("fleet", help="identical robots crossing paths: identity switches, "
                           "wrong-robot corrections, per-robot ATE against the robot alone")
     p_fl.add_argument("--robots", type=int, default=3, help="robots (1-3, default 3)")
@@ -391,7 +393,7 @@ def _keypoint_choice(args: argparse.Namespace) -> int:
         cameras = [site.camera(c) for c in sorted(site.cameras)]
         poses = stop_poses([(w.x, w.y, w.theta) for w in scenario.waypoints.values()])
         choice = keypoint_choice(cameras, site.robot_model(scenario.robot_id), poses,
-                                 sigma_px=args.sigma_px, add=args.add)
+                                 sigma_px=args.sigma_px, add=args.add, pairs=args.pairs)
     except (SmartedgeError, ValueError) as exc:
         print(f"smartedge evaluate keypoint-choice: {exc}", file=sys.stderr)
         return 1

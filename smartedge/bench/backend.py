@@ -32,6 +32,7 @@ from protocol.messages import PoseEstimate, ServiceStatus
 from protocol.session import loopback_config
 from protocol.site import Site
 from simulation.camera_ring import detection_payloads, robot_pose, write_ring_site
+from simulation.scenario import load_scenario
 from smartedge.processes import free_port, stop_process
 
 
@@ -187,8 +188,9 @@ def main(argv: Sequence[str]) -> int:
         print()
     if args.no_zenoh:
         return 0
-    print(f"backend in its own process, Zenoh on loopback, {args.rate:.0f} Hz, 12 keypoints per "
-          f"camera, {args.seconds:.0f} s per case, payloads encoded "
+    n_kp = len(load_scenario().site.robot_model().keypoint_names)  # the ring's robot
+    print(f"backend in its own process, Zenoh on loopback, {args.rate:.0f} Hz, {n_kp} keypoints "
+          f"per camera, {args.seconds:.0f} s per case, payloads encoded "
           + ("during the run (--live-encode)" if args.live_encode else "before the run"))
     print(f"{'cameras':>8}{'load':>6}{'frame-sets/s':>14}{'p50 ms':>9}{'p99 ms':>9}"
           f"{'dropped':>10}{'shed':>7}{'late pub':>10}")

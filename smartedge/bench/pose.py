@@ -144,7 +144,8 @@ def main(argv: Sequence[str]) -> int:
     args = parser.parse_args(list(argv))
     repeats = 30 if args.quick else args.repeats
     rows = run(repeats, args.seed)
-    print(f"pose solve latency, {repeats} frame-sets per case, 12 keypoints, 2 px noise; "
+    n_kp = len(load_site(SITE_FILE).robot_model().keypoint_names)
+    print(f"pose solve latency, {repeats} frame-sets per case, {n_kp} keypoints, 2 px noise; "
           f"default method: {DEFAULT_METHOD}")
     print(f"{'cams':>4} {'method':>13} {'p50 ms':>8} {'p99 ms':>8} {'p50/ceres':>9} "
           f"{'max|dq| vs ceres':>16} {'vs ipopt':>8}")

@@ -140,12 +140,34 @@ def _median_bounds(info_sum: np.ndarray) -> tuple[float, float]:
     return math.degrees(float(np.median(theta))), float(np.median(pos))
 
 
+def mirror_groups(candidates: Sequence[Candidate]) -> list[list[int]]:
+    """Candidates grouped with their left/right mirror image (``y -> -y``): pairs, and single
+    points on the robot's x axis (their own mirror). A keypoint network trained on mirrored
+    crops (``--mirror``, the test-time flip) needs its keypoints in such pairs."""
+    xyz = np.array([c.xyz_m for c in candidates], dtype=np.float64).reshape(-1, 3)
+    groups: list[list[int]] = []
+    seen: set[int] = set()
+    for i, p in enumerate(xyz):
+        if i in seen:
+            continue
+        mirror = p * np.array([1.0, -1.0, 1.0])
+        match = [j for j in range(len(xyz)) if j != i and j not in seen
+                 and np.linalg.norm(xyz[j] - mirror) < 1e-6]
+        group = [i] if np.linalg.norm(mirror - p) < 1e-6 or not match else [i, match[0]]
+        seen.update(group)
+        groups.append(group)
+    return groups
+
+
 def keypoint_choice(cameras: Sequence[CameraModel], model: RobotModel,
                     poses: Sequence[PlanarPose], *, sigma_px: float = 0.5,
                     candidates: Sequence[Candidate] | None = None, add: int = 4,
-                    min_keypoints: int = 4) -> KeypointChoice:
+                    min_keypoints: int = 4, pairs: bool = False) -> KeypointChoice:
     """The bounds of ``model``'s keypoints over ``poses``, the loss without each keypoint, and
-    ``add`` candidates chosen greedily (default: :func:`base_candidates`)."""
+    ``add`` candidates chosen greedily (default: :func:`base_candidates`). ``pairs``: the
+    greedy steps add a candidate together with its mirror image (:func:`mirror_groups`; ``add``
+    then counts points, a step of a pair adds two), as a network trained on mirrored crops
+    needs."""
     kp = np.asarray(model.keypoints_base_m, dtype=np.float64)
     cands = list(base_candidates(model) if candidates is None else candidates)
     cand_xyz = np.array([c.xyz_m for c in cands], dtype=np.float64).reshape(-1, 3)
@@ -173,12 +195,17 @@ def keypoint_choice(cameras: Sequence[CameraModel], model: RobotModel,
     loo.sort(key=lambda t: -t[1])
     greedy: list[tuple[str, tuple[float, float, float], float]] = []
     current = total.copy()
-    remaining = list(range(len(cands)))
-    for _ in range(min(add, len(remaining))):
-        best = min(remaining, key=lambda c: _median_bounds(current + I_c[:, c])[0])
-        current = current + I_c[:, best]
+    remaining = mirror_groups(cands) if pairs else [[c] for c in range(len(cands))]
+    added = 0
+    while remaining and added < add:
+        best = min(remaining,
+                   key=lambda g: _median_bounds(current + I_c[:, g].sum(axis=1))[0])
+        current = current + I_c[:, best].sum(axis=1)
         remaining.remove(best)
-        greedy.append((cands[best].name, cands[best].xyz_m, _median_bounds(current)[0]))
+        bound = _median_bounds(current)[0]
+        for c in best:  # each point of the step with the bound after the whole step
+            greedy.append((cands[c].name, cands[c].xyz_m, bound))
+        added += len(best)
     return KeypointChoice(float(sigma_px), used, theta, pos, tuple(loo), tuple(greedy))
 
 

@@ -18,6 +18,7 @@ from smartedge.evaluation.keypoint_choice import (
     base_candidates,
     heading_budget,
     keypoint_choice,
+    mirror_groups,
     point_information,
     stop_poses,
     visible_keypoints,
@@ -81,6 +82,27 @@ def test_leave_one_out_and_greedy_additions_are_consistent() -> None:
         assert np.min(np.linalg.norm(KP - p, axis=1)) >= 0.03
 
 
+def test_pairs_add_each_candidate_with_its_mirror_image() -> None:
+    """``pairs``: every greedy step adds a left/right mirror pair (what a network trained on
+    mirrored crops needs); a pair lowers the bound at least as much as its better half alone."""
+    cands = base_candidates(MODEL)
+    groups = mirror_groups(cands)
+    assert sorted(i for g in groups for i in g) == list(range(len(cands)))
+    for g in groups:
+        a = np.array(cands[g[0]].xyz_m)
+        if len(g) == 1:  # on the x axis
+            assert abs(a[1]) < 1e-9
+        else:
+            assert np.allclose(np.array(cands[g[1]].xyz_m), a * [1, -1, 1])
+    single = keypoint_choice(CAMERAS, MODEL, POSES, sigma_px=0.5, add=1)
+    paired = keypoint_choice(CAMERAS, MODEL, POSES, sigma_px=0.5, add=4, pairs=True)
+    assert len(paired.greedy) == 4
+    for (_, p, b1), (_, q, b2) in (paired.greedy[:2], paired.greedy[2:]):
+        assert np.allclose(np.array(q), np.array(p) * [1, -1, 1]) and b1 == b2
+    assert paired.greedy[1][2] <= single.greedy[0][2]
+    assert paired.greedy[3][2] <= paired.greedy[1][2]
+
+
 def test_heading_budget_scales_with_each_source() -> None:
     base = ErrorModel(0.3, 0.01, 0.01, 0.1)
     b1 = heading_budget(CAMERAS, MODEL, POSES, sigma_px=0.5, errors=base)
@@ -96,7 +118,7 @@ def test_heading_budget_scales_with_each_source() -> None:
 
 
 def test_cli_prints_both_reports(capsys: pytest.CaptureFixture[str]) -> None:
-    assert evaluate_main(["keypoint-choice", "--add", "1", "--sigma-px", "0.4"]) == 0
+    assert evaluate_main(["keypoint-choice", "--add", "2", "--sigma-px", "0.4", "--pairs"]) == 0
     out = capsys.readouterr().out
     assert "without one keypoint" in out and "heading error budget" in out
     assert evaluate_main(["keypoint-choice", "--sigma-px", "0"]) == 2
