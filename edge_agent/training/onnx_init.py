@@ -134,7 +134,10 @@ def _scope_matches(node_name: str, module_name: str) -> bool:
 
 
 @dataclasses.dataclass(frozen=True)
-class _KeypointMap:
+class KeypointMap:
+    """How a keypoint network's keypoints take the file's head channels
+    (:func:`keypoint_map`)."""
+
     rows: list[list[int]]  # per network keypoint: the file's keypoints whose channels it takes
     kept: tuple[str, ...]
     added: tuple[tuple[str, tuple[str, str]], ...]
@@ -143,7 +146,7 @@ class _KeypointMap:
 
 
 def keypoint_map(file_names: Sequence[str], names: Sequence[str], xyz_m: np.ndarray
-                 ) -> _KeypointMap:
+                 ) -> KeypointMap:
     """How the network's keypoints ``names`` (base-frame positions ``xyz_m``, (K, 3)) take the
     head channels of the file's keypoints ``file_names``: by name; a new keypoint from the
     two nearest kept keypoints."""
@@ -164,7 +167,7 @@ def keypoint_map(file_names: Sequence[str], names: Sequence[str], xyz_m: np.ndar
         rows.append([index[names[a]], index[names[b]]])
         added.append((n, (names[a], names[b])))
     dropped = tuple(n for n in file_names if n not in set(names))
-    return _KeypointMap(rows, tuple(n for _, n in kept), tuple(added), dropped,
+    return KeypointMap(rows, tuple(n for _, n in kept), tuple(added), dropped,
                         tuple((j, index[n]) for j, n in kept))
 
 
@@ -186,7 +189,7 @@ def init_from_onnx(model: nn.Module, path: Path, calibration: torch.Tensor, *,
     graph, inits = _load_graph(path)
     device = next(model.parameters()).device
     calibration = calibration.to(device)
-    kp_map: _KeypointMap | None = None
+    kp_map: KeypointMap | None = None
     per_keypoint = getattr(model, "per_keypoint", None)
     if per_keypoint is not None:
         if keypoint_names is None or keypoints_base_m is None:
@@ -302,7 +305,7 @@ def init_from_onnx(model: nn.Module, path: Path, calibration: torch.Tensor, *,
 
 
 def _compare_with_onnxruntime(path: Path, model: nn.Module, x: torch.Tensor,
-                              kp_map: _KeypointMap | None) -> float:
+                              kp_map: KeypointMap | None) -> float:
     import onnxruntime as ort
 
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
