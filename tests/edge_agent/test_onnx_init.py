@@ -162,7 +162,9 @@ def test_smartedge_train_starts_from_an_onnx_file(tiny_models: Path, tmp_path: P
     and the new card's history carries the file's card's history, then the start from it."""
     from smartedge.cli import main
 
-    out = tmp_path / "from_onnx"
+    out, bad = tmp_path / "from_onnx", tmp_path / "bad"
+    for folder in (out, bad):  # the tiny run's renders: these runs render nothing
+        shutil.copytree(tiny_models / "cache", folder / "cache")
     code = main(["train", "keypoints", "--out", str(out), *TINY_ARGS,
                  "--init-from", str(tiny_models / "keypoints.onnx")])
     assert code == 0
@@ -173,7 +175,7 @@ def test_smartedge_train_starts_from_an_onnx_file(tiny_models: Path, tmp_path: P
     assert history[:len(before)] == before
     assert any(line.startswith("fine-tuned from the exported keypoints.onnx") for line in history)
     # a detector file given to the keypoint network is refused with the file's name
-    code = main(["train", "keypoints", "--out", str(tmp_path / "bad"), *TINY_ARGS,
+    code = main(["train", "keypoints", "--out", str(bad), *TINY_ARGS,
                  "--init-from", str(tiny_models / "detector.onnx")])
     assert code == 1
     assert "detector.onnx" in capsys.readouterr().err
