@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -93,33 +93,41 @@ def _load_graph(path: Path) -> tuple[object, dict[str, np.ndarray]]:
     return graph, {i.name: numpy_helper.to_array(i) for i in graph.initializer}
 
 
-def _execution_order(model: nn.Module, sample: torch.Tensor) -> list[tuple[str, nn.Module]]:
-    """(qualified name, module) of every Conv2d and Linear in the order ``forward`` runs them."""
-    order: list[tuple[str, nn.Module]] = []
-    hooks = []
-    for name, mod in model.named_modules():
-        if isinstance(mod, nn.Conv2d | nn.Linear):
-            hooks.append(mod.register_forward_hook(
-                lambda m, _i, _o, n=name: order.append((n, m))))
+def _forward_watching(model: nn.Module, x: torch.Tensor,
+                      modules: Iterable[tuple[str, nn.Module]],
+                      see: Callable[[str, nn.Module, torch.Tensor], object]) -> None:
+    """Run ``model`` on ``x`` (no gradients), calling ``see(name, module, output)`` after each
+    of ``modules`` runs; the hooks are removed afterwards."""
+    hooks = [m.register_forward_hook(lambda mod, _i, out, n=n: see(n, mod, out))
+             for n, m in modules]
     try:
         with torch.no_grad():
-            model(sample)
+            model(x)
     finally:
         for h in hooks:
             h.remove()
+
+
+def _execution_order(model: nn.Module, sample: torch.Tensor) -> list[tuple[str, nn.Module]]:
+    """(qualified name, module) of every Conv2d and Linear in the order ``forward`` runs them."""
+    order: list[tuple[str, nn.Module]] = []
+    _forward_watching(model, sample, ((n, m) for n, m in model.named_modules()
+                                      if isinstance(m, nn.Conv2d | nn.Linear)),
+                      lambda n, m, _out: order.append((n, m)))
     return order
 
 
-def _norm_after(model: nn.Module) -> dict[str, nn.BatchNorm2d]:
-    """Conv2d name → the BatchNorm2d right after it in the same Sequential."""
-    out: dict[str, nn.BatchNorm2d] = {}
+def _norm_after(model: nn.Module) -> dict[str, tuple[str, nn.BatchNorm2d]]:
+    """Conv2d name → (name, module) of the BatchNorm2d right after it in the same Sequential."""
+    out: dict[str, tuple[str, nn.BatchNorm2d]] = {}
     for name, mod in model.named_modules():
         if not isinstance(mod, nn.Sequential):
             continue
         kids = list(mod.named_children())
-        for (a, ma), (_, mb) in itertools.pairwise(kids):
+        prefix = f"{name}." if name else ""
+        for (a, ma), (b, mb) in itertools.pairwise(kids):
             if isinstance(ma, nn.Conv2d) and isinstance(mb, nn.BatchNorm2d):
-                out[f"{name}.{a}" if name else a] = mb
+                out[prefix + a] = (prefix + b, mb)
     return out
 
 
@@ -209,7 +217,7 @@ def init_from_onnx(model: nn.Module, path: Path, calibration: torch.Tensor, *,
                             f"{len(order)} in the network: another architecture")
     state = model.state_dict()
     loaded: set[str] = set()
-    unfold: dict[str, tuple[nn.Conv2d, nn.BatchNorm2d, np.ndarray]] = {}
+    unfold: dict[str, tuple[nn.Conv2d, tuple[str, nn.BatchNorm2d], np.ndarray]] = {}
     n_conv = n_lin = 0
 
     def put(key: str, value: np.ndarray, node: str) -> None:
@@ -267,32 +275,24 @@ def init_from_onnx(model: nn.Module, path: Path, calibration: torch.Tensor, *,
             put(key, value, key)
     # the batch norms first as identity + the folded bias (eval mode then equals the file) ...
     with torch.no_grad():
-        for _conv, bn, bias in unfold.values():
+        for _conv, (bn_name, bn), bias in unfold.values():
             bn.running_mean.zero_()
             bn.running_var.fill_(1.0 - bn.eps)
             bn.weight.fill_(1.0)
             bn.bias.copy_(torch.from_numpy(bias))
-            loaded.update(f"{n}.{k}" for n, m in model.named_modules() if m is bn
-                          for k in ("weight", "bias", "running_mean", "running_var",
-                                    "num_batches_tracked"))
+            loaded.update(f"{bn_name}.{k}" for k in ("weight", "bias", "running_mean",
+                                                     "running_var", "num_batches_tracked"))
     missing = sorted(k for k in state if k not in loaded)
     if missing:
         raise OnnxInitError(f"{path}: the file sets no value for {missing[:5]}"
                             f"{' ...' if len(missing) > 5 else ''}")
     # ... then their statistics from the convolutions' outputs on the calibration images
     stats: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
-    hooks = [conv.register_forward_hook(
-        lambda _m, _i, out, n=name: stats.__setitem__(
-            n, (out.mean(dim=(0, 2, 3)), out.var(dim=(0, 2, 3), unbiased=False))))
-        for name, (conv, _bn, _b) in unfold.items()]
-    try:
-        with torch.no_grad():
-            model(calibration)
-    finally:
-        for h in hooks:
-            h.remove()
+    _forward_watching(model, calibration, ((n, conv) for n, (conv, _, _) in unfold.items()),
+                      lambda n, _m, out: stats.__setitem__(
+                          n, (out.mean(dim=(0, 2, 3)), out.var(dim=(0, 2, 3), unbiased=False))))
     with torch.no_grad():
-        for name, (_conv, bn, bias) in unfold.items():
+        for name, (_conv, (_, bn), bias) in unfold.items():
             mu, var = stats[name]
             bn.running_mean.copy_(mu)
             bn.running_var.copy_(var)
