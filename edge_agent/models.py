@@ -29,6 +29,7 @@ from typing import Any, ClassVar, Final
 import numpy as np
 
 from edge_agent.crop import CROP_PADDING, crop_transform, extract_crop, resize_for_detector, to_nchw
+from edge_agent.far_band import FarBand
 from edge_agent.metrics import sigma_from_confidence
 from protocol.errors import SmartedgeError
 from protocol.semantic_classes import SEMANTIC_CLASSES
@@ -484,7 +485,9 @@ def providers_available(prefer: Sequence[str] = AUTO_CHAIN) -> list[str]:
 
 
 def _session(path: Path, threads: int, providers: ExecutionProviders | Sequence[Any] | None,
-             spinning: bool = False) -> Any:
+             spinning: bool = False, dims: Mapping[str, int] | None = None) -> Any:
+    """An onnxruntime session of ``path``; ``dims``: sizes for the file's named (free)
+    dimensions, which the session then treats as fixed (TensorRT builds one engine for them)."""
     import onnxruntime as ort
 
     if not path.is_file():
@@ -496,6 +499,8 @@ def _session(path: Path, threads: int, providers: ExecutionProviders | Sequence[
     opts.log_severity_level = 3
     if not spinning:  # idle intra-op threads sleep instead of spinning (few cores)
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    for name, size in (dims or {}).items():
+        opts.add_free_dimension_override_by_name(name, int(size))
     t0 = time.perf_counter()
     try:
         sess = ort.InferenceSession(str(path), opts, providers=chosen.for_session())
@@ -654,7 +659,13 @@ class Detector:
     (:func:`fuse_flipped_detections`). It doubles the detector's work (1.5-3.3 ms more per
     frame on two x86 cores, ``smartedge bench edge``); on the paper lab's site cameras it raised
     the pipeline's AP@0.5 from 0.79-0.86 to 0.87-0.88, and the detector's boxes on views without
-    a robot fell from 0.22-0.51 to 0.01 of them (docs/models.md)."""
+    a robot fell from 0.22-0.51 to 0.01 of them (docs/models.md).
+
+    A frame given a :class:`~edge_agent.far_band.FarBand` also runs the band's rows at the
+    band's scale (one run per band for all its frames, no flip) and those boxes join the whole
+    frame's (:func:`merge_far_band_boxes`). That needs a file whose input height and width are
+    free (named) dimensions, as ``smartedge train detector`` exports them; a file with a fixed
+    input size runs without its far band (logged once, :attr:`runs_far_band`)."""
 
     def __init__(self, onnx_path: Path | str, *, threads: int = 2,
                  providers: ExecutionProviders | Sequence[Any] | None = None,
@@ -664,20 +675,46 @@ class Detector:
             raise ModelError(f"{self.path}: detector model file not found")
         self.card = DetectorCard.read(card_path(self.path))
         self.flip = self.card.flip_tta if flip is None else bool(flip)
+        self._session_args = (threads, providers, spinning)
         self.session = _session(self.path, threads, providers, spinning)
+        shape = list(self.session.get_inputs()[0].shape)
+        #: the file's names of its input's height and width, when they are free (else None)
+        self.spatial_dims: tuple[str, str] | None = (
+            (shape[2], shape[3]) if len(shape) == 4 and all(isinstance(d, str)
+                                                            for d in shape[2:]) else None)
+        if self.spatial_dims:  # the whole frame's session at the card's size, fixed
+            self.session = self._session_at(self.card.input_h, self.card.input_w)
+        self._band_sessions: dict[tuple[int, int], Any] = {}
+        self._warned_band = False
+        #: boxes the far band found that the whole frame did not, since start
+        self.far_band_added = 0
         #: the execution providers the session runs on (``get_providers()``)
         self.providers_used: list[str] = list(self.session.get_providers())
         _check_io(self.path, self.session, [("image", (3, self.card.input_h, self.card.input_w))],
                   ["peaks", "size", "offset"])
 
+    @property
+    def runs_far_band(self) -> bool:
+        """Whether the file's input size is free, so that a far band can run."""
+        return self.spatial_dims is not None
+
+    def _session_at(self, input_h: int, input_w: int) -> Any:
+        assert self.spatial_dims is not None
+        threads, providers, spinning = self._session_args
+        return _session(self.path, threads, providers, spinning,
+                        dims={self.spatial_dims[0]: input_h, self.spatial_dims[1]: input_w})
+
     def detect(self, image_rgb: np.ndarray, min_score: float = 0.3,
-               max_detections: int = 8) -> np.ndarray:
+               max_detections: int = 8, far_band: FarBand | None = None) -> np.ndarray:
         """(n, 5) ``x0, y0, x1, y1, score`` in the frame's pixels, best first."""
-        return self.detect_many([image_rgb], min_score, max_detections)[0]
+        return self.detect_many([image_rgb], min_score, max_detections, [far_band])[0]
 
     def detect_many(self, images_rgb: Sequence[np.ndarray], min_score: float = 0.3,
-                    max_detections: int = 8) -> list[np.ndarray]:
-        """:meth:`detect` of several frames (any sizes) in one network run (a batch)."""
+                    max_detections: int = 8,
+                    far_bands: Sequence[FarBand | None] | None = None) -> list[np.ndarray]:
+        """:meth:`detect` of several frames (any sizes) in one network run (a batch);
+        ``far_bands``: each frame's far band (None: none), a band applying only to frames of
+        the size it was computed for."""
         c = self.card
         if not images_rgb:
             return []
@@ -706,7 +743,94 @@ class Detector:
             s = np.array([w / c.input_w, h / c.input_h] * 2)
             boxes[:, :4] = (boxes[:, :4] + 0.5) * s - 0.5
             out.append(boxes)
+        if far_bands is not None and any(b is not None for b in far_bands):
+            if len(far_bands) != n:
+                raise ValueError(f"{len(far_bands)} far bands for {n} frames")
+            self._add_far_bands(images_rgb, far_bands, out, min_score, max_detections)
         return out
+
+    def _add_far_bands(self, images_rgb: Sequence[np.ndarray],
+                       far_bands: Sequence[FarBand | None], out: list[np.ndarray],
+                       min_score: float, max_detections: int) -> None:
+        """Each far band's frames through the detector at the band's size (one batch per
+        band), their boxes merged into ``out``."""
+        if not self.runs_far_band:
+            if not self._warned_band:
+                log.warning("%s has a fixed input size: the far band does not run (export the "
+                            "detector again with `smartedge train detector`, whose files have "
+                            "a free input size)", self.path)
+                self._warned_band = True
+            return
+        groups: dict[FarBand, list[int]] = {}
+        for i, (image_rgb, band) in enumerate(zip(images_rgb, far_bands, strict=True)):
+            h, w = image_rgb.shape[:2]
+            if band is not None and band.applies_to(w, h):
+                groups.setdefault(band, []).append(i)
+        for band, index in groups.items():
+            key = (band.input_h, band.input_w)
+            if key not in self._band_sessions:
+                self._band_sessions[key] = self._session_at(*key)
+            x = to_nchw(np.stack([resize_for_detector(images_rgb[i][band.v0:band.v1],
+                                                      band.input_w, band.input_h)
+                                  for i in index]))
+            peaks, size, offset = self._band_sessions[key].run(None, {"image": x})
+            for j, i in enumerate(index):
+                boxes = decode_detections(peaks[j], size[j], offset[j], self.card.stride,
+                                          min_score, max_detections)
+                found = far_band_to_frame(boxes, band)
+                out[i], added = merge_far_band_boxes(out[i], found, max_detections)
+                self.far_band_added += added
+
+
+#: a far-band box whose top lies this close to the band's upper edge (frame pixels), or whose
+#: bottom lies this far below the lowest row of a far robot's feet, is a robot the band cuts:
+#: the whole frame's
+FAR_BAND_EDGE_PX: Final = 4.0
+
+
+def far_band_to_frame(boxes: np.ndarray, band: FarBand) -> np.ndarray:
+    """(n, 5) boxes in the far band's input pixels → those in frame pixels, less the boxes the
+    band cuts: reaching up to its upper edge (where that is not the frame's), or down below the
+    rows of a far robot's feet (``FarBand.feet_max_v``: a nearer robot, cut by the band's lower
+    edge)."""
+    out = boxes.copy()
+    sx = band.frame_w / band.input_w
+    sy = (band.v1 - band.v0) / band.input_h
+    out[:, [0, 2]] = (boxes[:, [0, 2]] + 0.5) * sx - 0.5
+    out[:, [1, 3]] = (boxes[:, [1, 3]] + 0.5) * sy - 0.5 + band.v0
+    keep = out[:, 3] <= float(band.feet_max_v or band.v1) + FAR_BAND_EDGE_PX
+    if band.v0 > 0:
+        keep &= out[:, 1] > band.v0 - 0.5 + FAR_BAND_EDGE_PX
+    return out[keep]
+
+
+def merge_far_band_boxes(whole: np.ndarray, band: np.ndarray, max_detections: int,
+                         iou: float = FLIP_MATCH_IOU) -> tuple[np.ndarray, int]:
+    """The whole frame's boxes and the far band's (both (n, 5) in frame pixels, best first) →
+    one list, best first, and how many boxes the band added. A band box on a robot the whole
+    frame found (IoU >= ``iou`` with its box) makes one box with it: the score-weighted mean
+    of the two boxes, scored as the higher of the two (the band sees the robot at twice the
+    resolution; neither box is consistently the better one). A band box on no whole-frame
+    box is added."""
+    out = [row.copy() for row in whole.reshape(-1, 5)]
+    matched = np.zeros(len(out), bool)
+    added = 0
+    for row in band.reshape(-1, 5):
+        ious = [box_iou(row[:4], w[:4]) for w in out]
+        j = int(np.argmax(ious)) if ious else -1
+        if j >= 0 and ious[j] >= iou:
+            if j < len(matched) and not matched[j]:  # one band box per whole-frame box
+                w = out[j]
+                weights = np.array([w[4], row[4]])
+                box = (w[:4] * weights[0] + row[:4] * weights[1]) / weights.sum()
+                out[j] = np.append(box, weights.max())
+                matched[j] = True
+            continue
+        out.append(row.copy())
+        added += 1
+    merged = np.array(out).reshape(-1, 5)
+    order = np.argsort(-merged[:, 4], kind="stable")[:max_detections]
+    return merged[order], added
 
 
 def mirror_permutation(keypoint_names: Sequence[str]) -> np.ndarray:
@@ -940,20 +1064,24 @@ class RobotKeypointPipeline:
         return self.execution.describe(self.providers_used)
 
     def __call__(self, image_rgb: np.ndarray, *, min_score: float = 0.3,
-                 max_robots: int = 4) -> list[RobotObservation]:
-        return self.run_many([image_rgb], min_score=min_score, max_robots=max_robots)[0]
+                 max_robots: int = 4, far_band: FarBand | None = None
+                 ) -> list[RobotObservation]:
+        return self.run_many([image_rgb], min_score=min_score, max_robots=max_robots,
+                             far_bands=[far_band])[0]
 
     def run_many(self, images_rgb: Sequence[np.ndarray], *, min_score: float = 0.3,
-                 max_robots: int = 4) -> list[list[RobotObservation]]:
+                 max_robots: int = 4, far_bands: Sequence[FarBand | None] | None = None
+                 ) -> list[list[RobotObservation]]:
         """The robots of several frames (e.g. the cameras of one capture), each network run
         once for all of them (a batch); what each frame gets is what it gets alone.
+        ``far_bands``: each frame's camera's far band (:meth:`Detector.detect_many`).
         :attr:`times` holds the whole call's stage times."""
         for image_rgb in images_rgb:
             if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
                 raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got "
                                  f"{image_rgb.shape} {image_rgb.dtype}")
         t0 = time.perf_counter()
-        boxes = self.detector.detect_many(images_rgb, min_score, max_robots)
+        boxes = self.detector.detect_many(images_rgb, min_score, max_robots, far_bands)
         t1 = time.perf_counter()
         keypoints = self.keypoints.estimate_many(images_rgb, boxes)
         t2 = time.perf_counter()
@@ -1117,17 +1245,21 @@ class RobotTypesPipeline:
                          for name, p in self.pipelines.items())
 
     def __call__(self, image_rgb: np.ndarray, *, min_score: float = 0.3,
-                 max_robots: int = 4) -> list[RobotObservation]:
-        return self.run_many([image_rgb], min_score=min_score, max_robots=max_robots)[0]
+                 max_robots: int = 4, far_band: FarBand | None = None
+                 ) -> list[RobotObservation]:
+        return self.run_many([image_rgb], min_score=min_score, max_robots=max_robots,
+                             far_bands=[far_band])[0]
 
     def run_many(self, images_rgb: Sequence[np.ndarray], *, min_score: float = 0.3,
-                 max_robots: int = 4) -> list[list[RobotObservation]]:
+                 max_robots: int = 4, far_bands: Sequence[FarBand | None] | None = None
+                 ) -> list[list[RobotObservation]]:
         """The robots of several frames through every model's networks (each a batch), the
         duplicates across models removed; :attr:`times` sums the models' stage times."""
         merged: list[list[RobotObservation]] = [[] for _ in images_rgb]
         det_ms = kp_ms = 0.0
         for pipe in self.pipelines.values():
-            per_frame = pipe.run_many(images_rgb, min_score=min_score, max_robots=max_robots)
+            per_frame = pipe.run_many(images_rgb, min_score=min_score, max_robots=max_robots,
+                                      far_bands=far_bands)
             det_ms += pipe.times.detector_ms
             kp_ms += pipe.times.keypoints_ms
             # as the pipeline's own floor: only a calibrated confidence is a measure

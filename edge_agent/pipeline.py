@@ -11,12 +11,21 @@ import dataclasses
 import logging
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
+from edge_agent.far_band import FAR_MIN_DEPTH_M, FarBand, far_band_for_camera
 from edge_agent.frames import Frame
-from edge_agent.models import RobotKeypointPipeline, RobotObservation, RobotTypesPipeline
+from edge_agent.models import (
+    CUDA,
+    TENSORRT,
+    RobotKeypointPipeline,
+    RobotObservation,
+    RobotTypesPipeline,
+)
 from protocol.messages import Detection, RobotDetections
+from protocol.site import Site
 
 log = logging.getLogger(__name__)
 
@@ -43,13 +52,17 @@ class EdgePipeline:
     (width, height): a frame of another size is logged once (the backend then scales or rejects
     by the message's image size). ``models``: one robot model's networks, or every model's of
     a site with several robot types (:class:`RobotTypesPipeline`); each detection carries the
-    robot model whose networks found it (``Detection.robot_model``)."""
+    robot model whose networks found it (``Detection.robot_model``). ``far_band``: the
+    camera's far band (:mod:`edge_agent.far_band`; None: the detector sees the whole frame
+    only)."""
 
     def __init__(self, camera_id: str, models: RobotKeypointPipeline | RobotTypesPipeline, *,
                  min_score: float = 0.3,
                  max_robots: int = 4, robot_id: str = "",
-                 expected_size: tuple[int, int] | None = None) -> None:
+                 expected_size: tuple[int, int] | None = None,
+                 far_band: FarBand | None = None) -> None:
         self.camera_id = camera_id
+        self.far_band = far_band
         self.models = models
         self.min_score = min_score
         self.max_robots = max_robots
@@ -64,7 +77,7 @@ class EdgePipeline:
     def process(self, frame: Frame) -> tuple[RobotDetections, StageLatency]:
         self._check_size(frame)
         found = self.models(frame.image_rgb, min_score=self.min_score,
-                            max_robots=self.max_robots)
+                            max_robots=self.max_robots, far_band=self.far_band)
         return self._finish(frame, found, self.models.times.detector_ms * 1e-3,
                             self.models.times.keypoints_ms * 1e-3)
 
@@ -125,8 +138,48 @@ def process_batch(items: Sequence[tuple[EdgePipeline, Frame]]
         pipeline._check_size(frame)
     first = items[0][0]
     found = models.run_many([frame.image_rgb for _, frame in items],
-                            min_score=first.min_score, max_robots=first.max_robots)
+                            min_score=first.min_score, max_robots=first.max_robots,
+                            far_bands=[p.far_band for p, _ in items])
     n = len(items)
     det_s, kp_s = models.times.detector_ms * 1e-3 / n, models.times.keypoints_ms * 1e-3 / n
     return [pipeline._finish(frame, obs, det_s, kp_s)
             for (pipeline, frame), obs in zip(items, found, strict=True)]
+
+
+def camera_far_band(site: Site, camera_id: str,
+                    models: RobotKeypointPipeline | RobotTypesPipeline) -> FarBand | None:
+    """The far band of ``site``'s camera ``camera_id`` (:func:`edge_agent.far_band.
+    far_band_for_camera`) for the site's tallest robot model and the detector(s) of
+    ``models``; None where the camera has none or a detector file has a fixed input size
+    (logged)."""
+    pipes = (list(models.pipelines.values()) if isinstance(models, RobotTypesPipeline)
+             else [models])
+    fixed = [str(p.detector.path) for p in pipes if not p.detector.runs_far_band]
+    if fixed:
+        log.warning("%s: no far band: %s has a fixed input size", camera_id, ", ".join(fixed))
+        return None
+    names = set(site.robots.values()) or set(site.robot_models)
+    height_m = max(site.robot_models[n].height_m for n in names)
+    band = far_band_for_camera(site.camera(camera_id), height_m,
+                               min(p.detector.card.input_w for p in pipes))
+    if band is None:
+        log.info("%s: no far band (no floor at %.0f m depth or more in view, or the detector "
+                 "already sees the frame at half resolution or more)", camera_id,
+                 FAR_MIN_DEPTH_M)
+    else:
+        log.info("%s: far band %s", camera_id, band.describe())
+    return band
+
+
+def far_band_from_args(args: Any, site: Site,
+                       models: RobotKeypointPipeline | RobotTypesPipeline) -> FarBand | None:
+    """The far band ``--far-band`` asks for (:data:`edge_agent.far_band.FAR_BAND_CHOICES`; an
+    ``args`` without the option: ``auto``)."""
+    choice = getattr(args, "far_band", "auto")
+    if choice == "off":
+        return None
+    if choice == "auto" and not any(p in (TENSORRT, CUDA) for p in models.providers_used[:1]):
+        log.info("%s: far band off (--far-band auto on the CPU; --far-band on runs it)",
+                 args.camera)
+        return None
+    return camera_far_band(site, args.camera, models)

@@ -1072,7 +1072,7 @@ class RosSourcePlugin:
         import os
 
         from edge_agent.models import models_for_site
-        from edge_agent.pipeline import EdgePipeline
+        from edge_agent.pipeline import EdgePipeline, far_band_from_args
 
         if site is None:
             raise UsageError("--source ros needs --site (the camera's calibration and the "
@@ -1105,7 +1105,8 @@ class RosSourcePlugin:
         # every robot model (type) of the site, one set of networks each
         models = models_for_site(site, args.model, threads=args.threads, providers=providers)
         pipeline = EdgePipeline(args.camera, models, min_score=args.min_score,
-                                expected_size=(camera.width, camera.height))
+                                expected_size=(camera.width, camera.height),
+                                far_band=far_band_from_args(args, site, models))
         return RosImageSource(config, pipeline, camera)
 
 

@@ -125,6 +125,7 @@ def _paper(args: argparse.Namespace) -> int:
         camera_rate_hz=args.camera_rate,
         model_dir=args.model,
         threads=args.threads,
+        far_band=args.far_band,
         sensor_noise_dn=args.sensor_noise,
         calibration_seeds=calibration_seeds,
         jobs=args.jobs,
@@ -176,6 +177,7 @@ def _keypoints(args: argparse.Namespace) -> int:
                                                 scenario_path=args.scenario,
                                                 threads=args.threads, flip=args.flip,
                                                 detector_flip=args.detector_flip,
+                                                far_band=args.far_band,
                                                 progress=lambda line: print(line, flush=True))
         except (ModelError, OSError, ValueError, RandomizationError) as exc:
             print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
@@ -199,7 +201,7 @@ def _keypoints(args: argparse.Namespace) -> int:
         result = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
                                     scenario_path=args.scenario, threads=args.threads,
                                     flip=args.flip, detector_flip=args.detector_flip,
-                                    breakdown=args.breakdown,
+                                    breakdown=args.breakdown, far_band=args.far_band,
                                     progress=lambda line: print(line, flush=True))
     except (ModelError, OSError, ValueError) as exc:
         print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
@@ -279,6 +281,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="--detections cnn: a folder with other detector + keypoint models")
     p_paper.add_argument("--threads", type=int, default=2,
                          help="--detections cnn: onnxruntime threads (default 2)")
+    p_paper.add_argument("--far-band", action=argparse.BooleanOptionalAction, default=False,
+                         help="--detections cnn: with each camera's far band (the edge agent's "
+                         "--far-band on) or without (default: as the edge on the CPU)")
     p_paper.add_argument("--sensor-noise", type=float, default=None, metavar="DN",
                          help="--detections cnn: per-frame image noise, digital numbers of "
                          "0-255 (default 2)")
@@ -305,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
                       "test-time flip augmentation (default: as the model's card says)")
     p_kp.add_argument("--detector-flip", action=argparse.BooleanOptionalAction, default=None,
                       help="the same for the detector (default: as its card says)")
+    p_kp.add_argument("--far-band", action=argparse.BooleanOptionalAction, default=False,
+                      help="with each view's camera's far band (the edge agent's --far-band "
+                      "on) or without (default: as the edge on the CPU)")
     p_kp.add_argument("--breakdown", action="store_true", help="also per keypoint (bias, "
                       "spread) and per distance (common shift and scale, the rest)")
     p_kp.add_argument("--held-out-variations", action="store_true",

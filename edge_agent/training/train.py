@@ -666,8 +666,11 @@ def export_onnx(cfg: TrainConfig, model: torch.nn.Module, path: Path) -> None:
     if cfg.kind == "detector":
         dummy = torch.rand(1, 3, g.det_h, g.det_w)
         names_in, names_out = ["image"], ["peaks", "size", "offset"]
-        dyn = {"image": {0: "batch"}, "peaks": {0: "batch"}, "size": {0: "batch"},
-               "offset": {0: "batch"}}
+        # a free input size: the edge runs the whole frame at the card's size and a camera's
+        # far band at its own (edge_agent/far_band.py)
+        out_dims = {0: "batch", 2: "out_height", 3: "out_width"}
+        dyn = {"image": {0: "batch", 2: "height", 3: "width"}, "peaks": out_dims,
+               "size": out_dims, "offset": out_dims}
     elif cfg.kind == "segmentation":
         dummy = torch.rand(1, 3, g.det_h, g.det_w)
         names_in, names_out = ["image"], ["class_ids", "confidence"]

@@ -4,9 +4,10 @@ Renders a few 848x480 views of the simulated site with the robot in view, then t
 the detector (resize to its input + network + peak decoding), the keypoint network (crop +
 network + decoding, one robot) and the whole detector + keypoints pipeline. Prints median and
 95th percentile per stage and the pipeline's frames/s, with the execution provider and thread
-count. Two peers in the same run: onnxruntime's default spinning threads, and the same models
-without their test-time flips (what the flips cost). Target: detector + keypoints >= 60
-frames/s on 2 x86 cores, flips included. Then the whole per-frame
+count. Three peers in the same run: without the camera's far band (what the band costs,
+edge_agent/far_band.py), onnxruntime's default spinning threads, and the same models without
+their test-time flips (what the flips cost). Target: detector + keypoints >= 60 frames/s on 2
+x86 cores, flips and far band included. Then the whole per-frame
 path of an edge agent on a camera streaming JPEG (decode, networks, message, msgpack, a real
 Zenoh put), per stage; target >= 30 frames/s per camera.
 """
@@ -37,6 +38,7 @@ def main(argv: Sequence[str]) -> int:
     parser.add_argument("--views", type=int, default=8, help="distinct rendered views")
     args = parser.parse_args(list(argv))
 
+    from edge_agent.far_band import far_band_for_camera
     from edge_agent.models import ModelError, RobotKeypointPipeline
     from simulation.dataset import SampleGenerator
     from simulation.scenario import load_scenario
@@ -49,13 +51,15 @@ def main(argv: Sequence[str]) -> int:
         return 1
     scenario = load_scenario()
     gen = SampleGenerator(scenario, "site", seed=77)
-    frames = []
+    frames, bands = [], []
+    height_m = scenario.site.robot_model(scenario.robot_id).height_m
     i = 0
     while len(frames) < args.views and i < 50 * args.views:
         s = gen(i)
         i += 1
         if s.robots[0].bbox_xyxy is not None:
             frames.append(s.image_rgb)
+            bands.append(far_band_for_camera(s.camera, height_m, pipe.detector.card.input_w))
     if not frames:
         print("smartedge bench edge: no rendered view shows the robot")
         return 1
@@ -67,21 +71,24 @@ def main(argv: Sequence[str]) -> int:
           f"{pipe.detector.card.input_h}, keypoints {pipe.keypoints.card.input_w}x"
           f"{pipe.keypoints.card.input_h}; test-time flip: detector "
           f"{'on' if pipe.detector.flip else 'off'}, keypoints "
-          f"{'on' if pipe.keypoints.flip else 'off'})")
+          f"{'on' if pipe.keypoints.flip else 'off'}; far band "
+          f"{bands[0].describe() if bands[0] else 'none'})")
     peer = RobotKeypointPipeline.from_folder(args.model, threads=args.threads, spinning=True)
     no_flip = RobotKeypointPipeline.from_folder(args.model, threads=args.threads, flip=False,
                                                 detector_flip=False)
     medians = {}
-    for name, p in (("smartedge (idle threads sleep)", pipe),
-                    ("peer: onnxruntime default (spinning threads)", peer),
-                    ("peer: no test-time flip (detector, keypoints)", no_flip)):
-        for f in frames:  # warm-up
-            p(f)
+    none = [None] * len(frames)
+    for name, p, far in (("smartedge (idle threads sleep)", pipe, bands),
+                         ("peer: no far band", pipe, none),
+                         ("peer: onnxruntime default (spinning threads)", peer, bands),
+                         ("peer: no test-time flip (detector, keypoints)", no_flip, bands)):
+        for f, band in zip(frames, far, strict=True):  # warm-up
+            p(f, far_band=band)
         det_ms, kp_ms, total_ms = [], [], []
         robots = 0
         for k in range(args.frames):
             t0 = time.perf_counter()
-            found = p(frames[k % len(frames)])
+            found = p(frames[k % len(frames)], far_band=far[k % len(frames)])
             total_ms.append((time.perf_counter() - t0) * 1e3)
             det_ms.append(p.times.detector_ms)
             kp_ms.append(p.times.keypoints_ms)
@@ -93,14 +100,15 @@ def main(argv: Sequence[str]) -> int:
         print(f"  detector+keypoints  {_stats(total_ms)}  → "
               f"{1e3 / np.median(total_ms):.0f} frames/s (target >= 60)")
         print(f"  robots found per frame: {robots / args.frames:.2f}")
-    ours, spinning, plain = medians.values()
-    print(f"ratio: smartedge takes {ours / spinning:.2f}x the time of onnxruntime's default "
-          f"per frame, {ours / plain:.2f}x the time without the test-time flips")
-    _whole_pipeline(pipe, frames, args.frames)
+    ours, no_band, spinning, plain = medians.values()
+    print(f"ratio: smartedge takes {ours / no_band:.2f}x the time without the far band, "
+          f"{ours / spinning:.2f}x the time of onnxruntime's default per frame, "
+          f"{ours / plain:.2f}x the time without the test-time flips")
+    _whole_pipeline(pipe, frames, bands[0], args.frames)
     return 0
 
 
-def _whole_pipeline(models: Any, frames: list[np.ndarray], count: int) -> None:
+def _whole_pipeline(models: Any, frames: list[np.ndarray], far_band: Any, count: int) -> None:
     """The edge agent's whole per-frame path as on a camera streaming MJPEG: decode the JPEG
     (the grab), detector + keypoints into a RobotDetections, msgpack encode, put on a real
     Zenoh session (peer on loopback)."""
@@ -114,7 +122,8 @@ def _whole_pipeline(models: Any, frames: list[np.ndarray], count: int) -> None:
 
     jpegs = [cv2.imencode(".jpg", f[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
              for f in frames]
-    pipeline = EdgePipeline("cam1", models, expected_size=frames[0].shape[1::-1])
+    pipeline = EdgePipeline("cam1", models, expected_size=frames[0].shape[1::-1],
+                            far_band=far_band)
     stages: dict[str, list[float]] = {"decode": [], "detector": [], "keypoints": [],
                                       "encode+publish": [], "whole": []}
     with zenoh.open(loopback_config(listen=["tcp/127.0.0.1:0"])) as session:

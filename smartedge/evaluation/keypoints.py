@@ -20,6 +20,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from edge_agent.far_band import FarBand, far_band_for_camera
 from edge_agent.metrics import box_iou, detection_ap, keypoint_metrics
 from edge_agent.models import RobotKeypointPipeline
 
@@ -56,23 +57,45 @@ def _fmt(value: float) -> str:
 
 
 def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
-                 min_score: float = 0.05) -> dict[str, float]:
-    """Figures on rendered samples (each a :class:`simulation.dataset.Sample`)."""
+                 min_score: float = 0.05,
+                 far_bands: Callable[[Any], FarBand | None] | None = None) -> dict[str, float]:
+    """Figures on rendered samples (each a :class:`simulation.dataset.Sample`): detection
+    AP@0.5 over every view; the same over the views whose robot shows at least
+    :data:`MIN_VISIBLE_KEYPOINTS` keypoints (or none: the rule of the held-out set, whose
+    robots' poses a view can measure) and those robots' recall at :data:`OPERATING_SCORE` per
+    :data:`SITE_BANDS_M` distance band; the keypoint errors of the best detection and of the
+    keypoint network on the true box. ``far_bands``: each sample camera's far band (None:
+    the whole frame only)."""
+    from simulation.scenes import robot_distance_m
+
     dets, gts = [], []
+    dets_seen, gts_seen = [], []
+    found_in_band: dict[str, list[bool]] = {_band_label(*b): [] for b in SITE_BANDS_M}
     err_det, conf_det, valid_det, vis_det = [], [], [], []
     err_gt, conf_gt, valid_gt, vis_gt = [], [], [], []
     det_ms, kp_ms = [], []
     for s in samples:
         robot = s.robots[0]
-        found = pipeline(s.image_rgb, min_score=min_score, max_robots=4)
+        band = far_bands(s.camera) if far_bands is not None else None
+        found = pipeline(s.image_rgb, min_score=min_score, max_robots=4, far_band=band)
         det_ms.append(pipeline.times.detector_ms)
         kp_ms.append(pipeline.times.keypoints_ms)
         boxes = np.array([[*o.bbox_xyxy, o.score] for o in found]).reshape(-1, 5)
         dets.append(boxes)
         gt = np.full(4, np.nan) if robot.bbox_xyxy is None else np.asarray(robot.bbox_xyxy)
         gts.append(gt)
+        if robot.bbox_xyxy is None or int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS:
+            dets_seen.append(boxes)
+            gts_seen.append(gt)
         if robot.bbox_xyxy is None:
             continue
+        if int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS:
+            dist = robot_distance_m(s.camera, s.robot_pose)
+            hit = any(o.score >= OPERATING_SCORE and box_iou(o.bbox_xyxy, gt) >= 0.5
+                      for o in found)
+            for lo, hi in SITE_BANDS_M:
+                if lo <= dist < hi:
+                    found_in_band[_band_label(lo, hi)].append(hit)
         valid = robot.in_image
         # the keypoint network alone, on the true box
         kp, conf = pipeline.keypoints.estimate(s.image_rgb, gt[None])
@@ -87,6 +110,12 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
             valid_det.append(valid)
             vis_det.append(robot.visible)
     figures = dict(detection_ap(dets, np.array(gts).reshape(-1, 4)))
+    if dets_seen:
+        figures[f"AP@0.5 (>= {MIN_VISIBLE_KEYPOINTS} keypoints visible)"] = detection_ap(
+            dets_seen, np.array(gts_seen).reshape(-1, 4))["AP@0.5"]
+    for label, hits in found_in_band.items():
+        if hits:
+            figures[f"recall {label} ({len(hits)} robots)"] = float(np.mean(hits))
     if err_det:
         pipe = keypoint_metrics(np.array(err_det), np.array(conf_det), np.array(valid_det),
                                 np.array(vis_det))
@@ -100,6 +129,27 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
     figures["detector ms"] = float(np.median(det_ms))
     figures["keypoints ms"] = float(np.median(kp_ms))
     return figures
+
+
+class CameraFarBands:
+    """Each camera's far band as the deployed edge computes it (``--far-band auto``,
+    :func:`edge_agent.far_band.far_band_for_camera`) for ``pipeline``'s detector and robots
+    ``robot_height_m`` tall, once per camera (a camera is its id, intrinsics and pose)."""
+
+    def __init__(self, pipeline: RobotKeypointPipeline, robot_height_m: float) -> None:
+        self.input_w = pipeline.detector.card.input_w
+        self.robot_height_m = robot_height_m
+        self._bands: dict[tuple[str, bytes, bytes], FarBand | None] = {}
+
+    def __call__(self, camera: Any) -> FarBand | None:
+        key = (camera.camera_id, camera.K.tobytes(), camera.T_cam_world.tobytes())
+        if key not in self._bands:
+            self._bands[key] = far_band_for_camera(camera, self.robot_height_m, self.input_w)
+        return self._bands[key]
+
+
+def _far_bands(pipeline: RobotKeypointPipeline, scenario: Any) -> CameraFarBands:
+    return CameraFarBands(pipeline, scenario.site.robot_model(scenario.robot_id).height_m)
 
 
 def _deployed_pipeline(scenario: Any, model_dir: Path | None, threads: int,
@@ -117,19 +167,20 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
                        count: int = 300, modes: Sequence[str] = ("randomized", "site"),
                        scenario_path: Path | None = None, threads: int = 2,
                        flip: bool | None = None, detector_flip: bool | None = None,
-                       breakdown: bool = False,
+                       breakdown: bool = False, far_band: bool = False,
                        progress: Callable[[str], None] | None = None) -> KeypointEvaluation:
     """Render ``count`` held-out views per mode from ``seed`` and evaluate the models of
     ``model_dir`` (default: the shipped ones); ``flip``: with the keypoint network's test-time
     flip augmentation or without (None: as the model's card says); ``detector_flip``: the same
-    for the detector; ``breakdown``: also
-    :func:`error_breakdown` per set."""
+    for the detector; ``far_band``: each view's camera's far band (:class:`CameraFarBands`)
+    or the whole frame only; ``breakdown``: also :func:`error_breakdown` per set."""
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
     pipeline = _deployed_pipeline(scenario, model_dir, threads, flip, detector_flip)
+    bands = _far_bands(pipeline, scenario) if far_band else None
     t0 = time.perf_counter()
     figures: dict[str, dict[str, float]] = {}
     split: dict[str, ErrorBreakdown] = {}
@@ -137,7 +188,7 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
         gen = SampleGenerator(scenario, mode, seed=seed)
         say(f"rendering {count} held-out {mode} views (seed {seed})")
         samples = [gen(i) for i in range(count)]
-        figures[mode] = evaluate_set(pipeline, samples)
+        figures[mode] = evaluate_set(pipeline, samples, far_bands=bands)
         if breakdown:
             split[mode] = error_breakdown(pipeline, samples)
     return KeypointEvaluation(figures, count * len(modes), time.perf_counter() - t0, split)
@@ -377,6 +428,9 @@ def error_breakdown(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
 
 #: distance bands (metres on the floor from the camera to the robot) of the held-out recall
 HELD_OUT_BANDS_M: Final = ((0.0, 4.0), (4.0, 6.0), (6.0, 8.0), (8.0, math.inf))
+#: distance bands of the site views' recall (:func:`evaluate_set`): the far band's robots
+#: (:mod:`edge_agent.far_band`) are those beyond ~8 m
+SITE_BANDS_M: Final = ((0.0, 6.0), (6.0, 8.0), (8.0, 10.0), (10.0, math.inf))
 #: a robot counts (for recall, false detections and AP) when at least this many of its
 #: keypoints are visible; views with less of it are left out of the detector figures
 MIN_VISIBLE_KEYPOINTS: Final = 3
@@ -403,14 +457,17 @@ class HeldOutEvaluation:
 
 def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
                           distances_m: Sequence[float],
-                          progress: Callable[[str], None] | None = None) -> dict[str, float]:
+                          progress: Callable[[str], None] | None = None,
+                          far_bands: Callable[[Any], FarBand | None] | None = None
+                          ) -> dict[str, float]:
     """Detector and keypoint figures on rendered ``samples`` (robots ``distances_m`` away on
     the floor): recall at :data:`OPERATING_SCORE` per :data:`HELD_OUT_BANDS_M` band (a true
     box matched by a detection with IoU >= 0.5), false detections per image (detections at
     that score matching no robot), AP@0.5 (detections from 0.05), and the keypoints of the
     matched robots: median error of the visible ones (in the image, not occluded), PCK@2/5px,
     and the same over all in-image keypoints. Robots with fewer than
-    :data:`MIN_VISIBLE_KEYPOINTS` visible keypoints are left out."""
+    :data:`MIN_VISIBLE_KEYPOINTS` visible keypoints are left out. ``far_bands``: each
+    sample camera's far band (None: the whole frame only)."""
     say = progress or (lambda line: None)
     found_in_band: dict[str, list[bool]] = {_band_label(*b): [] for b in HELD_OUT_BANDS_M}
     dets, gts = [], []
@@ -428,7 +485,8 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
         if gt is not None and int(np.sum(robot.visible)) < MIN_VISIBLE_KEYPOINTS:
             left_out += 1
             continue
-        found = pipeline(s.image_rgb, min_score=0.05, max_robots=4)
+        found = pipeline(s.image_rgb, min_score=0.05, max_robots=4,
+                         far_band=None if far_bands is None else far_bands(s.camera))
         det_ms.append(pipeline.times.detector_ms)
         kp_ms.append(pipeline.times.keypoints_ms)
         images += 1
@@ -516,12 +574,12 @@ def held_out_samples(count: int, scenario: Any, *, seed: int = DEFAULT_SEED,
 def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = DEFAULT_SEED,
                                  count: int = 200, scenario_path: Path | None = None,
                                  threads: int = 2, flip: bool | None = None,
-                                 detector_flip: bool | None = None,
+                                 detector_flip: bool | None = None, far_band: bool = False,
                                  progress: Callable[[str], None] | None = None,
                                  ) -> HeldOutEvaluation:
     """Render ``count`` views of the held-out renderer variations from ``seed`` and evaluate
     the models of ``model_dir`` (default: the shipped ones) on them
-    (:func:`evaluate_held_out_set`)."""
+    (:func:`evaluate_held_out_set`; ``far_band``: with each view's camera's far band)."""
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
     say = progress or (lambda line: None)
@@ -530,5 +588,7 @@ def evaluate_held_out_variations(model_dir: Path | None = None, *, seed: int = D
     t0 = time.perf_counter()
     samples, distances = held_out_samples(count, scenario, seed=seed, progress=say)
     say(f"running the detector and keypoint networks on {count} views")
-    figures = evaluate_held_out_set(pipeline, samples, distances, progress=say)
+    figures = evaluate_held_out_set(pipeline, samples, distances, progress=say,
+                                    far_bands=_far_bands(pipeline, scenario) if far_band
+                                    else None)
     return HeldOutEvaluation(figures, count, time.perf_counter() - t0)

@@ -93,6 +93,9 @@ class PaperConfig:
     model_dir: str | None = None
     #: CNN mode: onnxruntime threads
     threads: int = 2
+    #: CNN mode: each camera's far band, as the edge agent's ``--far-band on`` (default off,
+    #: as the edge on the CPU)
+    far_band: bool = False
     #: CNN mode: per-frame sensor noise of the rendered images (digital numbers, 0-255)
     sensor_noise_dn: float | None = None
     #: experiment 1: draw the cameras' calibration error with each of these seeds and pool the
@@ -177,7 +180,7 @@ def make_detector(scenario: Scenario, world: World, config: PaperConfig) -> Dete
 
     noise = None if config.sensor_noise_dn is None else SensorNoise(config.sensor_noise_dn)
     return RenderedDetections(scenario, world, model_dir=config.model_dir, threads=config.threads,
-                              noise=noise)
+                              noise=noise, far_band=config.far_band)
 
 
 def describe_detections(config: PaperConfig, detector: DetectionSimulator) -> str:

@@ -135,7 +135,7 @@ class SimSourcePlugin:
     @staticmethod
     def _build_rendered(args: argparse.Namespace, live: Any) -> RenderedCameraSource:
         from edge_agent.models import RobotKeypointPipeline
-        from edge_agent.pipeline import EdgePipeline
+        from edge_agent.pipeline import EdgePipeline, far_band_from_args
         from simulation.live import RenderedCameraFeed
 
         model = live.site.robot_model(live.robot_id)
@@ -145,7 +145,8 @@ class SimSourcePlugin:
         feed = RenderedCameraFeed(live, args.camera, rate_hz=args.render_rate)
         camera = live.site.cameras[args.camera]
         pipeline = EdgePipeline(args.camera, models, min_score=getattr(args, "min_score", 0.3),
-                                expected_size=(camera.width, camera.height))
+                                expected_size=(camera.width, camera.height),
+                                far_band=far_band_from_args(args, live.site, models))
         log.info("edge agent %s: SIMULATED camera, rendered images through %s at %.1f Hz "
                  "(scenario %s, trajectory %s)", args.camera, models.model_id,
                  feed.rate_hz, live.scenario.name, live.spec.trajectory)

@@ -31,7 +31,7 @@ import numpy as np
 
 from edge_agent.frames import Frame
 from edge_agent.models import RobotKeypointPipeline
-from edge_agent.pipeline import EdgePipeline, process_batch
+from edge_agent.pipeline import EdgePipeline, camera_far_band, process_batch
 from protocol.messages import RobotDetections
 from simulation.detections import DetectionSimulator, FrameRequest
 from simulation.scenario import Scenario
@@ -78,7 +78,8 @@ class RenderedDetections(DetectionSimulator):
 
     ``models``: the edge's networks (default: the site robot model's, else the shipped ones);
     ``model_dir``: a folder with other models instead; ``min_score``: as the edge agent's
-    ``--min-score``; ``noise``: per-frame sensor noise."""
+    ``--min-score``; ``noise``: per-frame sensor noise; ``far_band``: each camera's far band
+    (the edge agent's ``--far-band on``) or none (default, as the edge on the CPU)."""
 
     #: the runner hands over the cameras' frames of one capture together (one network batch)
     batches_frames = True
@@ -86,7 +87,7 @@ class RenderedDetections(DetectionSimulator):
     def __init__(self, scenario: Scenario, world: World | None = None, *,
                  models: RobotKeypointPipeline | None = None, model_dir: str | Path | None = None,
                  threads: int = 2, min_score: float = 0.3, noise: SensorNoise | None = None,
-                 texture_seed: int = 0) -> None:
+                 texture_seed: int = 0, far_band: bool = False) -> None:
         super().__init__(scenario, world)
         self.images = SiteCameraRenderer(scenario, texture_seed=texture_seed, noise=noise)
         if models is None:
@@ -95,7 +96,9 @@ class RenderedDetections(DetectionSimulator):
         self.models = models
         self.pipelines = {
             c: EdgePipeline(c, models, min_score=min_score,
-                            expected_size=(cam.width, cam.height))
+                            expected_size=(cam.width, cam.height),
+                            far_band=camera_far_band(scenario.site, c, models) if far_band
+                            else None)
             for c, cam in self.cameras.items()
         }
         self.stats = RenderedStats()
