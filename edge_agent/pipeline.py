@@ -76,8 +76,9 @@ class EdgePipeline:
 
     def process(self, frame: Frame) -> tuple[RobotDetections, StageLatency]:
         self._check_size(frame)
+        band = {} if self.far_band is None else {"far_band": self.far_band}
         found = self.models(frame.image_rgb, min_score=self.min_score,
-                            max_robots=self.max_robots, far_band=self.far_band)
+                            max_robots=self.max_robots, **band)
         return self._finish(frame, found, self.models.times.detector_ms * 1e-3,
                             self.models.times.keypoints_ms * 1e-3)
 
@@ -137,9 +138,10 @@ def process_batch(items: Sequence[tuple[EdgePipeline, Frame]]
     for pipeline, frame in items:
         pipeline._check_size(frame)
     first = items[0][0]
+    bands = [p.far_band for p, _ in items]
     found = models.run_many([frame.image_rgb for _, frame in items],
                             min_score=first.min_score, max_robots=first.max_robots,
-                            far_bands=[p.far_band for p, _ in items])
+                            **({"far_bands": bands} if any(bands) else {}))
     n = len(items)
     det_s, kp_s = models.times.detector_ms * 1e-3 / n, models.times.keypoints_ms * 1e-3 / n
     return [pipeline._finish(frame, obs, det_s, kp_s)
