@@ -213,6 +213,15 @@ def test_tiny_run_writes_model_cards_and_reference(tiny_models: Path, kind: str)
     if kind == "detector":
         assert (card.input_w, card.input_h, card.stride) == (DET_W, DET_H, STRIDE)
         assert set(card.onnx_check) == {"peaks", "size", "offset"}
+        # a free input size: the edge runs a camera's far band at its own size
+        from edge_agent.far_band import FarBand
+        from edge_agent.models import Detector
+
+        det = Detector(onnx, threads=1)
+        assert det.runs_far_band and det.spatial_dims == ("height", "width")
+        frame = np.zeros((2 * DET_H, 2 * DET_W, 3), np.uint8)
+        band = FarBand(0, DET_H, 2 * DET_W, 2 * DET_H, 1.0)  # input 2 x DET_W wide
+        assert det.detect_many([frame], 0.3, 8, [band])[0].shape[1] == 5
     else:
         assert (card.input_w, card.input_h) == (TINY.crop_w, TINY.crop_h)
         assert set(card.onnx_check) == {"keypoints", "confidence"}
