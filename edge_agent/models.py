@@ -651,6 +651,12 @@ def fuse_flipped_detections(direct: np.ndarray, mirrored: np.ndarray, min_score:
     return out[np.argsort(-out[:, 4], kind="stable")][:max_detections]
 
 
+#: far-band sizes whose onnxruntime sessions a :class:`Detector` keeps (each holds its own
+#: memory arena): a camera has one band; cameras of many poses (the randomized evaluation)
+#: make a session per size, and the least recently used ones are let go
+MAX_BAND_SESSIONS: Final = 4
+
+
 class Detector:
     """The robot detector: full frame → boxes in frame pixels with scores.
 
@@ -768,12 +774,14 @@ class Detector:
                 groups.setdefault(band, []).append(i)
         for band, index in groups.items():
             key = (band.input_h, band.input_w)
-            if key not in self._band_sessions:
-                self._band_sessions[key] = self._session_at(*key)
+            session = self._band_sessions.pop(key, None) or self._session_at(*key)
+            self._band_sessions[key] = session  # the most recently used last
+            while len(self._band_sessions) > MAX_BAND_SESSIONS:
+                self._band_sessions.pop(next(iter(self._band_sessions)))
             x = to_nchw(np.stack([resize_for_detector(images_rgb[i][band.v0:band.v1],
                                                       band.input_w, band.input_h)
                                   for i in index]))
-            peaks, size, offset = self._band_sessions[key].run(None, {"image": x})
+            peaks, size, offset = session.run(None, {"image": x})
             for j, i in enumerate(index):
                 boxes = decode_detections(peaks[j], size[j], offset[j], self.card.stride,
                                           min_score, max_detections)
