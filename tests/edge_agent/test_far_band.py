@@ -15,6 +15,7 @@ import pytest
 from edge_agent.far_band import FAR_BAND_CHOICES, FarBand, far_band_for_camera, far_rows
 from edge_agent.models import (
     FAR_BAND_EDGE_PX,
+    MAX_BAND_SESSIONS,
     Detector,
     RobotKeypointPipeline,
     box_iou,
@@ -209,3 +210,14 @@ def test_a_far_robot_the_whole_frame_misses_is_found_with_the_band(lab_views) ->
     without = [(o.score, *o.bbox_xyxy) for o in models(near.image_rgb)]
     with_band = [(o.score, *o.bbox_xyxy) for o in models(near.image_rgb, far_band=band)]
     np.testing.assert_allclose(with_band, without)
+
+
+def test_a_detector_keeps_a_bounded_number_of_band_sessions() -> None:
+    """Cameras of many poses (the randomized evaluation) give bands of many sizes; the detector
+    keeps the sessions of the most recent few only (each holds its own memory arena)."""
+    det = Detector(default_model_dir() / "detector.onnx", threads=1)
+    image = np.zeros((480, 848, 3), np.uint8)
+    for k in range(MAX_BAND_SESSIONS + 2):
+        det.detect(image, far_band=FarBand(0, 32 + 8 * k, 848, 480, 1.0))
+    assert len(det._band_sessions) == MAX_BAND_SESSIONS
+    assert (32 + 8 * (MAX_BAND_SESSIONS + 1), 848) in det._band_sessions
