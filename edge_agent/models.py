@@ -1062,6 +1062,11 @@ class RobotKeypointPipeline:
         return f"{self.keypoints.card.robot_model}/{self.folder.name}"
 
     @property
+    def far_band_added(self) -> int:
+        """Boxes the far band found that the whole frame did not, since start."""
+        return self.detector.far_band_added
+
+    @property
     def providers_used(self) -> list[str]:
         """The execution providers the detector's session runs on."""
         return self.detector.providers_used
@@ -1239,6 +1244,11 @@ class RobotTypesPipeline:
         """Boxes the models' own keypoint floors dropped (:attr:`RobotKeypointPipeline.
         unconfirmed`), since start."""
         return sum(p.unconfirmed for p in self.pipelines.values())
+
+    @property
+    def far_band_added(self) -> int:
+        """Boxes the models' far bands found that their whole frames did not, since start."""
+        return sum(p.far_band_added for p in self.pipelines.values())
 
     @property
     def providers_used(self) -> list[str]:

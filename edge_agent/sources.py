@@ -128,6 +128,8 @@ class PipelineSource:
                     ("frames_skipped", skipped_total),
                     # boxes whose keypoints were not found: no robot
                     ("boxes_without_keypoints", getattr(models, "unconfirmed", 0)),
+                    # far robots only the far band found (--far-band)
+                    ("far_band_boxes", getattr(models, "far_band_added", 0)),
                     # several robot types: boxes of two types' detectors on one robot, the
                     # weaker dropped; boxes of another type's robot
                     ("duplicate_boxes_dropped", getattr(models, "duplicates_dropped", 0)),

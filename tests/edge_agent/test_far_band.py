@@ -198,14 +198,22 @@ def test_a_far_robot_the_whole_frame_misses_is_found_with_the_band(lab_views) ->
     box = far.robots[0].bbox_xyxy
     assert not _hits(models(far.image_rgb), box)
     assert len(_hits(models(far.image_rgb, far_band=band), box)) == 1
-    assert models.detector.far_band_added >= 1
-    # through the edge's per-frame pipeline, as the agent runs it
+    assert models.far_band_added == 1
+    # through the edge's per-frame pipeline, as the agent runs it, counted in its status
     from edge_agent.frames import Frame
+    from edge_agent.sources import PipelineSource
+    from protocol.runtime import Stats
 
     edge = EdgePipeline(far.camera.camera_id, models, far_band=band,
                         expected_size=(far.camera.width, far.camera.height))
-    msg, _ = edge.process(Frame(far.image_rgb, 1, 1))
+    source = PipelineSource(edge)
+    stats = Stats()
+    source.bind_stats(stats)
+    before = models.far_band_added
+    msg = source.process(Frame(far.image_rgb, 1, 1), 1, 0)
     assert any(box_iou(d.bbox_xyxy, box) >= 0.5 for d in msg.detections)
+    assert models.far_band_added == before + 1
+    assert stats.snapshot_counters().get("far_band_boxes", 0) == before + 1
     # a near robot: the band changes nothing
     without = [(o.score, *o.bbox_xyxy) for o in models(near.image_rgb)]
     with_band = [(o.score, *o.bbox_xyxy) for o in models(near.image_rgb, far_band=band)]
