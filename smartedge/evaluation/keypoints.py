@@ -115,7 +115,8 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
             dets_seen, np.array(gts_seen).reshape(-1, 4))["AP@0.5"]
     for label, hits in found_in_band.items():
         if hits:
-            figures[f"recall {label} ({len(hits)} robots)"] = float(np.mean(hits))
+            count = f"{len(hits)} robot" + ("s" if len(hits) != 1 else "")
+            figures[f"recall {label} ({count})"] = float(np.mean(hits))
     if err_det:
         pipe = keypoint_metrics(np.array(err_det), np.array(conf_det), np.array(valid_det),
                                 np.array(vis_det))
