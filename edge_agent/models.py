@@ -181,6 +181,11 @@ class DetectorCard(ModelCard):
                      "frame mirrored as well and fuses the two passes' boxes (a box only one "
                      "pass finds keeps half its score; the held-out metrics above are without "
                      "it).\n")
+        text += ("\n## Far band\n\nThe file's input height and width are free (`height`, "
+                 "`width`): the edge runs the whole frame at the size above and, with "
+                 "`--far-band`, the rows of a static camera's frame where far robots appear at "
+                 "twice that scale (edge_agent/far_band.py; docs/models.md, \"The far "
+                 "band\").\n")
         return text
 
 
