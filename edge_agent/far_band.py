@@ -9,8 +9,9 @@ be: standing on the floor (world z = 0) at a camera depth of :data:`FAR_MIN_DEPT
 they fill a band of rows near the top of a downward-looking camera's frame. The detector runs
 on that band at twice its scale (full resolution for an 848x480 camera) and its boxes join the
 whole frame's (:meth:`edge_agent.models.Detector.detect_many`): the far robots look to it like
-robots half as far away, which it finds. The band costs one more detector run on fewer pixels
-than the whole frame's (848x152 against 424x240x2 with the flip for the paper lab's cameras).
+robots half as far away, which it finds. The band costs one more detector run, on fewer pixels
+than the whole frame's two (848x168 against 424x240 and its mirror image for the paper lab's
+cameras); on two x86 cores that makes the detector + keypoints take 1.6-1.7x as long.
 
 Pure numpy + OpenCV: the band is computed once per camera from its :class:`CameraModel`.
 """
@@ -46,8 +47,8 @@ FAR_ZOOM: Final = 2.0
 MAX_BAND_SHARE: Final = 0.5
 #: the edge agent's ``--far-band`` choices: ``on`` (the camera's band from its calibration,
 #: where it has one), ``off``, or ``auto``: on where the detector runs on a GPU (TensorRT,
-#: CUDA), off on the CPU, where the band costs ~50 % more detector time (``smartedge bench
-#: edge``) and would take two x86 cores below the edge's 60 frames/s
+#: CUDA), off on the CPU, where the detector + keypoints take 1.6-1.7x as long with it
+#: (``smartedge bench edge``), below the edge's 60 frames/s on two x86 cores
 FAR_BAND_CHOICES: Final = ("auto", "on", "off")
 
 

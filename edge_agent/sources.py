@@ -274,7 +274,7 @@ class CameraSourcePlugin:
                        "from the camera appear, at twice its scale (computed from the camera's "
                        "calibration; docs/models.md, 'The far band'); off: the whole frame "
                        "only; auto (default): on where the networks run on a GPU, off on the "
-                       "CPU (the band costs ~50 %% more detector time there)")
+                       "CPU (there the networks take 1.6-1.7x as long with it)")
 
     def build(self, args: argparse.Namespace, site: Site | None) -> FrameSource:
         from edge_agent.frames import (

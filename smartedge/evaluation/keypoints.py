@@ -84,12 +84,13 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
         dets.append(boxes)
         gt = np.full(4, np.nan) if robot.bbox_xyxy is None else np.asarray(robot.bbox_xyxy)
         gts.append(gt)
-        if robot.bbox_xyxy is None or int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS:
+        measurable = int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS
+        if robot.bbox_xyxy is None or measurable:
             dets_seen.append(boxes)
             gts_seen.append(gt)
         if robot.bbox_xyxy is None:
             continue
-        if int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS:
+        if measurable:
             dist = robot_distance_m(s.camera, s.robot_pose)
             hit = any(o.score >= OPERATING_SCORE and box_iou(o.bbox_xyxy, gt) >= 0.5
                       for o in found)
@@ -133,7 +134,7 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
 
 
 class CameraFarBands:
-    """Each camera's far band as the deployed edge computes it (``--far-band auto``,
+    """Each camera's far band as the deployed edge computes it (``--far-band on``,
     :func:`edge_agent.far_band.far_band_for_camera`) for ``pipeline``'s detector and robots
     ``robot_height_m`` tall, once per camera (a camera is its id, intrinsics and pose)."""
 
