@@ -18,30 +18,45 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def detection_ap(detections: Sequence[np.ndarray], gt_boxes: np.ndarray,
-                 iou_threshold: float = 0.5) -> dict[str, float]:
+                 iou_threshold: float = 0.5,
+                 ignore: Sequence[bool] | np.ndarray | None = None) -> dict[str, float]:
     """AP at ``iou_threshold`` (all-point interpolated) for one class with at most one true
     box per image (``gt_boxes`` (N, 4), NaN row: none); also the mean IoU of the best-scoring
-    detection on images with a robot and the false-positive rate on images without one."""
+    detection on images with a robot and the false-positive rate on images without one.
+
+    ``ignore`` (N,): true boxes that are neither to be found nor a false positive when found
+    (the "ignore" / "don't care" regions of COCO, KITTI and CityPersons; here a robot too
+    hidden for any view to measure it). Such a box is not counted among the robots, the best
+    detection matching it leaves the ranking, and every other detection of its image counts as
+    usual. With ``ignore`` the result also holds ``robots ignored``."""
+    if ignore is not None and len(ignore) != len(gt_boxes):
+        raise ValueError(f"ignore has {len(ignore)} flags for {len(gt_boxes)} images")
     scores: list[float] = []
     hits: list[bool] = []
     ious: list[float] = []
     fp_empty = 0
     n_gt = 0
     n_empty = 0
-    for dets, gt in zip(detections, gt_boxes, strict=True):
+    n_ignored = 0
+    for n, (dets, gt) in enumerate(zip(detections, gt_boxes, strict=True)):
         has_gt = bool(np.all(np.isfinite(gt)))
-        n_gt += has_gt
+        ignored = has_gt and ignore is not None and bool(ignore[n])
+        n_ignored += ignored
+        counted = has_gt and not ignored
+        n_gt += counted
         n_empty += not has_gt
         matched = False
         for i, d in enumerate(dets):  # best first
             iou = box_iou(d[:4], gt) if has_gt else 0.0
-            if has_gt and i == 0:
+            if counted and i == 0:
                 ious.append(iou)
             hit = has_gt and not matched and iou >= iou_threshold
             matched |= hit
+            if hit and ignored:
+                continue  # found a robot that is not asked for: not in the ranking
             scores.append(float(d[4]))
             hits.append(hit)
-        if has_gt and len(dets) == 0:
+        if counted and len(dets) == 0:
             ious.append(0.0)
         if not has_gt and len(dets) and float(dets[0][4]) >= 0.3:
             fp_empty += 1
@@ -59,12 +74,15 @@ def detection_ap(detections: Sequence[np.ndarray], gt_boxes: np.ndarray,
         mpre = np.maximum.accumulate(mpre[::-1])[::-1]
         steps = np.flatnonzero(mrec[1:] != mrec[:-1])
         ap = float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
-    return {
+    out = {
         "AP@0.5": ap,
         "mean IoU": float(np.mean(ious)) if ious else float("nan"),
         "false positive rate (no robot, score >= 0.3)": fp_empty / n_empty if n_empty else 0.0,
         "images with robot": float(n_gt),
     }
+    if ignore is not None:
+        out["robots ignored"] = float(n_ignored)
+    return out
 
 
 def keypoint_metrics(err_px: np.ndarray, confidence: np.ndarray, valid: np.ndarray,

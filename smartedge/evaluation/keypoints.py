@@ -60,16 +60,15 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
                  min_score: float = 0.05,
                  far_bands: Callable[[Any], FarBand | None] | None = None) -> dict[str, float]:
     """Figures on rendered samples (each a :class:`simulation.dataset.Sample`): detection
-    AP@0.5 over every view; the same over the views whose robot shows at least
-    :data:`MIN_VISIBLE_KEYPOINTS` keypoints (or none: the rule of the held-out set, whose
-    robots' poses a view can measure) and those robots' recall at :data:`OPERATING_SCORE` per
-    :data:`SITE_BANDS_M` distance band; the keypoint errors of the best detection and of the
-    keypoint network on the true box. ``far_bands``: each sample camera's far band (None:
-    the whole frame only)."""
+    AP@0.5 over every robot; the same with the robots that show fewer than
+    :data:`MIN_VISIBLE_KEYPOINTS` keypoints as ignore regions (the rule of the held-out set: no
+    view can measure their pose; :func:`edge_agent.metrics.detection_ap`'s ``ignore``) and the
+    measurable robots' recall at :data:`OPERATING_SCORE` per :data:`SITE_BANDS_M` distance
+    band; the keypoint errors of the best detection and of the keypoint network on the true
+    box. ``far_bands``: each sample camera's far band (None: the whole frame only)."""
     from simulation.scenes import robot_distance_m
 
-    dets, gts = [], []
-    dets_seen, gts_seen = [], []
+    dets, gts, hidden = [], [], []
     found_in_band: dict[str, list[bool]] = {_band_label(*b): [] for b in SITE_BANDS_M}
     err_det, conf_det, valid_det, vis_det = [], [], [], []
     err_gt, conf_gt, valid_gt, vis_gt = [], [], [], []
@@ -85,9 +84,7 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
         gt = np.full(4, np.nan) if robot.bbox_xyxy is None else np.asarray(robot.bbox_xyxy)
         gts.append(gt)
         measurable = int(np.sum(robot.visible)) >= MIN_VISIBLE_KEYPOINTS
-        if robot.bbox_xyxy is None or measurable:
-            dets_seen.append(boxes)
-            gts_seen.append(gt)
+        hidden.append(not measurable)
         if robot.bbox_xyxy is None:
             continue
         if measurable:
@@ -111,9 +108,11 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
             valid_det.append(valid)
             vis_det.append(robot.visible)
     figures = dict(detection_ap(dets, np.array(gts).reshape(-1, 4)))
-    if dets_seen:
-        figures[f"AP@0.5 (>= {MIN_VISIBLE_KEYPOINTS} keypoints visible)"] = detection_ap(
-            dets_seen, np.array(gts_seen).reshape(-1, 4))["AP@0.5"]
+    if dets:
+        seen = detection_ap(dets, np.array(gts).reshape(-1, 4), ignore=hidden)
+        figures[f"AP@0.5 (>= {MIN_VISIBLE_KEYPOINTS} keypoints visible)"] = seen["AP@0.5"]
+        figures[f"robots ignored (< {MIN_VISIBLE_KEYPOINTS} keypoints visible)"] = seen[
+            "robots ignored"]
     for label, hits in found_in_band.items():
         if hits:
             count = f"{len(hits)} robot" + ("s" if len(hits) != 1 else "")
@@ -467,15 +466,16 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
     box matched by a detection with IoU >= 0.5), false detections per image (detections at
     that score matching no robot), AP@0.5 (detections from 0.05), and the keypoints of the
     matched robots: median error of the visible ones (in the image, not occluded), PCK@2/5px,
-    and the same over all in-image keypoints. Robots with fewer than
-    :data:`MIN_VISIBLE_KEYPOINTS` visible keypoints are left out. ``far_bands``: each
+    and the same over all in-image keypoints. A robot with fewer than
+    :data:`MIN_VISIBLE_KEYPOINTS` visible keypoints is an ignore region (no view can measure
+    its pose): not asked for, and a detection of it is not false; its view's other detections
+    count as in any view (:func:`edge_agent.metrics.detection_ap`). ``far_bands``: each
     sample camera's far band (None: the whole frame only)."""
     say = progress or (lambda line: None)
     found_in_band: dict[str, list[bool]] = {_band_label(*b): [] for b in HELD_OUT_BANDS_M}
-    dets, gts = [], []
+    dets, gts, hidden = [], [], []
     false_dets = 0
     images = 0
-    left_out = 0
     err_vis, err_in = [], []
     det_ms, kp_ms = [], []
     step = max(1, len(samples) // 10)
@@ -484,9 +484,7 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
         gt = None if robot is None or robot.bbox_xyxy is None else np.asarray(robot.bbox_xyxy)
         if n % step == 0 or n == len(samples):
             say(f"  evaluating {n}/{len(samples)} views")
-        if gt is not None and int(np.sum(robot.visible)) < MIN_VISIBLE_KEYPOINTS:
-            left_out += 1
-            continue
+        ignored = gt is not None and int(np.sum(robot.visible)) < MIN_VISIBLE_KEYPOINTS
         found = pipeline(s.image_rgb, min_score=0.05, max_robots=4,
                          far_band=None if far_bands is None else far_bands(s.camera))
         det_ms.append(pipeline.times.detector_ms)
@@ -494,6 +492,7 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
         images += 1
         dets.append(np.array([[*o.bbox_xyxy, o.score] for o in found]).reshape(-1, 5))
         gts.append(np.full(4, np.nan) if gt is None else gt)
+        hidden.append(ignored)
         matched = None
         for o in found:  # best first
             if o.score < OPERATING_SCORE:
@@ -502,6 +501,8 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
                 matched = o
             else:
                 false_dets += 1
+        if ignored:
+            continue
         if gt is not None:
             for lo, hi in HELD_OUT_BANDS_M:
                 if lo <= dist < hi:
@@ -510,8 +511,9 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
             e = np.linalg.norm(matched.keypoints_px - robot.keypoints_px, axis=1)
             err_vis.append(e[np.asarray(robot.visible, bool)])
             err_in.append(e[np.asarray(robot.in_image, bool)])
-    figures: dict[str, float] = {"views": float(len(samples)), "views left out (robot hidden)":
-                                 float(left_out)}
+    figures: dict[str, float] = {
+        "views": float(len(samples)),
+        f"robots ignored (< {MIN_VISIBLE_KEYPOINTS} keypoints visible)": float(sum(hidden))}
     all_found: list[bool] = []
     for label, hits in found_in_band.items():
         if hits:
@@ -525,7 +527,8 @@ def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any
         figures["recall"] = float(np.mean(all_found))
     figures["false detections per image"] = false_dets / max(images, 1)
     if dets:
-        figures["AP@0.5"] = detection_ap(dets, np.array(gts).reshape(-1, 4))["AP@0.5"]
+        figures["AP@0.5"] = detection_ap(dets, np.array(gts).reshape(-1, 4),
+                                         ignore=hidden)["AP@0.5"]
     if err_vis:
         ev = np.concatenate(err_vis)
         ei = np.concatenate(err_in)

@@ -101,6 +101,31 @@ def test_detection_ap_without_any_robot() -> None:
     assert out[FP_RATE] == pytest.approx(0.5)
 
 
+def test_ignored_robots_are_neither_asked_for_nor_false() -> None:
+    """A robot marked ignore (too hidden to measure): missing it costs nothing, finding it
+    neither helps nor counts as a false positive, and another detection in its image is still a
+    false positive. Robots A, B found (0.9, 0.5); robot C ignored."""
+    gt = np.array([[0, 0, 10, 10], [20, 20, 40, 40], [50, 50, 60, 70]], float)
+    ignore = [False, False, True]
+    a, b = _det((0, 0, 10, 10, 0.9)), _det((20, 20, 40, 40, 0.5))
+    missed = detection_ap([a, b, _det()], gt, ignore=ignore)
+    assert missed[AP] == pytest.approx(1.0)
+    assert missed["images with robot"] == 2.0 and missed["robots ignored"] == 1.0
+    # the same miss without the ignore flag: recall stops at 2/3
+    assert detection_ap([a, b, _det()], gt)[AP] == pytest.approx(2 / 3)
+    found = detection_ap([a, b, _det((50, 50, 60, 70, 0.95))], gt, ignore=ignore)
+    assert found[AP] == pytest.approx(1.0)
+    # a box beside C ranked first is false: FP(0.99), TP, TP -> precision 2/3 at recall 1
+    stray = detection_ap([a, b, _det((50, 50, 60, 70, 0.95), (0, 200, 9, 240, 0.99))], gt,
+                         ignore=ignore)
+    assert stray[AP] == pytest.approx(2 / 3)
+    # an ignore flag on an image without a robot changes nothing
+    assert detection_ap([a, _det()], np.array([gt[0], NO_BOX]), ignore=[False, True])[
+        "robots ignored"] == 0.0
+    with pytest.raises(ValueError, match="2 flags for 3 images"):
+        detection_ap([a, b, _det()], gt, ignore=[False, True])
+
+
 def _synthetic_keypoints(n: int = 300, k: int = 6, seed: int = 0
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Errors that grow as the confidence falls; every third keypoint occluded with twice

@@ -48,5 +48,6 @@ def test_evaluate_cli_prints_the_held_out_figures(capsys) -> None:
     assert main(["keypoints", "--held-out-variations", "--count", "4", "--seed", "5"]) == 0
     out = capsys.readouterr().out
     assert "rendering 4 views of the held-out renderer variations" in out
-    for name in ("held-out false detections per image", "held-out views 4"):
+    for name in ("held-out false detections per image", "held-out views 4",
+                 "held-out robots ignored (< 3 keypoints visible)"):
         assert name in out, out
