@@ -63,6 +63,16 @@ class ModelCard:
     metrics: dict[str, dict[str, float]]
     onnx_check: dict[str, float]
     training: dict[str, Any]
+    #: figures measured through the deployed pipeline after training (``smartedge evaluate
+    #: keypoints --record``): what was run → {"command", "date", "machine", "views",
+    #: "figures": {set: {name: value}}}
+    evaluations: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict,
+                                                               kw_only=True)
+
+    def with_evaluation(self, name: str, entry: dict[str, Any]) -> ModelCard:
+        """This card with ``entry`` recorded as evaluation ``name`` (an earlier one of that
+        name replaced)."""
+        return dataclasses.replace(self, evaluations={**self.evaluations, name: entry})
 
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.KIND, **dataclasses.asdict(self)}
@@ -151,7 +161,29 @@ class ModelCard:
         lines += ["", "## Export check", "",
                   "onnxruntime vs torch, max abs difference per output: "
                   + ", ".join(f"{k} {v:.2g}" for k, v in self.onnx_check.items()), ""]
-        return "\n".join(lines)
+        text = "\n".join(lines) + self._sections()
+        evaluations = self._evaluation_lines()
+        return text + ("\n" + "\n".join(evaluations) if evaluations else "")
+
+    def _sections(self) -> str:
+        """A kind's own sections after the export check (markdown, each starting with a
+        blank line)."""
+        return ""
+
+    def _evaluation_lines(self) -> list[str]:
+        if not self.evaluations:
+            return []
+        lines = ["## Through the deployed pipeline", "",
+                 "Measured with onnxruntime on fresh renders of seeds never trained on "
+                 "(`smartedge evaluate keypoints ... --record`; docs/models.md, \"Evaluating\"):",
+                 ""]
+        for name, e in self.evaluations.items():
+            lines.append(f"- {name}: `{e.get('command', '?')}`, {e.get('date', '?')}, "
+                         f"{e.get('views', '?')} views, {e.get('machine', '?')}")
+            for set_name, figures in e.get("figures", {}).items():
+                lines.append(f"  - {set_name}: " + ", ".join(
+                    f"{k} {_fmt(v)}" for k, v in figures.items()))
+        return [*lines, ""]
 
 
 def _render_time(seconds: float | None) -> str:
@@ -174,8 +206,8 @@ class DetectorCard(ModelCard):
     stride: int = 4
     flip_tta: bool = False
 
-    def markdown(self) -> str:
-        text = super().markdown()
+    def _sections(self) -> str:
+        text = ""
         if self.flip_tta:
             text += ("\n## Test-time flip\n\nTrained on mirrored frames too; the edge runs each "
                      "frame mirrored as well and fuses the two passes' boxes (a box only one "
@@ -218,8 +250,8 @@ class KeypointCard(ModelCard):
             raise ValueError("sigma_calibration: equal-length lists, confidences ascending, "
                              "sigmas > 0")
 
-    def markdown(self) -> str:
-        text = super().markdown()
+    def _sections(self) -> str:
+        text = ""
         if self.flip_tta:
             text += ("\n## Test-time flip\n\nTrained on mirrored crops too (left/right keypoints "
                      "swapped); the edge runs each crop mirrored as well and averages the two "

@@ -9,6 +9,7 @@
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
                                  [--detector-flip] [--breakdown] [--held-out-variations]
+                                 [--far-band] [--record]
     smartedge evaluate keypoint-choice [--scenario FILE] [--sigma-px PX] [--add N] [--pairs]
     smartedge evaluate fleet [--robots N] [--runs N] [--seed S] [--out DIR] [--quick]
                              [--no-feedback] [--min-sigma-m M] [--types]
@@ -29,7 +30,8 @@ site's cameras) and prints the detector's AP@0.5 and the keypoint errors of the 
 (default: the shipped ones), one figure per line with its name; with
 ``--held-out-variations`` N views rendered with settings never used in training
 (:data:`simulation.scenes.HELD_OUT_VARIATION`) instead: detector recall per distance band,
-false detections per image, AP@0.5, keypoint median error and PCK@2/5px.
+false detections per image, AP@0.5, keypoint median error and PCK@2/5px; ``--record`` also
+writes the figures into the evaluated models' cards.
 ``fleet`` drives N identical robots on crossing routes through the backend's pipeline (unnamed
 detections assigned to robots) with correction feedback, and each robot alone with the same
 seed (:mod:`smartedge.experiments.fleet`): identity switches, wrong-robot detections and
@@ -168,6 +170,10 @@ def _keypoints(args: argparse.Namespace) -> int:
     if args.count < 1:
         print("smartedge evaluate keypoints: --count must be >= 1", file=sys.stderr)
         return 2
+    if args.record and args.calibrate:
+        print("smartedge evaluate keypoints: --record writes evaluation figures; --calibrate "
+              "writes its table into the keypoint card by itself", file=sys.stderr)
+        return 2
     if args.held_out_variations:
         from simulation.scenes import RandomizationError
         from smartedge.evaluation.keypoints import evaluate_held_out_variations
@@ -185,6 +191,8 @@ def _keypoints(args: argparse.Namespace) -> int:
         for line in held.lines():
             print(line)
         print(f"({held.views} views in {held.wall_s:.0f} s)")
+        if args.record:
+            return _record(args, {"held-out renderer variations": held.figures}, held.views)
         return 0
     if args.calibrate:
         from smartedge.evaluation.keypoints import calibrate_keypoints
@@ -209,6 +217,45 @@ def _keypoints(args: argparse.Namespace) -> int:
     for line in result.lines():
         print(line)
     print(f"({result.views} views in {result.wall_s:.0f} s)")
+    if args.record:
+        return _record(args, result.figures, result.views)
+    return 0
+
+
+def _record(args: argparse.Namespace, figures: dict[str, dict[str, float]], views: int) -> int:
+    """``--record``: the figures into the evaluated models' cards, named by what ran."""
+    from pathlib import Path
+
+    from edge_agent.models import ModelError
+    from smartedge.evaluation.keypoints import record_evaluation
+
+    what = ("held-out renderer variations" if args.held_out_variations
+            else "randomized and site views")
+    name = f"{what}, seed {args.seed}"
+    command = ["smartedge evaluate keypoints"]
+    if args.model:
+        command.append("--model DIR")
+    if args.held_out_variations:
+        command.append("--held-out-variations")
+    command += [f"--seed {args.seed}", f"--count {args.count}"]
+    for flag, value in (("flip", args.flip), ("detector-flip", args.detector_flip)):
+        if value is not None:
+            command.append(f"--{'' if value else 'no-'}{flag}")
+            name += f", {'with' if value else 'without'} the {flag.replace('-', ' ')}"
+    if args.far_band:
+        command.append("--far-band")
+        name += ", with the far band"
+    if args.scenario:
+        command.append("--scenario FILE")
+        name += f", scenario {Path(args.scenario).name}"
+    try:
+        written = record_evaluation(Path(args.model) if args.model else None, name,
+                                    " ".join([*command, "--record"]), figures, views)
+    except (ModelError, OSError) as exc:
+        print(f"smartedge evaluate keypoints: --record: {exc}", file=sys.stderr)
+        return 1
+    for path in written:
+        print(f"recorded as {name!r} in {path} (and its .md)")
     return 0
 
 
@@ -320,6 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
                       "training: other textures, occluders, lens, light; "
                       "simulation.scenes.HELD_OUT_VARIATION): recall by distance band, false "
                       "detections per image, AP@0.5, keypoint errors")
+    p_kp.add_argument("--record", action="store_true",
+                      help="also write the figures into the evaluated models' cards (.json "
+                      "and .md; the detector's figures into its card, the keypoint figures "
+                      "into the keypoint network's), named by the set, seed and options; an "
+                      "earlier evaluation of the same name is replaced")
     p_kp.add_argument("--calibrate", action="store_true",
                       help="instead: measure the confidence -> pixel error table on the "
                       "validation seeds (1001/1002) and write it into the keypoint model's card "

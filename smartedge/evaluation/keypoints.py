@@ -195,6 +195,47 @@ def evaluate_keypoints(model_dir: Path | None = None, *, seed: int = DEFAULT_SEE
     return KeypointEvaluation(figures, count * len(modes), time.perf_counter() - t0, split)
 
 
+#: figure names that describe the detector; the others describe the keypoint network
+DETECTOR_FIGURES: Final = ("AP@", "recall", "robots", "mean IoU", "false", "images with",
+                           "detector ms", "views")
+
+
+def record_evaluation(model_dir: Path | None, name: str, command: str,
+                      figures: dict[str, dict[str, float]], views: int) -> list[Path]:
+    """Write ``figures`` (set → name → value, as :class:`KeypointEvaluation` holds them) into
+    the model cards (``.json`` + ``.md``) of ``model_dir``'s detector and keypoint network
+    (default: the shipped ones) as evaluation ``name`` (an earlier one of that name replaced):
+    the detector's figures (:data:`DETECTOR_FIGURES`) into its card, the rest into the keypoint
+    network's, with the command, the date, the machine and the number of views. Values that are
+    not finite are left out. Returns the cards written."""
+    import datetime
+    import os
+    import platform
+
+    from edge_agent.models import DetectorCard, KeypointCard, card_path, model_files
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    base = {"command": command, "date": datetime.date.today().isoformat(),
+            "machine": f"{platform.machine()}, {cores} cores, {platform.system()}",
+            "views": int(views)}
+    written = []
+    det_path, kp_path = model_files(model_dir)
+    for onnx, card_type, detector in ((det_path, DetectorCard, True),
+                                      (kp_path, KeypointCard, False)):
+        chosen = {set_name: {k: round(float(v), 4) for k, v in figs.items()
+                             if k.startswith(DETECTOR_FIGURES) == detector
+                             and np.isfinite(v)}
+                  for set_name, figs in figures.items()}
+        chosen = {k: v for k, v in chosen.items() if v}
+        if not chosen:
+            continue
+        path = card_path(onnx)
+        card = card_type.read(path)
+        card.with_evaluation(name, {**base, "figures": chosen}).write(path.parent)
+        written.append(path)
+    return written
+
+
 #: held-out seeds the calibration renders (the training's validation seeds, never the
 #: evaluation's DEFAULT_SEED, so `evaluate keypoints` stays an independent check)
 CALIBRATION_SEEDS = {"randomized": 1001, "site": 1002}
