@@ -59,8 +59,9 @@ def test_record_writes_each_network_its_own_figures(tmp_path: Path, capsys) -> N
     assert main(["keypoints", "--model", str(folder), "--count", "2", "--seed", "5",
                  "--held-out-variations", "--far-band", "--record"]) == 0
     doc = json.loads((folder / "detector.json").read_text())
+    shipped_entries = list(json.loads(shipped["detector.json"])["evaluations"])
     assert list(doc["evaluations"]) == [
-        name, "held-out renderer variations, seed 5, with the far band"]
+        *shipped_entries, name, "held-out renderer variations, seed 5, with the far band"]
     # the shipped models' cards are untouched
     assert {n: (default_model_dir() / n).read_bytes() for n in SHIPPED_CARDS} == shipped
 
