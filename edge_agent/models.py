@@ -106,6 +106,11 @@ class ModelCard:
         missing = sorted(required - doc.keys())
         if missing:
             raise ModelError(f"{path}: model card lacks {missing}")
+        evaluations = doc.get("evaluations", {})
+        if not isinstance(evaluations, dict) or not all(
+                isinstance(e, dict) for e in evaluations.values()):
+            raise ModelError(f"{path}: bad model card: 'evaluations' must map a name to an "
+                             "object (command, date, machine, views, figures)")
         try:
             return cls(**{k: v for k, v in doc.items() if k in names})
         except (TypeError, ValueError) as exc:

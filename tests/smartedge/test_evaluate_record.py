@@ -76,3 +76,14 @@ def test_record_refuses_with_calibrate_and_names_a_missing_card(tmp_path: Path,
     code = main(["keypoints", "--model", str(folder), "--count", "2", "--record"])
     assert code == 1
     assert "keypoints.json" in capsys.readouterr().err
+
+
+def test_a_card_with_malformed_evaluations_is_refused_by_name(tmp_path: Path) -> None:
+    from edge_agent.models import ModelError
+
+    folder = _models(tmp_path)
+    doc = json.loads((folder / "detector.json").read_text())
+    doc["evaluations"] = ["not", "a", "mapping"]
+    (folder / "detector.json").write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match=r"detector\.json: bad model card: 'evaluations'"):
+        DetectorCard.read(folder / "detector.json")
