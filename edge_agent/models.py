@@ -44,6 +44,21 @@ class ModelError(SmartedgeError):
     """A model file or card is missing, corrupt or does not fit the site's robot model."""
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS says, else all)."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def card_machine() -> str:
+    """This machine as a model card names it (architecture, cores, OS): where a model
+    trained, or where its figures were measured."""
+    import platform
+
+    return f"{platform.machine()}, {usable_cores()} cores, {platform.system()}"
+
+
 def default_model_dir() -> Path:
     """The folder of the shipped models for the built-in robot (package data)."""
     return Path(__file__).resolve().parent / "models"

@@ -34,11 +34,13 @@ from edge_agent.models import (
     DetectorCard,
     KeypointCard,
     SegmentationCard,
+    card_machine,
     card_path,
     decode_detections,
     export_differences,
     mirror_permutation,
     reference_path,
+    usable_cores,
 )
 from edge_agent.training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
 from edge_agent.training.nets import PEAK_TIE, KeypointNet, RobotDetector, SemanticSegNet
@@ -332,7 +334,7 @@ def device_description(device: torch.device) -> str:
     """Where a phase ran, for the model card: the GPU's name, or the CPU's model and cores."""
     if device.type == "cuda":
         return f"cuda ({torch.cuda.get_device_name(device)})"
-    return f"cpu ({_cpu_name()}, {_cpu_count()} cores)"
+    return f"cpu ({_cpu_name()}, {usable_cores()} cores)"
 
 
 def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
@@ -800,7 +802,7 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
         # where the last leg trained (every leg: ``phases``)
         "device": (state["phases"][-1]["device"] if state.get("phases")
                    else resolve_device(cfg.device).type),
-        "machine": f"{platform.machine()}, {_cpu_count()} cores, {platform.system()}",
+        "machine": card_machine(),
         "phases": list(state.get("phases", [])),
         "torch": torch.__version__,
         "final_loss": round(state["losses"][-1][1], 4) if state["losses"] else None,
@@ -836,8 +838,3 @@ def _cpu_name() -> str:
         pass
     return platform.machine() or "unknown CPU"
 
-
-def _cpu_count() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

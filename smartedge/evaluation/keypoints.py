@@ -209,15 +209,17 @@ def record_evaluation(model_dir: Path | None, name: str, command: str,
     network's, with the command, the date, the machine and the number of views. Values that are
     not finite are left out. Returns the cards written."""
     import datetime
-    import os
-    import platform
 
-    from edge_agent.models import DetectorCard, KeypointCard, card_path, model_files
+    from edge_agent.models import (
+        DetectorCard,
+        KeypointCard,
+        card_machine,
+        card_path,
+        model_files,
+    )
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     base = {"command": command, "date": datetime.date.today().isoformat(),
-            "machine": f"{platform.machine()}, {cores} cores, {platform.system()}",
-            "views": int(views)}
+            "machine": card_machine(), "views": int(views)}
     written = []
     det_path, kp_path = model_files(model_dir)
     for onnx, card_type, detector in ((det_path, DetectorCard, True),

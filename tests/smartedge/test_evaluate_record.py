@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("onnxruntime")
 pytest.importorskip("moderngl")
 
-from edge_agent.models import DetectorCard, KeypointCard, default_model_dir
+from edge_agent.models import DetectorCard, KeypointCard, card_machine, default_model_dir
 from smartedge.evaluate import main
 
 SHIPPED_CARDS = ("detector.json", "detector.md", "keypoints.json", "keypoints.md")
@@ -40,6 +40,7 @@ def test_record_writes_each_network_its_own_figures(tmp_path: Path, capsys) -> N
     assert entry["command"] == ("smartedge evaluate keypoints --model DIR --seed 5 --count 3 "
                                 "--record")
     assert entry["views"] == 6 and entry["date"].count("-") == 2
+    assert entry["machine"] == card_machine()  # as a training names where it ran
     assert set(entry["figures"]) == {"randomized", "site"}
     site_det = entry["figures"]["site"]
     site_kp = kp.evaluations[name]["figures"]["site"]
