@@ -6,9 +6,32 @@ the single-camera rule, averaging while the robot is static and pose-graph fusio
 (GTSAM); and the service node (``smartedge backend``). The semantic map is the mapper's
 (package ``mapper``), a service of its own.
 
-The algorithmic modules are pure: they take messages and site data and never touch Zenoh. Only
-``backend_service.service`` does. Heavy dependencies are imported lazily by the modules that
-need them, so ``import backend_service`` stays cheap.
+- ``pipeline``: the per-robot pipeline, messages in, estimates out (transport-free);
+- ``sync``: the frame-set synchronizer: per-camera detections grouped into frame-sets;
+- ``frame_set``: frame-sets, the synchronized multi-view observations one pose solve uses;
+- ``association``: detections to robots: which robot of the site each detection is;
+- ``estimate``: the public entry point of the multi-view pose estimation;
+- ``pose_init``: initialization of the solve, from a prior or by per-view PnP;
+- ``pose_solver``: the multi-view pose solve (the paper's Eq. 2) with CasADi;
+- ``compiled_functions``: CasADi functions compiled to C once per machine, kept on disk;
+- ``projection``: the pose problem's projection in plain numpy, vectorized over cameras;
+- ``covariance``: honest covariances of the estimates: the error model propagated through
+  the solve;
+- ``single_camera``: the paper's bearing-only heuristic for single-camera estimates;
+- ``multi_frame``: averaging of camera estimates while the robot is static;
+- ``fusion``: pose-graph fusion of camera estimates with odometry (GTSAM ISAM2);
+- ``camera_health``: a bumped camera noticed from its residuals;
+- ``areas``: areas of a site: which cameras a backend serves, which area a robot is in;
+- ``ownership``: which backend publishes which robot when several share a site;
+- ``service``: ``smartedge backend``, the node and its ``main``.
+
+The algorithmic modules are pure: they take messages and site data and never touch Zenoh. Two
+modules do, and neither imports ``zenoh`` itself (the sessions come from ``core``):
+``service`` runs the node on Zenoh, and ``ownership`` declares and undeclares the backend's
+owner and area tokens on the session and runs its liveliness gets
+(:class:`~backend_service.ownership.OwnershipTokens`). Imports only the ground floor of the
+project (``protocol`` and ``core``). Heavy dependencies are imported lazily by the modules
+that need them, so ``import backend_service`` stays cheap.
 """
 
 from __future__ import annotations

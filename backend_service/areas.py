@@ -41,8 +41,8 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.config_file import join_key
-from protocol.site import Site
+from core.config_file import join_key
+from core.site import Site
 
 #: a robot stays in its current area while it is inside the area's polygon grown by this (m)
 HYSTERESIS_M: Final = 0.5

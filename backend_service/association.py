@@ -64,9 +64,9 @@ import numpy as np
 
 from backend_service.frame_set import PlanarPose, image_scale, scale_detection
 from backend_service.projection import pixels_from_camera_frame, stacked_cameras
-from protocol.camera import CameraModel
+from core.camera import CameraModel
+from core.site import Site
 from protocol.messages import Detection, RobotDetections
-from protocol.site import Site
 
 #: why a detection went (or did not go) to a robot (the router counts ``detections_<reason>``)
 REASONS: Final = ("assigned", "named", "id_contradicted", "unknown_robot", "ambiguous",

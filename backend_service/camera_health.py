@@ -54,8 +54,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.covariance import project_with_extrinsic_jacobian
-from protocol.camera import CameraModel
-from protocol.site import Site
+from core.camera import CameraModel
+from core.site import Site
 
 log = logging.getLogger(__name__)
 

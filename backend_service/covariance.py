@@ -34,8 +34,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.projection import stacked_cameras
-from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized, distort_normalized_jacobian, wrap_angle
+from core.camera import CameraModel
+from core.geometry import distort_normalized, distort_normalized_jacobian, wrap_angle
 
 __all__ = [
     "CovarianceParts",
@@ -92,7 +92,7 @@ def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world
     the camera (m, world axes)) — the camera's ``T_world_cam`` perturbed on the left,
     R' = Exp(w) R, c' = c + dc. With a = p - c, the camera-frame point p_cam = R^T a moves by
     R^T [a]x dw - R^T dc; the chain rule through the perspective division, the lens distortion
-    (:func:`protocol.geometry.distort_normalized_jacobian`) and the focal lengths gives G.
+    (:func:`core.geometry.distort_normalized_jacobian`) and the focal lengths gives G.
     """
     stack = stacked_cameras(tuple(cameras))
     P = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)

@@ -46,10 +46,10 @@ from backend_service.pose_init import View, init_from_prior, init_without_prior
 from backend_service.pose_solver import PoseProblem, SolverConfig, get_problem, robust_weights
 from backend_service.projection import stacked_cameras, weighted_residuals
 from backend_service.single_camera import apply_single_camera_heuristic
-from protocol.camera import CameraModel
-from protocol.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
+from core.camera import CameraModel
+from core.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
+from core.site import Site
 from protocol.messages import PoseEstimate, RobotDetections
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] |
     raises.
     """
     if not isinstance(site, Site):
-        raise TypeError(f"site: expected protocol.site.Site (load_site(path)), got "
+        raise TypeError(f"site: expected core.site.Site (load_site(path)), got "
                         f"{type(site).__name__}")
     if prior is not None and not isinstance(prior, PlanarPose):
         raise TypeError(f"prior: expected backend_service.PlanarPose or None, got "

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.geometry import se3_from_planar
+from core.geometry import se3_from_planar
 from protocol.messages import Detection, RobotDetections
 
 

@@ -13,7 +13,7 @@ keyframes (``Pose2`` variables of the robot base in the map frame):
 - the graph is optimized (one ISAM2 update) per new keyframe and per camera estimate;
 - the fused pose is published at odometry rate: the latest optimized keyframe composed with the
   odometry since that keyframe, with its marginal covariance propagated along the odometry
-  (the odometry buffer is a :class:`~protocol.history.StampedHistory`);
+  (the odometry buffer is a :class:`~core.history.StampedHistory`);
 - memory stays bounded: when keyframes fall out of a sliding window (time and count), the old
   part of the graph is marginalized into a Gaussian prior on the oldest kept keyframe and ISAM2
   is rebuilt over the kept keyframes. That rebuild costs ~8 ms with the default window (200
@@ -45,10 +45,10 @@ from typing import Final, NamedTuple
 import gtsam
 import numpy as np
 
-from protocol.geometry import rotation_z
-from protocol.history import StampedHistory
+from core.geometry import rotation_z
+from core.history import StampedHistory
+from core.site import ClockPolicy, Site
 from protocol.messages import Odometry, PoseEstimate
-from protocol.site import ClockPolicy, Site
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class FusionConfig:
     ``max_camera_sigma_m`` / ``max_camera_sigma_rad`` carry no information and are rejected.
     An estimate newer than the newest odometry waits (at most ``max_pending`` of them) for the
     odometry to cover its stamp, if it is at most the site's ``clock.max_age_ms`` ahead of that
-    odometry (:class:`~protocol.site.ClockPolicy`; else ``camera_future``).
+    odometry (:class:`~core.site.ClockPolicy`; else ``camera_future``).
 
     Poisoned stamps: odometry is accepted in stamp order, so one message stamped far in the
     future (the service drops those against its clock, but a replay has none) would make every
@@ -305,7 +305,7 @@ class PoseGraphFusion:
     fused pose at that stamp) and every camera :class:`protocol.PoseEstimate` to
     :meth:`add_camera_estimate`, in arrival order. ``counters`` counts events and rejection
     reasons; ``last_reject_reason`` names the latest rejection. ``clock``: the site's clock
-    policy (default :class:`~protocol.site.ClockPolicy`'s defaults).
+    policy (default :class:`~core.site.ClockPolicy`'s defaults).
     """
 
     def __init__(self, robot_id: str, config: FusionConfig | None = None,

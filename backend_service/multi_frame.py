@@ -24,7 +24,7 @@ from backend_service.covariance import CovarianceParts
 from backend_service.estimate import PoseResult
 from backend_service.frame_set import PlanarPose
 from backend_service.pose_init import circular_mean
-from protocol.geometry import angle_diff
+from core.geometry import angle_diff
 
 
 @dataclasses.dataclass(frozen=True)

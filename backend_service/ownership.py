@@ -6,7 +6,7 @@ sends a message of its own.
 
 - **Membership**: the live backends of the site are the liveliness tokens
   ``smartedge/<site>/alive/backend/<instance>`` that every backend's runner declares
-  (:class:`~protocol.runtime.ZenohRunner`). A backend that appeared counts after
+  (:class:`~core.runtime.ZenohRunner`). A backend that appeared counts after
   ``join_delay_s`` (a flapping backend moves no robot); one that vanished stops counting at once.
 - **Assignment**: each robot goes to the counted backend of highest rendezvous
   (highest-random-weight) score ``blake2b(robot, instance)``: every backend computes the same
@@ -65,7 +65,7 @@ tokens, call :meth:`~OwnershipTable.decide` on the tick and apply what it return
 :class:`OwnershipTokens`, the thin Zenoh adapter (declares and undeclares the owner tokens, runs
 the start-up liveliness get). Gate every published estimate on
 :meth:`~OwnershipTable.may_publish`. :class:`BackendOwnership` bundles both for a
-:class:`~protocol.runtime.ServiceNode` (its liveliness subscriptions, ``attach``, ``alive``,
+:class:`~core.runtime.ServiceNode` (its liveliness subscriptions, ``attach``, ``alive``,
 ``tick`` and status calls).
 """
 
@@ -81,10 +81,10 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Final
 
 from backend_service.areas import AreaMap
+from core.runtime import Subscription
+from core.session import drain_replies
 from protocol import keys
 from protocol.errors import ValidationError
-from protocol.runtime import Subscription
-from protocol.session import drain_replies
 from protocol.validation import check_id
 
 log = logging.getLogger(__name__)
@@ -707,12 +707,12 @@ class OwnershipTokens:
 
 
 class BackendOwnership:
-    """Ownership for a backend :class:`~protocol.runtime.ServiceNode`: add
+    """Ownership for a backend :class:`~core.runtime.ServiceNode`: add
     :meth:`subscriptions` to the node's, and call :meth:`attach`, :meth:`alive` and
     :meth:`tick` from the node's methods of the same names; publish an estimate of robot R only
     while :meth:`may_publish` (R, now).
 
-    Off until :meth:`attach` (a node driven by :class:`~protocol.runtime.ScriptedRunner` has no
+    Off until :meth:`attach` (a node driven by :class:`~core.runtime.ScriptedRunner` has no
     bus and publishes every robot); on a bus, nothing is published before the start-up
     liveliness get has returned (retried every :data:`SYNC_RETRY_S` when it failed), and the
     get runs again every ``resync_s`` (:data:`DEFAULT_RESYNC_S`) to correct what the

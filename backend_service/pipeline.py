@@ -16,7 +16,7 @@ same way by the backend service (:mod:`backend_service.service`), the paper's ex
    to a recent camera estimate; none means PnP initialization (kidnapped robot);
 3. **solve**: :func:`~backend_service.estimate.estimate_pose` (CasADi; the single-camera
    heuristic inside it);
-4. **averaging while static**: the one static detector of :mod:`protocol.geometry`, fed with the
+4. **averaging while static**: the one static detector of :mod:`core.geometry`, fed with the
    robot's odometry, decides when the robot stands still; then ``multi_frame.count``
    consecutive agreeing estimates are averaged (:class:`~backend_service.multi_frame.
    MultiFrameAverager`) and the average is flagged ``multi_frame``;
@@ -66,10 +66,10 @@ from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, so
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
 from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
-from protocol.geometry import MotionState, StaticDetector, se2_between, se2_compose
-from protocol.history import StampedHistory
+from core.geometry import MotionState, StaticDetector, se2_between, se2_compose
+from core.history import StampedHistory
+from core.site import ClockPolicy, Site
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
-from protocol.site import ClockPolicy, Site
 
 if TYPE_CHECKING:  # gtsam is imported only where the pose graph is built
     from backend_service.fusion import FusionConfig

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from backend_service.frame_set import PlanarPose
-from protocol.camera import CameraModel
-from protocol.geometry import angle_diff, se2_from_matrix, wrap_angle
+from core.camera import CameraModel
+from core.geometry import angle_diff, se2_from_matrix, wrap_angle
 
 log = logging.getLogger(__name__)
 

@@ -67,7 +67,7 @@ import numpy as np
 
 from backend_service.compiled_functions import compiled
 from backend_service.covariance import ErrorModel
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ def _rotation_sym(q: ca.SX, dof: int) -> tuple[ca.SX, ca.SX]:
 
 def _project_cam_sym(camera: CameraModel, pc: ca.SX) -> tuple[ca.SX, ca.SX]:
     """Distorted pixels (M x 2) and depths (M x 1) of camera-frame points (M x 3), OpenCV
-    model (the same maths as :meth:`protocol.camera.CameraModel.project_cam`)."""
+    model (the same maths as :meth:`core.camera.CameraModel.project_cam`)."""
     z = pc[:, 2]
     zs = ca.fmax(z, _MIN_DEPTH_M)
     x = pc[:, 0] / zs

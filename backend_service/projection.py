@@ -15,8 +15,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized
+from core.camera import CameraModel
+from core.geometry import distort_normalized
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

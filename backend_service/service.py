@@ -5,7 +5,7 @@ rule → averaging while static → pose graph) on the wire: detections from eve
 odometry and the robot's own localization in; camera-only estimates on ``.../camera_pose`` and
 the fused pose (at odometry rate) on ``.../pose`` out. The pipeline decides everything; this
 module only turns messages into pipeline calls and pipeline outputs into messages
-(:class:`BackendNode`, a transport-free :class:`~protocol.runtime.ServiceNode`) and runs it on
+(:class:`BackendNode`, a transport-free :class:`~core.runtime.ServiceNode`) and runs it on
 Zenoh (:func:`main`). Watching it is the viewer's job (``smartedge viewer``), not the backend's.
 """
 
@@ -23,6 +23,9 @@ from backend_service.areas import AreaMap, backend_areas
 from backend_service.fusion import FusionConfig, fusion_config_from_site
 from backend_service.ownership import BackendOwnership
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
+from core.runtime import Outgoing, ServiceNode, Subscription, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
 from protocol import keys
 from protocol.limits import QUEUE_BYTE_BUDGETS
 from protocol.messages import (
@@ -32,9 +35,6 @@ from protocol.messages import (
     PoseEstimate,
     RobotDetections,
 )
-from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ class BackendNode(ServiceNode):
     """The backend as a transport-free node: a :class:`BackendPipeline` on message keys.
 
     Freshness: a pose is published only while its age is at most the site's ``clock.max_age_ms``
-    (:class:`~protocol.site.ClockPolicy`); an older one (the worker was stalled, or its inputs
+    (:class:`~core.site.ClockPolicy`); an older one (the worker was stalled, or its inputs
     queued) is dropped and counted (``stale_dropped``, ``stale_dropped.pose``,
     ``stale_dropped.camera_pose``). Its age is the runner's clock (:attr:`clock`, the wall clock
     under Zenoh) minus its stamp, less the smallest stamp-to-arrival delay of the recent inputs
@@ -64,7 +64,7 @@ class BackendNode(ServiceNode):
     matched against that robot's predicted pose, never given to a robot run here for lack of
     it. A takeover starts the robot's pipeline with the previous owner's last pose, carried
     forward by the odometry, as the first prior. Until the first liveliness sync every robot
-    runs (a cold start loses nothing). Without a bus (:class:`~protocol.runtime.
+    runs (a cold start loses nothing). Without a bus (:class:`~core.runtime.
     ScriptedRunner`) every robot runs and is published.
 
     Areas (backend_service/areas.py): with ``areas`` (``--area``) the backend subscribes to

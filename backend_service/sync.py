@@ -52,8 +52,8 @@ from backend_service.frame_set import (
     image_scale,
     observation_for_robot,
 )
+from core.site import Site
 from protocol.messages import RobotDetections
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 

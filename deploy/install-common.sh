@@ -213,7 +213,7 @@ check_site() {
   "$py" - "$file" "$kind" "$@" <<'PY' || die "site check failed: nothing configured"
 import sys
 from protocol.errors import SiteConfigError
-from protocol.site import load_site
+from core.site import load_site
 path, kind, ids = sys.argv[1], sys.argv[2], sys.argv[3:]
 try:
     site = load_site(path)

@@ -25,7 +25,7 @@ from typing import Final
 
 import numpy as np
 
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 
 log = logging.getLogger(__name__)
 

@@ -1101,7 +1101,7 @@ class RobotKeypointPipeline:
     def for_robot(cls, robot_model: Any, model_dir: Path | str | None = None,
                   **kwargs: Any) -> RobotKeypointPipeline:
         """The models of ``model_dir`` when given (a ``--model`` override), else those a
-        site's :class:`protocol.site.RobotModel` names (default: shipped); checked against the
+        site's :class:`core.site.RobotModel` names (default: shipped); checked against the
         robot model's keypoint names."""
         det, kp = (model_files(model_dir) if model_dir else
                    (robot_model.detector_onnx, robot_model.keypoints_onnx))
@@ -1360,7 +1360,7 @@ class RobotTypesPipeline:
 def models_for_site(site: Any, model_dir: Path | str | None = None, *,
                     robot_ids: Sequence[str] | None = None, nms_iou: float = 0.5,
                     **kwargs: Any) -> RobotKeypointPipeline | RobotTypesPipeline:
-    """The edge's networks for the robots of ``site`` (a :class:`protocol.site.Site`;
+    """The edge's networks for the robots of ``site`` (a :class:`core.site.Site`;
     ``robot_ids``: only these robots' models, default all): the models of a site with one robot
     model (``model_dir`` overrides its files, the ``--model`` option), a
     :class:`RobotTypesPipeline` over each model's files (``robot_models.<name>.models``; none:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from core.site import Site
 from edge_agent.far_band import FAR_MIN_DEPTH_M, FarBand, far_band_for_camera
 from edge_agent.frames import Frame
 from edge_agent.models import (
@@ -25,7 +26,6 @@ from edge_agent.models import (
     RobotTypesPipeline,
 )
 from protocol.messages import Detection, RobotDetections
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 

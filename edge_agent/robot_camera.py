@@ -11,7 +11,7 @@ bridge) and, for each frame due at ``--cloud-rate`` (1 Hz by default):
    ``head_camera`` of the robot model is only the fallback before the first ``CameraInfo``, and
    the check: a difference is logged once and named in the status);
 2. looks up ``T_base_cam`` = the pose of the image's ``header.frame_id`` in ``--base-frame``
-   (``base_link``) AT THE IMAGE STAMP in a :class:`protocol.tf_buffer.TfBuffer` fed from
+   (``base_link``) AT THE IMAGE STAMP in a :class:`core.tf_buffer.TfBuffer` fed from
    ``/tf`` and ``/tf_static`` (:class:`edge_agent.ros_tf.TfListener`): chains of frames,
    interpolation between two transforms of a moving joint;
 3. segments the colour image (:class:`edge_agent.models.SemanticSegmenter`) and builds the
@@ -44,6 +44,18 @@ from typing import Any, Final
 
 import numpy as np
 
+from core.camera import DISTORTION_LENGTHS, CameraModel
+from core.runtime import Outgoing, ServiceNode, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
+from core.tf_buffer import (
+    TfBuffer,
+    TfBufferConfig,
+    TfError,
+    TfExtrapolationError,
+    TfMissingError,
+    TfStaleError,
+)
 from edge_agent.ros_source import (
     DEFAULT_SYNC_TOLERANCE_NS,
     TRANSPORTS,
@@ -55,19 +67,7 @@ from edge_agent.ros_source import (
 from edge_agent.ros_tf import TF_STATIC_TOPIC, TF_TOPIC, TfListener
 from edge_agent.semantic_cloud import ROBOT_BASE_FRAME, SemanticCloudMaker
 from protocol import keys
-from protocol.camera import DISTORTION_LENGTHS, CameraModel
 from protocol.errors import SmartedgeError, UsageError
-from protocol.runtime import Outgoing, ServiceNode, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
-from protocol.tf_buffer import (
-    TfBuffer,
-    TfBufferConfig,
-    TfError,
-    TfExtrapolationError,
-    TfMissingError,
-    TfStaleError,
-)
 
 log = logging.getLogger(__name__)
 

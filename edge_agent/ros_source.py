@@ -52,10 +52,10 @@ from typing import Any, Final
 
 import numpy as np
 
+from core.site import Site
 from edge_agent.frames import Frame
 from edge_agent.sources import PipelineSource, execution_providers_from_args, register_source
 from protocol.errors import SmartedgeError, UsageError
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 
@@ -478,7 +478,7 @@ def compressed_to_rgb(image: RosCompressedImage) -> np.ndarray:
 
 def check_camera_info(info: RosCameraInfo, camera: Any) -> list[str]:
     """How ``info`` differs from the site's calibration ``camera`` (a
-    :class:`protocol.camera.CameraModel`): size, K (relative :data:`K_RTOL`), distortion
+    :class:`core.camera.CameraModel`): size, K (relative :data:`K_RTOL`), distortion
     (:data:`DIST_ATOL`, missing coefficients read as 0); empty when it agrees."""
     out = []
     if (info.width, info.height) != (camera.width, camera.height):

@@ -1,4 +1,4 @@
-"""``/tf`` and ``/tf_static`` from the Zenoh bus into a :class:`protocol.tf_buffer.TfBuffer`.
+"""``/tf`` and ``/tf_static`` from the Zenoh bus into a :class:`core.tf_buffer.TfBuffer`.
 
 A robot says where its head camera is through TF: ``tf2_msgs/msg/TFMessage`` (a sequence of
 ``geometry_msgs/msg/TransformStamped``) on ``/tf`` (moving joints: the head's pan and tilt) and
@@ -22,7 +22,7 @@ detection, which queries those caches when it is declared and whenever such a pu
 appears later, and receives live publications as a plain subscriber does. A publisher without
 a cache (a plain Zenoh publisher, an older bridge's publication cache under another prefix)
 reaches a late subscriber only if it publishes again: tf2 users then republish ``/tf_static``
-periodically (the simulated robot does, at 1 Hz), which a :class:`protocol.tf_buffer.TfBuffer`
+periodically (the simulated robot does, at 1 Hz), which a :class:`core.tf_buffer.TfBuffer`
 takes as a refresh of the same static transform.
 
 Zenoh callbacks only queue raw payloads (bounded: :data:`TF_QUEUE` and
@@ -38,6 +38,7 @@ import threading
 import time
 from typing import Any, Final
 
+from core.tf_buffer import TfBuffer, TransformReading
 from edge_agent.ros_source import (
     ERROR_LOG_PERIOD_S,
     MAX_PAYLOAD_BYTES,
@@ -47,7 +48,6 @@ from edge_agent.ros_source import (
     topic_key,
 )
 from protocol.errors import SmartedgeError, UsageError
-from protocol.tf_buffer import TfBuffer, TransformReading
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class RosTfError(SmartedgeError):
 def decode_tf_message(payload: bytes | memoryview,
                       what: str = "TFMessage") -> list[TransformReading]:
     """Every transform of a ``tf2_msgs/msg/TFMessage`` from its CDR bytes, in message order
-    (frame ids as sent; :class:`protocol.tf_buffer.TfBuffer` strips a leading ``/`` and checks
+    (frame ids as sent; :class:`core.tf_buffer.TfBuffer` strips a leading ``/`` and checks
     the values). :class:`RosTfError` when the message is truncated or inconsistent."""
     try:
         cdr = CdrReader(payload, what)

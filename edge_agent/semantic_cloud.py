@@ -8,7 +8,7 @@ A static edge camera and the robot's head camera both turn a frame into a
    0.5)`` of the W x H image;
 2. each output pixel takes the depth of the image pixel nearest that centre and is
    back-projected along that image pixel's ray (the lens distortion undone exactly, see
-   :func:`protocol.geometry.undistort_normalized`), so depth and ray belong to the same pixel;
+   :func:`core.geometry.undistort_normalized`), so depth and ray belong to the same pixel;
 3. points are filtered (no depth, range, confidence, dynamic classes), transformed into
    ``frame_id`` with ``T_frame_sensor``, voxel-downsampled on a grid aligned with ``frame_id``
    (per voxel: the mean point, the majority class, the mean confidence of the points of that
@@ -35,8 +35,8 @@ from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import undistort_normalized
+from core.camera import CameraModel
+from core.geometry import undistort_normalized
 from protocol.messages import MAX_CLOUD_POINTS, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID, SEMANTIC_CLASSES
 
@@ -386,7 +386,7 @@ class SemanticCloudMaker:
     def make_for_service(self, image_rgb: np.ndarray, depth_m: np.ndarray, stamp_ns: int,
                          stats: Any) -> SemanticCloud | None:
         """:meth:`make` with a service's bookkeeping on ``stats`` (a
-        :class:`protocol.runtime.Stats`): segmentation and cloud latencies, the counters
+        :class:`core.runtime.Stats`): segmentation and cloud latencies, the counters
         ``clouds_published``, ``cloud_points``, ``clouds_skipped_empty`` and
         ``clouds_skipped_bad_input`` (the first :data:`BAD_FRAMES_LOGGED` such frames logged).
         Returns the cloud to publish, or ``None``."""

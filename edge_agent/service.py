@@ -14,8 +14,8 @@ Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the regist
 - ``ros`` (:mod:`edge_agent.ros_source`): ``sensor_msgs/Image`` or ``CompressedImage`` from a
   ROS 2 topic on the bus (rmw_zenoh or zenoh-bridge-ros2dds), the header stamp as capture time,
   the topic's ``CameraInfo`` checked against the site's calibration.
-- ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.sim.plugins`): the simulated
-  site; detections computed from the simulated robot's ground truth with the scenario's
+- ``sim`` (registered by ``smartedge edge-agent``, see :mod:`smartedge.services`): the
+  simulated site; detections computed from the simulated robot's ground truth with the scenario's
   detector noise model. Clearly labelled ``source=sim`` in the status.
 
 Semantic clouds (paper Sec. III-C): a source with depth (a RealSense, the rendered simulated
@@ -36,13 +36,13 @@ from collections.abc import Iterable, Sequence
 from typing import Any, Final
 
 import edge_agent.ros_source  # noqa: F401 (registers --source ros)
+from core.runtime import Outgoing, ServiceNode, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
 from edge_agent.semantic_cloud import SemanticCloudMaker
 from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
 from protocol.errors import SmartedgeError, UsageError
-from protocol.runtime import Outgoing, ServiceNode, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 

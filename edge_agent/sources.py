@@ -6,7 +6,7 @@ group, and builds the chosen source with ``plugin.build(args, site)``.
 
 The edge agent registers only what it ships (``camera``: OpenCV, image folders, RealSense
 through the ONNX models). Anything else, such as the simulated
-site, is registered from the top floor (:mod:`smartedge.sim.plugins`): this package never imports
+site, is registered from the top floor (:mod:`smartedge.simulated_site`): this package never imports
 the code that provides it.
 """
 
@@ -16,11 +16,11 @@ import argparse
 import logging
 from typing import Any, Protocol
 
+from core.plugins import PluginRegistry
+from core.site import Site
 from edge_agent.far_band import FAR_BAND_CHOICES
 from protocol.errors import UsageError
 from protocol.messages import RobotDetections
-from protocol.plugins import PluginRegistry
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 

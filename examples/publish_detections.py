@@ -20,11 +20,11 @@ import numpy as np
 import zenoh
 
 import protocol
+from core.camera import CameraModel
+from core.geometry import se3_from_planar
+from core.session import add_session_arguments, make_config, options_from_args
+from core.site import RobotModel, load_site
 from protocol import keys
-from protocol.camera import CameraModel
-from protocol.geometry import se3_from_planar
-from protocol.session import add_session_arguments, make_config, options_from_args
-from protocol.site import RobotModel, load_site
 
 EXAMPLE_SITE = Path(__file__).resolve().parents[1] / "deploy" / "site.example.yaml"
 

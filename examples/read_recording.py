@@ -3,7 +3,7 @@
 A recording holds every sample of the recorded keys as it arrived, with the receive time in
 nanoseconds: per Zenoh key a ROS 2 channel (standard types where they exist, CDR) for Foxglove
 and ``ros2 bag``, and a wire channel with the msgpack bytes as published, which
-:func:`smartedge.record.read_recording` returns (:func:`protocol.decode` reads them).
+:func:`smartedge.commands.record.read_recording` returns (:func:`protocol.decode` reads them).
 
     .venv/bin/smartedge record run.mcap --duration 30     # while the system runs
     .venv/bin/python examples/read_recording.py run.mcap --poses 5
@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 
 import protocol
-from smartedge.record import RecordingError, read_recording
+from smartedge.commands.record import RecordingError, read_recording
 
 
 def main(path: Path, first_poses: int) -> None:

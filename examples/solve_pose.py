@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from backend_service import PlanarPose, estimate_from_detections
+from core.camera import CameraModel
+from core.geometry import angle_diff
+from core.site import RobotModel, load_site
 from protocol import Detection, RobotDetections
-from protocol.camera import CameraModel
-from protocol.geometry import angle_diff
-from protocol.site import RobotModel, load_site
 
 EXAMPLE_SITE = Path(__file__).resolve().parents[1] / "deploy" / "site.example.yaml"
 

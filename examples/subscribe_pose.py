@@ -18,9 +18,9 @@ from pathlib import Path
 import zenoh
 
 import protocol
+from core.session import add_session_arguments, make_config, options_from_args
+from core.site import load_site
 from protocol import keys
-from protocol.session import add_session_arguments, make_config, options_from_args
-from protocol.site import load_site
 
 EXAMPLE_SITE = Path(__file__).resolve().parents[1] / "deploy" / "site.example.yaml"
 

@@ -12,9 +12,9 @@ map, fused only when the alignment agrees with the pose.
 - :mod:`mapper.map_io`: map files (the ``.npz`` snapshot, PLY export, PLY prior models);
 - :mod:`mapper.service`: ``smartedge mapper``, the node, and the only module that touches Zenoh.
 
-Imports only ``protocol`` of the project (never the backend, the other services, the
-simulation or the top floor). ``import mapper`` is cheap: nothing heavy is loaded until a module
-that needs it is imported.
+Imports only the ground floor of the project (``protocol`` and ``core``): never the backend,
+the other services, the simulation or the top floor. ``import mapper`` is cheap: nothing heavy
+is loaded until a module that needs it is imported.
 """
 
 from __future__ import annotations

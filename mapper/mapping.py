@@ -7,7 +7,7 @@
    the camera's own frame, placed with its calibrated ``T_world_cam``); a robot's cloud comes in
    the robot's base frame (``robot_base_frame``, default ``base_link``) and is placed with the
    robot's fused pose at the cloud's stamp (interpolated between the two fused poses around it,
-   at most ``max_pose_gap_s`` apart, from a :class:`~protocol.history.StampedHistory` per robot);
+   at most ``max_pose_gap_s`` apart, from a :class:`~core.history.StampedHistory` per robot);
 2. **ICP gate** (robot clouds): the placed cloud is aligned to the map with coarse-to-fine
    point-to-plane ICP (:func:`~mapper.alignment.align_to_map`) and fused only when
    fitness, inlier RMSE, offset and geometry pass the gate; the alignment offset (how far the
@@ -20,7 +20,7 @@ The map starts from a prior geometric model of the empty room without semantics 
 from a saved map. Bad input never raises out of :meth:`SemanticMapping.on_cloud`: the cloud is
 rejected, the reason is logged once per sensor and reason and counted (``rejected.<reason>``),
 and the map is unchanged. Time comes from message stamps and the ``now_ns`` the caller passes,
-judged by the site's clock policy (``site.clock``, :class:`~protocol.site.ClockPolicy`).
+judged by the site's clock policy (``site.clock``, :class:`~core.site.ClockPolicy`).
 """
 
 from __future__ import annotations
@@ -35,6 +35,9 @@ from typing import Final
 
 import numpy as np
 
+from core.geometry import se3_from_planar
+from core.history import StampedHistory, lerp_se2
+from core.site import Site
 from mapper.alignment import (
     AlignmentConfig,
     AlignmentResult,
@@ -42,10 +45,7 @@ from mapper.alignment import (
     consistency,
 )
 from mapper.semantic_map import MapError, SemanticMapConfig, SemanticVoxelMap
-from protocol.geometry import se3_from_planar
-from protocol.history import StampedHistory, lerp_se2
 from protocol.messages import PoseEstimate, SemanticCloud
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 

@@ -25,15 +25,15 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from core.runtime import Outgoing, ServiceNode, Subscription, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
 from mapper.map_io import load_map_npz, read_ply_points, save_map_npz
 from mapper.mapping import MappingConfig, SemanticMapping
 from mapper.semantic_map import MapError
 from protocol import keys
 from protocol.errors import UsageError
 from protocol.messages import Message, PoseEstimate, SemanticCloud
-from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 

@@ -29,10 +29,10 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any, Final
 
+from core.geometry import MotionState, StaticDetector, invert_transform, wrap_angle
+from core.site import ClockPolicy, Site, Thresholds
 from protocol.errors import ProtocolError
-from protocol.geometry import MotionState, StaticDetector, invert_transform, wrap_angle
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
-from protocol.site import ClockPolicy, Site, Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample, RobotAdapter
 from robot_bridge.policy import (
     HEADING_JUMP_TOO_LARGE,

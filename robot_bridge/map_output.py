@@ -125,7 +125,7 @@ class MapOutputConfig:
 
     @classmethod
     def from_site(cls, site: Any) -> MapOutputConfig:
-        """The ``map_output`` section of a :class:`protocol.site.Site` (errors name file and
+        """The ``map_output`` section of a :class:`core.site.Site` (errors name file and
         key)."""
         return site.section_reader().section("map_output", site.section("map_output"), cls)
 

@@ -1,7 +1,7 @@
 """When to push a pose to the robot's localization: static detection and the correction rule.
 
 Pure and deterministic: no transport, no wall clock. Time is the robot's odometry stamps and
-the ``now_ns`` the caller passes. The thresholds come from :class:`protocol.site.Thresholds`;
+the ``now_ns`` the caller passes. The thresholds come from :class:`core.site.Thresholds`;
 what the bridge demands of an estimate before it trusts it, from :class:`TrustConfig` (the
 site file's ``bridge`` section).
 
@@ -10,7 +10,7 @@ The rule (paper Sec. III-C: corrections "sparsely at waypoints where the robot i
 1. The robot is *static* when its odometry velocities stayed below ``static_max_speed_mps`` and
    ``static_max_yaw_rate_radps`` for at least ``static_dwell_s``. Every such still period is one
    *stop* (numbered by ``stop_id``); any sample above the thresholds ends it. This is the one
-   :class:`protocol.geometry.StaticDetector` (the backend averages with the same one);
+   :class:`core.geometry.StaticDetector` (the backend averages with the same one);
    ``StaticDetector.from_thresholds`` builds it from the site's thresholds.
 2. Only estimates observed during the current stop count (``stamp_ns >= still_since_ns``): an
    estimate from while the robot moved refers to another place than the robot's current
@@ -47,9 +47,9 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from protocol.geometry import MotionState, angle_diff
+from core.geometry import MotionState, angle_diff
+from core.site import Thresholds
 from protocol.messages import PoseEstimate
-from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose
 
 NS_PER_S: Final = 1_000_000_000
@@ -140,7 +140,7 @@ class TrustConfig:
     ``bridge``; docs/robot_bridge.md, "What the bridge trusts").
 
     How far ahead of the bridge's clock a stamp may be is the site's clock policy
-    (``clock.max_future_ms``, :class:`~protocol.site.ClockPolicy`). ``position_std_floor_m`` /
+    (``clock.max_future_ms``, :class:`~core.site.ClockPolicy`). ``position_std_floor_m`` /
     ``yaw_std_floor_deg``: the least uncertainty the bridge assumes of any estimate, whatever its
     covariance says (the gate and the covariance sent to the robot use the floored one).
     ``init_agreement_count``: a kidnapped robot is initialized only after this many consecutive

@@ -20,10 +20,10 @@ from typing import Final
 
 import numpy as np
 
-from protocol.geometry import se2_compose, se2_inverse
-from protocol.history import StampedHistory, lerp_se2
+from core.geometry import se2_compose, se2_inverse
+from core.history import StampedHistory, lerp_se2
+from core.site import ClockPolicy
 from protocol.messages import PoseEstimate
-from protocol.site import ClockPolicy
 from robot_bridge.adapters.base import MapToOdom
 
 NS_PER_S: Final = 1_000_000_000

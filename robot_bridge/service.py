@@ -15,7 +15,7 @@ backend or the link is gone the status says so and nothing else changes for the 
 Adapters are plug-ins (:mod:`robot_bridge.adapters.registry`); ``--adapter`` offers the
 registered ones: ``ros2`` (ROS 2 through zenoh-bridge-ros2dds), ``ros1``
 (zenoh-plugin-ros1), and ``sim`` (the simulated robot, registered by ``smartedge robot-bridge``,
-see :mod:`smartedge.sim.plugins`); see docs/robot_bridge.md.
+see :mod:`smartedge.simulated_site`); see docs/robot_bridge.md.
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
+from core.runtime import Outgoing, ServiceNode, Subscription, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
 from protocol import keys
 from protocol.errors import UsageError
 from protocol.messages import Message, PoseEstimate, SemanticCloud, ServiceStatus
-from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
 from robot_bridge.adapters.base import RobotAdapter
 from robot_bridge.adapters.registry import add_adapter_arguments, get_adapter
 from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge

@@ -15,14 +15,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from backend_service.calibration.board import (
+from calibration.board import (
     BoardDetector,
     CharucoBoardSpec,
     board_image,
     draw_detection,
 )
-from backend_service.calibration.intrinsics import calibrate_intrinsics, coverage_image
-from protocol.site import load_site
+from calibration.intrinsics import calibrate_intrinsics, coverage_image
+from core.site import load_site
 from simulation.board_views import BoardRenderer, BoardTexture, calibration_sweep
 
 SITE = Path(__file__).resolve().parents[1] / "simulation" / "sites" / "paper_lab.yaml"

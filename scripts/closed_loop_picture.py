@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from backend_service.frame_set import best_detection
+from lab.rendered_detections import RenderedDetections
 from simulation.scenario import PAPER_SCENARIO, load_scenario
-from smartedge.sim.rendered_detections import RenderedDetections
 
 
 def _px(value: float) -> int:

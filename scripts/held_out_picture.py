@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 
 from edge_agent.models import RobotKeypointPipeline, box_iou
+from lab.evaluation.keypoints import held_out_samples
 from simulation.scenario import PAPER_SCENARIO, load_scenario
-from smartedge.evaluation.keypoints import held_out_samples
 
 GREEN = (60, 200, 60)  # BGR
 ORANGE = (0, 140, 255)

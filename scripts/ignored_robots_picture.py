@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 
 from edge_agent.models import RobotKeypointPipeline, box_iou
+from lab.evaluation.keypoints import MIN_VISIBLE_KEYPOINTS, CameraFarBands
 from simulation.dataset import SampleGenerator
 from simulation.scenario import PAPER_SCENARIO, load_scenario
 from simulation.scenes import robot_distance_m
-from smartedge.evaluation.keypoints import MIN_VISIBLE_KEYPOINTS, CameraFarBands
 
 GREEN = (60, 200, 60)  # BGR
 ORANGE = (0, 140, 255)

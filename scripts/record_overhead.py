@@ -19,7 +19,7 @@ from pathlib import Path
 from protocol import keys
 from simulation.calibration_drive import drive_messages
 from simulation.scenario import load_scenario
-from smartedge.record import FORMATS, Recorder, read_recording
+from smartedge.commands.record import FORMATS, Recorder, read_recording
 
 
 def main() -> None:

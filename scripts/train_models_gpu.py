@@ -37,7 +37,7 @@ SEED = 1  # smartedge train's default --seed: randomized seed 1, held out 1001 a
 
 
 def _input_size(text: str) -> tuple[int, int]:
-    from smartedge.train_cmd import parse_input_size
+    from lab.train import parse_input_size
 
     return parse_input_size(text)
 
@@ -72,11 +72,11 @@ def main(argv: list[str]) -> int:
                    "the whole chain in a minute on a CPU")
     args = p.parse_args(argv)
 
-    from edge_agent.training.data import Geometry, render_set
+    from lab.train import set_specs, tiny_geometry
+    from lab.training_views import SimulationViews
     from simulation.render_gl import create_context
     from simulation.scenario import PAPER_SCENARIO, load_scenario
-    from smartedge.sim.training_views import SimulationViews
-    from smartedge.train_cmd import set_specs, tiny_geometry
+    from training.data import Geometry, render_set
 
     def train_sets(n_rand: int, n_site: int) -> list:
         return list(set_specs(seed=SEED, train_views=n_rand, site_views=n_site,

@@ -4,7 +4,7 @@ project's renderer (:class:`simulation.render_gl.Renderer`, lens maps of
 :mod:`simulation.lens`), with the exact pixels of the board's corners as ground truth.
 
 The board's image comes in as numpy (the simulation imports only ``protocol``; the top floor or
-a test draws it with ``backend_service.calibration.board``). Board frame: the calibration
+a test draws it with ``calibration.board``). Board frame: the calibration
 board's (OpenCV's ChArUco convention): x along the printed columns, y along the rows (down on
 the print), z into the board; the printed side faces a camera looking along +z.
 """
@@ -16,8 +16,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rpy
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_from_rpy
 from simulation.mesh import Mesh, Scene, SceneObject
 from simulation.render_gl import Renderer
 
@@ -64,7 +64,7 @@ def board_mesh(texture: BoardTexture) -> Mesh:
 def board_pose(x_m: float, y_m: float, z_m: float, roll_deg: float = 0.0,
                pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
     """(4, 4) ``T_world_board`` from a position and roll/pitch/yaw in degrees (protocol's
-    convention, :func:`protocol.geometry.rotation_from_rpy`)."""
+    convention, :func:`core.geometry.rotation_from_rpy`)."""
     T = np.eye(4)
     T[:3, :3] = rotation_from_rpy(*np.deg2rad([roll_deg, pitch_deg, yaw_deg]))
     T[:3, 3] = (x_m, y_m, z_m)

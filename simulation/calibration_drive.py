@@ -7,7 +7,8 @@ Also: a site's camera poses perturbed deterministically by given magnitudes (eve
 by exactly ``translation_m`` in a random direction and turned by exactly ``rotation_deg`` about
 a random axis), the start of the robot-target calibration's evaluation.
 
-:func:`record_drive` hands them to a writer: the top floor passes ``smartedge.record.Recorder``'s.
+:func:`record_drive` hands them to a writer: the top floor passes
+``smartedge.commands.record.Recorder``'s.
 """
 
 from __future__ import annotations
@@ -19,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from core.geometry import rotation_from_rotvec
+from core.site import Site
 from protocol import keys
 from protocol.codec import encode
-from protocol.geometry import rotation_from_rotvec
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from protocol.site import Site
 from simulation.runner import SimulationRun
 from simulation.scenario import Scenario
 
@@ -111,7 +112,7 @@ def perturbed_camera_poses(site: Site, translation_m: float, rotation_deg: float
 def record_drive(write: Callable[[str, bytes, int], None], scenario: Scenario,
                  route: str = "traj3x3", **options: Any) -> DriveSummary:
     """Hand every message of :func:`drive_messages` (same options) to ``write(key, payload,
-    receive_ns)``, e.g. ``smartedge.record.Recorder(path).write`` to get the MCAP recording
+    receive_ns)``, e.g. ``smartedge.commands.record.Recorder(path).write`` to get the MCAP recording
     ``smartedge record`` would have made of the drive. Returns the summary."""
     summary = DriveSummary()
     for m in drive_messages(scenario, route, summary=summary, **options):

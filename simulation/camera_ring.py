@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_z
+from core.site import Site, load_site, look_at_T_world_cam
 from protocol import encode, keys
-from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_z
 from protocol.messages import Detection, RobotDetections
-from protocol.site import Site, load_site, look_at_T_world_cam
 
 
 def ring_cameras(template: CameraModel, count: int, radius_m: float = 4.0,

@@ -45,7 +45,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 from protocol.errors import SmartedgeError
 from simulation.mesh import CLASS_ID, CLASSES, Mesh, SceneObject
 from simulation.render_stages import StageClock
@@ -541,7 +541,7 @@ class SampleGenerator:
         """The head camera of the robot at a free pose: (scene without that robot, camera in
         the world frame, its pose (3,), the pose (3,) of another robot instance in the scene or
         ``None``)."""
-        from protocol.geometry import se3_from_planar
+        from core.geometry import se3_from_planar
         from simulation.mesh import Scene
 
         sc = self.scenario

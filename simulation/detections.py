@@ -25,8 +25,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rotvec, se3_from_planar
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_from_rotvec, se3_from_planar
 from protocol.messages import Detection, RobotDetections
 from simulation.scenario import Scenario
 from simulation.world import World

@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from core.site import RobotModel, Site, parse_site
 from protocol.messages import Message, RobotDetections
-from protocol.site import RobotModel, Site, parse_site
 from simulation.runner import SimulationRun, TimedMessage
 from simulation.scenario import SITES_DIR, Scenario, Waypoint, load_scenario
 

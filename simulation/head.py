@@ -18,7 +18,7 @@ drives. This module is that head for the simulated HSR-like robot:
 * :class:`SimulatedHead`: both, with the simulation's epoch: joint values, the TF transforms
   and the true ``T_base_cam`` at a stamp (ns, the live simulation's wall-clock stamps).
 
-Pure numpy; no rendering and no transport (``smartedge.sim.head_ros`` publishes it).
+Pure numpy; no rendering and no transport (``lab.simulated_head`` publishes it).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Final
 
 import numpy as np
 
-from protocol.geometry import invert_transform, rotation_z
+from core.geometry import invert_transform, rotation_z
 
 #: HSR frame names (hsrb_description)
 BASE_FRAME: Final = "base_link"

@@ -2,7 +2,7 @@
 visibility, and instance bounding boxes.
 
 Pixel convention: OpenCV's, integer coordinates are pixel centres, (0, 0) the centre of the
-top-left pixel; the same as :mod:`protocol.camera` and :mod:`simulation.render_gl`.
+top-left pixel; the same as :mod:`core.camera` and :mod:`simulation.render_gl`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Final
 import cv2
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import lens_fold_radius
+from core.camera import CameraModel
+from core.geometry import lens_fold_radius
 
 if TYPE_CHECKING:
     from simulation.render_gl import RenderOutput

@@ -7,7 +7,7 @@ Conventions are OpenCV's (x right, y down, z forward; integer pixel coordinates 
 an internal pinhole camera (:attr:`LensMap.K_render`) whose field of view covers the
 undistorted footprint of every image pixel, then warped with the maps of :func:`lens_map` and
 ``cv2.remap``. Pixels of a lens model that have no undistorted preimage (a polynomial that folds
-back, see :func:`protocol.geometry.lens_fold_radius`) map outside the render and stay empty.
+back, see :func:`core.geometry.lens_fold_radius`) map outside the render and stay empty.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from typing import Final
 import cv2
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.geometry import distort_normalized, lens_fold_radius
+from core.camera import CameraModel
+from core.geometry import distort_normalized, lens_fold_radius
 
 #: Default near / far clipping distances along the optical axis, metres.
 DEFAULT_NEAR_M: Final = 0.05
@@ -80,7 +80,7 @@ class LensMap:
     nearest_map: np.ndarray | None = None
     num_without_preimage: int = 0
     #: the camera's intrinsics (3, 3), distortion coefficients and the lens's fold radius
-    #: (:func:`protocol.geometry.lens_fold_radius`): to map internal pixels to image pixels
+    #: (:func:`core.geometry.lens_fold_radius`): to map internal pixels to image pixels
     K: np.ndarray | None = None
     dist: np.ndarray | None = None
     fold_radius: float = math.inf
@@ -90,7 +90,7 @@ def lens_map(camera: CameraModel) -> LensMap:
     """The :class:`LensMap` of ``camera`` (numpy + OpenCV; 10-30 ms at 848x480).
 
     The exact undistortion (iterative, checked by re-distorting with
-    :func:`protocol.geometry.distort_normalized`) is computed on a grid every
+    :func:`core.geometry.distort_normalized`) is computed on a grid every
     ``_LENS_GRID_STEP_PX`` pixels and interpolated bilinearly in float. The internal focal
     length is the camera's, enlarged where the lens magnifies (pincushion) so the render is never
     coarser than the image.

@@ -1,5 +1,5 @@
 """The simulated site in real time, for the services (``--source sim`` / ``--adapter sim``,
-registered into the services by :mod:`smartedge.sim.plugins`; this module knows no service).
+registered into the services by :mod:`smartedge.simulated_site`; this module knows no service).
 
 Every process that takes part in a live simulation builds the same :class:`LiveSimulation`
 from the same :class:`LiveSimSpec` (scenario, trajectory, seed and the wall-clock epoch of

@@ -17,11 +17,11 @@ from collections.abc import Callable, Sequence
 
 import zenoh
 
+from core.session import add_session_arguments, make_config, options_from_args
 from protocol import keys
 from protocol.codec import encode
 from protocol.errors import DecodeError
 from protocol.messages import Odometry, PoseCorrection, RobotDetections
-from protocol.session import add_session_arguments, make_config, options_from_args
 from simulation.runner import SimulationRun
 from simulation.scenario import PAPER_SCENARIO, load_scenario
 

@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any, Final
 import cv2
 import numpy as np
 
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 from protocol.errors import SmartedgeError
 from simulation.gl_resources import Draw, Frame, GpuMesh, ShaderProgram, Targets
 from simulation.lens import (

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from protocol.geometry import angle_diff, se2_between, se2_compose, wrap_angle, wrap_angle_array
+from core.geometry import angle_diff, se2_between, se2_compose, wrap_angle, wrap_angle_array
 from protocol.messages import Odometry
 from simulation.scenario import MotionConfig, Scenario, Waypoint
 

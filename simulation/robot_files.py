@@ -19,9 +19,9 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.config_file import ConfigReader, join_key, read_yaml_file
+from core.config_file import ConfigReader, join_key, read_yaml_file
+from core.geometry import rotation_from_rpy
 from protocol.errors import ConfigFileError
-from protocol.geometry import rotation_from_rpy
 from simulation.mesh import Mesh, concatenate
 from simulation.robot_mesh import DEFAULT_COLOR, Color, albedo, box, cylinder, sphere, transform
 

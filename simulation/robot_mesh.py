@@ -4,7 +4,7 @@ user's own robot files are in :mod:`simulation.robot_files`).
 
 Every mesh here is a :class:`simulation.mesh.Mesh` in the robot's **base frame**: metres,
 x forward, y left, z up, origin on the floor at the rotation centre (the frame of
-``protocol.site.RobotModel.keypoints_base_m``). Colours are albedo in [0, 1]; the "textures" of
+``core.site.RobotModel.keypoints_base_m``). Colours are albedo in [0, 1]; the "textures" of
 the built-in robot are vertex colours on cells with their own vertices, so merged meshes keep
 them (:func:`simulation.mesh.concatenate` drops image textures). numpy only.
 """
@@ -17,7 +17,7 @@ from typing import Final
 
 import numpy as np
 
-from protocol.site import RobotModel
+from core.site import RobotModel
 from simulation.mesh import Mesh, concatenate
 
 Color = Sequence[float] | np.ndarray

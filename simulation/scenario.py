@@ -17,10 +17,10 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.config_file import ConfigReader, read_yaml_file
+from core.config_file import ConfigReader, read_yaml_file
+from core.geometry import rotation_z, wrap_angle
+from core.site import Site, load_site
 from protocol.errors import ConfigFileError, SiteConfigError
-from protocol.geometry import rotation_z, wrap_angle
-from protocol.site import Site, load_site
 
 SITES_DIR: Final = Path(__file__).resolve().parent / "sites"
 PAPER_SCENARIO: Final = SITES_DIR / "paper_lab.scenario.yaml"

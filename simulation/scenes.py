@@ -25,16 +25,16 @@ from typing import Final
 
 import numpy as np
 
-from protocol.camera import CameraModel
-from protocol.errors import SmartedgeError
-from protocol.geometry import (
+from core.camera import CameraModel
+from core.geometry import (
     distort_normalized,
     invert_transform,
     lens_fold_radius,
     rotation_z,
     se3_from_planar,
 )
-from protocol.site import RobotModel, look_at_T_world_cam
+from core.site import RobotModel, look_at_T_world_cam
+from protocol.errors import SmartedgeError
 from simulation.mesh import CLASS_ID, Mesh, Scene, SceneObject
 from simulation.robot_mesh import box, cylinder
 

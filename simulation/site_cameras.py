@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol.camera import CameraModel
+from core.camera import CameraModel
+from core.geometry import se3_from_planar
+from core.site import HeadCamera
 from protocol.errors import UnknownIdError
-from protocol.geometry import se3_from_planar
-from protocol.site import HeadCamera
 
 if TYPE_CHECKING:
     from simulation.render_gl import Renderer, RenderOutput

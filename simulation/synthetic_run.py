@@ -21,7 +21,7 @@ from typing import Final, Protocol
 
 import numpy as np
 
-from protocol.geometry import (
+from core.geometry import (
     angle_diff,
     rotation_z,
     se2_compose,

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.geometry import rotation_z
+from core.geometry import rotation_z
 from simulation.scenario import Box, Scenario
 
 

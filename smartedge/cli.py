@@ -9,7 +9,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from typing import Final
 
 from smartedge import __version__
@@ -18,56 +18,84 @@ from smartedge.commands import Command, run_command
 #: exit status when the reader of our output closed the pipe (128 + SIGPIPE, as a shell reports)
 EXIT_BROKEN_PIPE: Final = 141
 
-#: subcommand → :class:`~smartedge.commands.Command` (module, function taking argv and
-#: returning an exit code, one-line help). The edge agent and the robot bridge start through
-#: :mod:`smartedge.sim.plugins`, which registers the simulated source / adapter into them first.
+#: the app's subcommands → :class:`~smartedge.commands.Command` (module, function taking argv
+#: and returning an exit code, one-line help): the services (started through the composition
+#: root, :mod:`smartedge.services`, where something is registered into them first) and the
+#: operator's tools (:mod:`smartedge.commands`, one module per command).
 COMMANDS: Final[dict[str, Command]] = {
-    "demo": Command("smartedge.demo", "main",
-                    "run the whole system on the simulated paper site"),
-    "edge-agent": Command("smartedge.sim.plugins", "edge_agent_main",
+    "edge-agent": Command("smartedge.services", "edge_agent_main",
                           "run an edge agent (one camera)"),
     "backend": Command("backend_service.service", "main", "run the backend service"),
     "mapper": Command("mapper.service", "main",
                       "run the semantic mapping service (clouds in, one semantic voxel map out)"),
-    "router": Command("smartedge.router", "main",
-                      "run the site's Zenoh router (zenohd optional)"),
-    "certs": Command("smartedge.certs", "main",
-                     "the site's CA, one certificate per identity, router ACL"),
-    "map": Command("smartedge.map_tool", "main", "semantic map files: info, export to PLY"),
-    "robot-bridge": Command("smartedge.sim.plugins", "robot_bridge_main",
-                            "run the robot bridge"),
-    "robot-camera": Command("smartedge.sim.robot_camera", "main",
-                            "the simulated robot's head RGB-D camera: semantic clouds in "
-                            "base_link"),
-    "sim-head": Command("smartedge.sim.head_ros", "main",
-                        "the simulated robot's panning head as ROS 2 topics: /tf, /tf_static, "
-                        "RGB-D images, camera info"),
+    "robot-bridge": Command("smartedge.services", "robot_bridge_main", "run the robot bridge"),
+    "robot-camera": Command("smartedge.services", "robot_camera_main",
+                            "the robot's head RGB-D camera as semantic clouds in base_link "
+                            "(--source ros: the real robot's topics; sim: the simulated head)"),
     "viewer": Command("smartedge.viewer", "main",
                       "watch a running system in Rerun (a sink of the keys)"),
-    "evaluate": Command("smartedge.evaluate", "main",
-                        "trajectory metrics and the paper's experiments"),
-    "bench": Command("smartedge.bench", "main",
-                     "benchmarks (codec, pose, fusion, backend, map, ...) and the fault harness "
-                     "(reliability)"),
-    "render": Command("smartedge.render_cmd", "main",
-                      "rendered camera images with exact labels"),
-    "train": Command("smartedge.train_cmd", "main",
-                     "train the detector / keypoint CNN on renders"),
-    "calibrate": Command("smartedge.calibrate.cli", "main",
+    "router": Command("smartedge.commands.router", "main",
+                      "run the site's Zenoh router (zenohd optional)"),
+    "certs": Command("smartedge.commands.certs", "main",
+                     "the site's CA, one certificate per identity, router ACL"),
+    "calibrate": Command("smartedge.commands.calibrate", "main",
                          "calibrate the site: ChArUco board, intrinsics, extrinsics, and the "
                          "robot itself as the target"),
-    "site": Command("smartedge.site_tool", "main",
+    "site": Command("smartedge.commands.site", "main",
                     "check a site file or a camera calibration file"),
-    "status": Command("smartedge.introspect", "status_main",
+    "map": Command("smartedge.commands.map", "main", "semantic map files: info, export to PLY"),
+    "status": Command("smartedge.commands.status", "status_main",
                       "the live services: state, rates, latencies, problem counters"),
-    "echo": Command("smartedge.introspect", "echo_main",
+    "echo": Command("smartedge.commands.status", "echo_main",
                     "print every message on a key, decoded"),
-    "record": Command("smartedge.record", "record_main",
+    "record": Command("smartedge.commands.record", "record_main",
                       "capture the traffic into an MCAP file"),
-    "replay": Command("smartedge.record", "replay_main", "publish an MCAP recording back"),
-    "export": Command("smartedge.export", "main",
+    "replay": Command("smartedge.commands.record", "replay_main", "publish an MCAP recording back"),
+    "export": Command("smartedge.commands.export", "main",
                       "data out of a recording: poses as a TUM trajectory"),
 }
+
+#: the entry-point group through which an installed package adds commands to ``smartedge``
+#: (as ``ros2cli`` extensions do): each entry point names a mapping of command name →
+#: :class:`~smartedge.commands.Command`. The lab wing registers its commands here (``demo``,
+#: ``evaluate``, ``bench``, ``render``, ``train``, ``sim-head``; pyproject.toml), so the app
+#: never imports it and an installation without it simply lacks those commands.
+COMMAND_ENTRY_POINTS: Final = "smartedge.commands"
+
+
+def plugin_commands(group: str = COMMAND_ENTRY_POINTS) -> dict[str, Command]:
+    """The commands the installed packages register in ``group``; an entry point that cannot
+    be loaded, is not a mapping of :class:`Command`, or takes a name already taken is logged
+    and left out (the rest of the CLI still works)."""
+    from importlib.metadata import entry_points
+
+    log = logging.getLogger(__name__)
+    found: dict[str, Command] = {}
+    for entry in sorted(entry_points(group=group), key=lambda e: e.name):
+        try:
+            table = entry.load()
+        except (ImportError, AttributeError) as exc:
+            log.warning("commands of %s (%s) not available: %s", entry.name, entry.value, exc)
+            continue
+        if not isinstance(table, Mapping):
+            log.warning("entry point %s (%s) is not a mapping of commands", entry.name,
+                        entry.value)
+            continue
+        for name, command in table.items():
+            if not isinstance(command, Command):
+                log.warning("%s: command %r is not a smartedge.commands.Command", entry.value,
+                            name)
+            elif name in COMMANDS or name in found:
+                log.warning("%s: command %r is taken; left out", entry.value, name)
+            else:
+                found[name] = command
+    return found
+
+
+def all_commands() -> dict[str, Command]:
+    """The app's :data:`COMMANDS` followed by the registered ones (:func:`plugin_commands`)."""
+    return {**COMMANDS, **plugin_commands()}
+
 
 
 class JsonFormatter(logging.Formatter):
@@ -142,7 +170,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="log lines as text or as one JSON object per line",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, command in COMMANDS.items():
+    commands = all_commands()
+    for name, command in commands.items():
         sub.add_parser(name, help=command.help, add_help=False)
     args, rest = parser.parse_known_args(argv)
     if args.command is None:
@@ -150,7 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     _configure_logging(args.log_level, args.log_format)
     try:
-        return run_command(f"smartedge {args.command}", COMMANDS[args.command], rest)
+        return run_command(f"smartedge {args.command}", commands[args.command], rest)
     except BrokenPipeError:
         # the reader went away (`smartedge evaluate ate ... | head`): no traceback; stdout is
         # pointed at /dev/null so that the interpreter's final flush does not fail again

@@ -76,10 +76,10 @@ def sections() -> list[Section]:
     from backend_service.fusion import FusionConfig
     from backend_service.multi_frame import MultiFrameConfig
     from backend_service.pipeline import PipelineConfig
+    from core.site import ClockPolicy, Thresholds
     from mapper.alignment import AlignmentConfig
     from mapper.mapping import MappingConfig
     from mapper.semantic_map import SemanticMapConfig
-    from protocol.site import ClockPolicy, Thresholds
     from robot_bridge.adapters.ros2 import RosConfig
     from robot_bridge.bridge import BridgeConfig
     from robot_bridge.map_output import MapOutputConfig

@@ -4,7 +4,7 @@ Every recorded key gets up to two MCAP channels (message encoding ``cdr``, schem
 ``ros2msg``):
 
 * ``/_smartedge_wire/<key>`` — ``smartedge_msgs/msg/Wire``: the msgpack payload exactly as it
-  was published. ``smartedge replay`` and :func:`smartedge.record.read_recording` read only
+  was published. ``smartedge replay`` and :func:`smartedge.commands.record.read_recording` read only
   these, so a replay publishes byte for byte what was live (a ROS message cannot carry every
   field of ours: source, flags, camera ids, NaNs...). A leading ``_`` makes them hidden topics
   in ROS 2 tools.

@@ -1,7 +1,7 @@
 """Shared fixtures: repository paths, the example site, loopback Zenoh sessions.
 
 The process helpers (:func:`free_port`, :func:`stop_process`) are the project's own, from
-:mod:`smartedge.processes`, re-exported here for the tests."""
+:mod:`lab.processes`, re-exported here for the tests."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from smartedge.processes import free_port, stop_process  # noqa: F401 (re-exported)
+from lab.processes import free_port, stop_process  # noqa: F401 (re-exported)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_SITE = REPO_ROOT / "deploy" / "site.example.yaml"
@@ -34,7 +34,7 @@ def example_site_path() -> Path:
 
 @pytest.fixture
 def example_site():
-    from protocol.site import load_site
+    from core.site import load_site
 
     return load_site(EXAMPLE_SITE)
 
@@ -62,7 +62,7 @@ def traj1_stream():
 def zenoh_pair() -> Iterator[tuple[object, object, str]]:
     """Two real Zenoh peer sessions on loopback (scouting off): (listener, connector, endpoint)."""
     zenoh = pytest.importorskip("zenoh")
-    from protocol.session import loopback_config
+    from core.session import loopback_config
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     a = zenoh.open(loopback_config(listen=[endpoint]))

@@ -9,8 +9,8 @@ from pathlib import Path
 from tests.conftest import REPO_ROOT
 
 DOC = REPO_ROOT / "docs" / "architecture.md"
-TOP_PACKAGES = ("protocol", "edge_agent", "backend_service", "mapper", "robot_bridge",
-                "simulation", "smartedge")
+TOP_PACKAGES = ("protocol", "core", "edge_agent", "backend_service", "mapper", "robot_bridge",
+                "simulation", "calibration", "training", "smartedge", "lab")
 
 
 def table_rows(text: str) -> dict[str, set[str]]:

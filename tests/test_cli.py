@@ -26,8 +26,41 @@ def _run(*args: str) -> subprocess.CompletedProcess:
 def test_help_lists_every_command() -> None:
     proc = _run("--help")
     assert proc.returncode == 0
-    for name in cli.COMMANDS:
+    commands = cli.all_commands()
+    assert set(cli.COMMANDS) < set(commands)
+    for name in commands:
         assert name in proc.stdout
+
+
+def test_the_lab_commands_come_through_the_entry_point() -> None:
+    """The app's table names no lab module; the lab's commands reach ``smartedge`` only
+    through the ``smartedge.commands`` entry point (pyproject.toml)."""
+    from lab.commands import COMMANDS as LAB_COMMANDS
+
+    assert not any(c.module.split(".")[0] == "lab" for c in cli.COMMANDS.values())
+    assert cli.plugin_commands() == LAB_COMMANDS
+    assert {"demo", "evaluate", "bench", "train", "render"} <= set(LAB_COMMANDS)
+
+
+def test_a_broken_or_clashing_command_entry_point_is_logged_and_left_out(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    import importlib.metadata as md
+
+    group = cli.COMMAND_ENTRY_POINTS
+    points = [
+        md.EntryPoint("gone", "no_such_module_xyz:COMMANDS", group),
+        md.EntryPoint("notatable", "smartedge.cli:EXIT_BROKEN_PIPE", group),
+        md.EntryPoint("clash", "smartedge.cli:COMMANDS", group),  # every name already taken
+        md.EntryPoint("lab", "lab.commands:COMMANDS", group),
+    ]
+    monkeypatch.setattr(md, "entry_points", lambda group: [p for p in points
+                                                           if p.group == group])
+    with caplog.at_level(logging.WARNING, logger="smartedge.cli"):
+        found = cli.plugin_commands()
+    assert "demo" in found and "backend" not in found
+    text = caplog.text
+    assert "no_such_module_xyz" in text and "not a mapping" in text
+    assert "command 'backend' is taken" in text
 
 
 def test_site_check_ok_and_error_names_file_and_key(tmp_path) -> None:
@@ -61,7 +94,7 @@ def test_simulation_plugin_registers_twice_harmlessly() -> None:
     from edge_agent import sources
     from robot_bridge import service as bridge_service
     from robot_bridge.adapters import registry
-    from smartedge.sim import plugins
+    from smartedge import simulated_site as plugins
 
     plugins.register_simulation()
     plugins.register_simulation()

@@ -12,8 +12,8 @@ pytest.importorskip("gtsam")
 
 from backend_service.fusion import fusion_config_from_site
 from backend_service.pipeline import PipelineConfig
+from core.site import load_site
 from protocol.errors import SiteConfigError, SmartedgeError
-from protocol.site import load_site
 from smartedge.config_reference import field_names, render
 
 REPO = Path(__file__).resolve().parents[1]

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from protocol.runtime import EXIT_CONFIG
+from core.runtime import EXIT_CONFIG
 from smartedge.cli import COMMANDS
 from tests.conftest import EXAMPLE_SITE, REPO_ROOT, free_port, wait_until
 
@@ -584,7 +584,7 @@ def _tree(root: Path) -> dict[str, tuple[int, bytes]]:
 
 def _fake_venv(root: Path) -> None:
     """Stand-in for /opt/smartedge under --root: its python is this test's interpreter (so the
-    scripts' site check runs the real protocol.site)."""
+    scripts' site check runs the real core.site)."""
     bin_dir = root / "opt" / "smartedge" / "bin"
     bin_dir.mkdir(parents=True)
     python = bin_dir / "python"
@@ -800,7 +800,7 @@ def test_staged_installs_with_smartedge_certs_give_each_service_its_identity(
     router config, the ``backend`` certificate for its services and one identity per robot
     bridge (config + drop-in); an edge board one identity per camera."""
     zenoh = pytest.importorskip("zenoh")
-    from smartedge.certs import main as certs_main
+    from smartedge.commands.certs import main as certs_main
 
     pki = tmp_path / "pki"
     assert certs_main(["--site", str(EXAMPLE_SITE), "--out", str(pki), "--router-host",

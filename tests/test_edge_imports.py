@@ -29,17 +29,18 @@ from tests.conftest import REPO_ROOT
 BLOCKED = ("casadi", "gtsam", "open3d", "rerun", "torch", "scipy", "matplotlib", "rosbags")
 SERVICES = ("edge_agent", "robot_bridge", "backend_service", "mapper")
 #: top-level packages no service package may import (besides the other services)
-ABOVE_SERVICES = ("simulation", "smartedge")
+ABOVE_SERVICES = ("simulation", "calibration", "training", "smartedge", "lab")
 #: each heavy dependency and the one package of the project that imports it
 HEAVY_OWNERS = {
     "casadi": "backend_service",
     "gtsam": "backend_service",
     "open3d": "mapper",
-    "torch": "edge_agent",  # edge_agent/training, the train extra
+    "torch": "training",  # the train extra
     "moderngl": "simulation",
     "rerun": "smartedge",
 }
-PACKAGES = ("protocol", *SERVICES, "simulation", "smartedge")
+PACKAGES = ("protocol", "core", *SERVICES, "simulation", "calibration", "training", "smartedge",
+            "lab")
 
 EDGE_SCRIPT = textwrap.dedent(
     """
@@ -53,15 +54,14 @@ EDGE_SCRIPT = textwrap.dedent(
             return None
 
     sys.meta_path.insert(0, Block())
-    import protocol, edge_agent
-    for pkg in (protocol, edge_agent):
+    import protocol, core, edge_agent
+    for pkg in (protocol, core, edge_agent):
         for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
-            if any(part.startswith(("bench", "training")) for part in info.name.split(".")):
-                continue  # benchmarks and the training pipeline (train extra) may use more
             importlib.import_module(info.name)
     import smartedge.cli
-    # what `smartedge edge-agent` loads: the plug-in assembly and the simulated source
-    from smartedge.sim.plugins import register_sim_source
+    # what `smartedge edge-agent` loads: the composition root and the simulated source
+    import smartedge.services
+    from smartedge.simulated_site import register_sim_source
     register_sim_source()
     from edge_agent.service import build_parser
     build_parser().parse_args(["--camera", "cam1", "--source", "sim"])
@@ -82,8 +82,6 @@ SERVICE_SCRIPT = textwrap.dedent(
     pkg = importlib.import_module(PACKAGE)
     importlib.import_module(PACKAGE + ".service")
     for info in pkgutil.walk_packages(pkg.__path__, PACKAGE + "."):
-        if info.name.split(".")[-1].startswith("training"):
-            continue  # the optional training pipeline (torch) is not the service's
         importlib.import_module(info.name)
     leaked = sorted(m for m in sys.modules if m.split(".")[0] in FORBIDDEN)
     assert not leaked, leaked

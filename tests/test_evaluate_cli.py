@@ -10,10 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.geometry import rotation_z
-from smartedge.evaluate import main
-from smartedge.evaluation.metrics import Trajectory
-from smartedge.evaluation.trajectory_io import write_tum
+from core.geometry import rotation_z
+from core.trajectory import Trajectory, write_tum
+from lab.evaluate import main
 
 
 def _write_pair(tmp_path: Path) -> tuple[Path, Path]:

@@ -8,7 +8,7 @@ parameters and ``type`` aliases, PEP 701 f-strings fail it). The library check w
 syntax tree, outside ``if TYPE_CHECKING:``, for the names in :data:`NEWER_THAN_310`
 (``import tomllib``, ``from typing import Self``, ``datetime.UTC``, ``ExceptionGroup``,
 ``exc.add_note(...)``...) and for generic NamedTuples (``class X(NamedTuple, Generic[T])``
-imports fine on 3.11 and raises ``TypeError`` on 3.10: found in ``protocol/history.py``
+imports fine on 3.11 and raises ``TypeError`` on 3.10: found in ``core/history.py``
 this way). When a ``python3.10`` that runs is on the PATH, the same files are also
 byte-compiled by it.
 """
@@ -26,7 +26,7 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 
-EDGE_PACKAGES = ("protocol", "edge_agent")
+EDGE_PACKAGES = ("protocol", "core", "edge_agent")
 #: standard-library names that Python 3.10 lacks: module → names added in 3.11 or later
 #: (``""``: the module itself is new)
 NEWER_THAN_310: dict[str, frozenset[str]] = {

@@ -21,7 +21,7 @@ import numpy as np
 from protocol.messages import PoseCorrection, PoseEstimate
 
 if TYPE_CHECKING:
-    from protocol.site import Site
+    from core.site import Site
 
 
 def _zero_cov() -> np.ndarray:

@@ -11,7 +11,7 @@ The robot bridge registers the adapters it ships, importing their plug-ins: ``ro
 (:mod:`robot_bridge.adapters.rmw_zenoh`). Those modules never import this one (the
 :class:`AdapterSetup` they build lives in :mod:`robot_bridge.adapters.base`; it is re-exported
 here for plug-ins), so there is no import cycle. Anything else, such as the simulated robot, is
-registered from the top floor (:mod:`smartedge.sim.plugins`): this package never imports the
+registered from the top floor (:mod:`smartedge.simulated_site`): this package never imports the
 code that provides it.
 """
 
@@ -21,8 +21,8 @@ import argparse
 import logging
 from typing import Protocol
 
-from protocol.plugins import PluginRegistry
-from protocol.site import Site
+from core.plugins import PluginRegistry
+from core.site import Site
 from robot_bridge.adapters.base import AdapterSetup
 from robot_bridge.adapters.rmw_zenoh import RMW_ZENOH_ADAPTER
 from robot_bridge.adapters.ros_plugin import ROS_ADAPTERS

@@ -70,7 +70,7 @@ from robot_bridge.adapters.ros2 import (
 from robot_bridge.adapters.ros_plugin import ros_config
 
 if TYPE_CHECKING:
-    from protocol.site import Site
+    from core.site import Site
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.geometry import quaternion_to_yaw, yaw_to_quaternion
+from core.geometry import quaternion_to_yaw, yaw_to_quaternion
 from protocol.messages import PoseCorrection, PoseEstimate
 from robot_bridge.adapters.base import (
     POSE_STREAMS,
@@ -345,7 +345,7 @@ def deserialize_odometry(payload: Any, *, ros1: bool = False) -> OdometrySample:
 def deserialize_tf_message(payload: Any, *, ros1: bool = False) -> Any:
     """``/tf`` or ``/tf_static`` wire bytes (CDR, or ROS 1 when ``ros1``) → the decoded
     ``tf2_msgs/msg/TFMessage`` (rosbags object), for
-    :meth:`protocol.tf_buffer.TfBuffer.add_tf_message`; :class:`RosConversionError` on
+    :meth:`core.tf_buffer.TfBuffer.add_tf_message`; :class:`RosConversionError` on
     anything else."""
     return _deserialize(payload, TF_MESSAGE_TYPE, ros1)
 
@@ -512,7 +512,7 @@ class RosConfig:
 
     @classmethod
     def from_site(cls, site: Any, robot_id: str | None = None) -> RosConfig:
-        """The ``ros`` section of a :class:`protocol.site.Site` as it applies to ``robot_id``
+        """The ``ros`` section of a :class:`core.site.Site` as it applies to ``robot_id``
         (the robot entry's own ``ros:`` keys on top; errors name file and key)."""
         reader = site.section_reader()
         if robot_id and robot_id in site.robot_ros:

@@ -14,9 +14,9 @@ import argparse
 import dataclasses
 import logging
 
-from protocol import acl
+from core import acl
+from core.site import Site
 from protocol.errors import UsageError
-from protocol.site import Site
 from robot_bridge.adapters.base import AdapterSetup
 from robot_bridge.adapters.ros2 import RosConfig, RosTopics, RosZenohAdapter
 

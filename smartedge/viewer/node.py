@@ -1,6 +1,6 @@
 """The viewer node: wire messages in, Rerun calls out (see :mod:`smartedge.viewer`).
 
-:class:`ViewerNode` is a transport-free :class:`~protocol.runtime.ServiceNode` like the
+:class:`ViewerNode` is a transport-free :class:`~core.runtime.ServiceNode` like the
 services, so it runs on Zenoh (:func:`main`), in a demo thread, or under the scripted runner in
 tests. It draws odometry in the world frame through ``T_world_odom``, fixed by the first fused
 pose (so the drift of odometry shows), and, when it is given a ground-truth source (the
@@ -17,9 +17,12 @@ from typing import Any, Final
 
 import numpy as np
 
+from core.geometry import se2_matrix
+from core.runtime import Outgoing, ServiceNode, Subscription, service_main
+from core.session import add_session_arguments
+from core.site import Site, load_site
 from protocol import keys
 from protocol.errors import UsageError
-from protocol.geometry import se2_matrix
 from protocol.messages import (
     CameraImage,
     Message,
@@ -30,9 +33,6 @@ from protocol.messages import (
     SemanticCloud,
     ServiceStatus,
 )
-from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
-from protocol.session import add_session_arguments
-from protocol.site import Site, load_site
 
 log = logging.getLogger(__name__)
 

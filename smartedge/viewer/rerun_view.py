@@ -47,12 +47,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from protocol.errors import UsageError
-from protocol.geometry import (
+from core.geometry import (
     rotation_z,
     yaw_from_rotation,
     yaw_to_quaternion,
 )
+from core.site import Site
+from protocol.errors import UsageError
 from protocol.messages import (
     CameraImage,
     Odometry,
@@ -62,7 +63,6 @@ from protocol.messages import (
     ServiceStatus,
 )
 from protocol.semantic_classes import SEMANTIC_CLASS_COLORS, SEMANTIC_CLASSES
-from protocol.site import Site
 
 log = logging.getLogger(__name__)
 

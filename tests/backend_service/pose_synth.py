@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
-from protocol.camera import CameraModel
-from protocol.geometry import angle_diff, invert_transform
-from protocol.site import Site, load_site, look_at_T_world_cam
+from core.camera import CameraModel
+from core.geometry import angle_diff, invert_transform
+from core.site import Site, load_site, look_at_T_world_cam
 
 REPO = Path(__file__).resolve().parents[2]
 SITE_PATH = REPO / "deploy" / "site.example.yaml"
@@ -92,7 +92,7 @@ def true_camera(site: Site, camera_id: str, rng: np.random.Generator) -> CameraM
     ``EXTRINSIC_M`` (as :func:`simulation.detections.true_cameras` draws it)."""
     import dataclasses
 
-    from protocol.geometry import rotation_from_rotvec
+    from core.geometry import rotation_from_rotvec
 
     cam = site.camera(camera_id)
     T_world_cam = cam.T_world_cam.copy()

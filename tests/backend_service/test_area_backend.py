@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.geometry import rotation_z
+from core.site import Site, parse_site
 from protocol import decode, encode, keys
-from protocol.geometry import rotation_z
 from protocol.messages import Detection, Odometry, PoseEstimate, RobotDetections
-from protocol.site import Site, parse_site
 from tests.conftest import wait_until
 
 zenoh = pytest.importorskip("zenoh")
@@ -95,9 +95,9 @@ def test_a_backend_serving_every_area_takes_one_wildcard_channel() -> None:
 
 def test_a_backend_with_an_area_receives_and_solves_only_its_areas_cameras() -> None:
     from backend_service.service import BackendNode
-    from protocol.runtime import ZenohRunner
-    from protocol.session import loopback_config
-    from smartedge.processes import free_port
+    from core.runtime import ZenohRunner
+    from core.session import loopback_config
+    from lab.processes import free_port
 
     site = facility_site()
     node = BackendNode(site, "bw", areas=("west",))

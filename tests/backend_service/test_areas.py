@@ -13,9 +13,9 @@ import pytest
 
 from backend_service.areas import AreaMap, backend_areas, parse_areas
 from backend_service.ownership import OwnershipTable
+from core.site import Site, parse_site
 from protocol import keys
 from protocol.errors import SiteConfigError
-from protocol.site import Site, parse_site
 
 MS = 1_000_000
 SITE_FILE = "facility.yaml"

@@ -27,7 +27,7 @@ from backend_service.association import (
 )
 from backend_service.frame_set import PlanarPose
 from backend_service.projection import project_planar, stacked_cameras
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 from protocol.messages import Detection, PoseEstimate, RobotDetections
 
 from .two_robots import ROBOTS, TwoRobotRun, two_robot_run, two_robot_site
@@ -422,9 +422,9 @@ def test_while_a_robot_has_no_prediction_its_twin_is_not_initialized_from_a_gues
 def test_the_backend_node_publishes_each_robots_pose_from_unnamed_detections(
         crossing: TwoRobotRun) -> None:
     from backend_service.service import BackendNode
+    from core.runtime import ScriptedRunner
     from protocol import encode, keys
     from protocol.messages import Odometry
-    from protocol.runtime import ScriptedRunner
 
     site = crossing.site.name
     node = BackendNode(crossing.site)

@@ -12,9 +12,9 @@ import yaml
 
 from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor
 from backend_service.frame_set import PlanarPose
-from protocol.camera import CameraModel
+from core.camera import CameraModel
+from core.site import Site, load_site
 from protocol.errors import SiteConfigError
-from protocol.site import Site, load_site
 from simulation.detections import CameraBump
 
 REPO = Path(__file__).resolve().parents[2]

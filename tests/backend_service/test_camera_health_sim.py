@@ -1,6 +1,6 @@
 """A bumped camera through the whole backend: the simulated paper lab (noise-model detections,
 simulated time), one camera's true pose moved mid-run; the backend node (real decode path,
-:class:`~protocol.runtime.ScriptedRunner`) names it in its status and leaves it out of the solve,
+:class:`~core.runtime.ScriptedRunner`) names it in its status and leaves it out of the solve,
 and an unmoved camera is never named."""
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ pytest.importorskip("gtsam")
 
 from backend_service.camera_health import CameraHealthConfig
 from backend_service.service import BackendNode
+from core.runtime import ScriptedRunner, make_status
+from lab.bench.camera_health import BumpSpec, run_session, session_messages
 from protocol import keys
 from protocol.codec import encode
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from protocol.runtime import ScriptedRunner, make_status
 from simulation.scenario import load_scenario
-from smartedge.bench.camera_health import BumpSpec, run_session, session_messages
 
 #: the issue's bump: 5 cm / 1 deg (world axes, not along one axis), 40 s into the run
 BUMP = BumpSpec("cam3", 40.0, (0.03, 0.04, 0.0), (0.0, 0.6, 0.8))

@@ -23,8 +23,8 @@ import pytest
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
 from backend_service.multi_frame import MultiFrameAverager
-from protocol.camera import CameraModel
-from protocol.geometry import wrap_angle
+from core.camera import CameraModel
+from core.geometry import wrap_angle
 from tests.backend_service.pose_synth import (
     ERRORS,
     ROBOT,

@@ -2,7 +2,7 @@
 
 The reference is the definition the error model uses (:mod:`backend_service.covariance`): the
 camera's ``T_world_cam`` rotated about its optical centre by a rotation vector in world axes and
-moved, then projected by :class:`protocol.camera.CameraModel` itself; central differences of
+moved, then projected by :class:`core.camera.CameraModel` itself; central differences of
 that, per camera, are what the vectorized closed form must reproduce.
 """
 
@@ -19,8 +19,8 @@ from backend_service.covariance import (
     project_with_extrinsic_jacobian,
     propagate_correlated,
 )
-from protocol.camera import CameraModel
-from protocol.geometry import invert_transform, rotation_from_rotvec
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_from_rotvec
 from tests.backend_service.pose_synth import ROBOT, example_site
 
 SITE = example_site()

@@ -17,7 +17,7 @@ from backend_service.covariance import (
 from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
-from smartedge.evaluation.keypoints import common_error_summary, detection_common_error
+from lab.evaluation.keypoints import common_error_summary, detection_common_error
 from tests.backend_service.pose_synth import example_site, make_frame_set
 
 SITE = example_site()

@@ -16,7 +16,7 @@ from backend_service.frame_set import PlanarPose
 from backend_service.fusion import PoseGraphFusion
 from backend_service.multi_frame import MultiFrameAverager
 from backend_service.sync import FrameSetSynchronizer
-from protocol.geometry import se2_between, se2_compose
+from core.geometry import se2_between, se2_compose
 from protocol.messages import Odometry, RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario

@@ -6,7 +6,7 @@ Zenoh link); a new backend gets the router's tokens (the start-up liveliness get
 change; a killed backend stops at once and the router drops its tokens ``kill_detect`` ms later
 (the closed link). Backends tick (decide) every ``tick`` ms. A backend can stall (its worker
 busy, or the process frozen): it neither reads the bus nor publishes until it resumes, and then
-reads its backlog first, as :class:`~protocol.runtime.ZenohRunner` does; a stall longer than the
+reads its backlog first, as :class:`~core.runtime.ZenohRunner` does; a stall longer than the
 lease loses the session (the router drops its tokens), and the resumed backend notices, then
 reconnects, its session re-declaring the owner tokens it still holds. After every step the bus
 checks that no two live, running backends may publish one robot.
@@ -605,7 +605,7 @@ def test_a_second_backend_with_the_same_id_publishes_nothing(zenoh_pair) -> None
 
 
 def test_only_the_backend_identity_may_declare_owner_tokens(example_site) -> None:
-    from protocol import acl
+    from core import acl
 
     owner = keys.owner_key(example_site.name, "hsr", "b1")
     may = {g.identity for g in acl.grants(example_site)

@@ -20,7 +20,7 @@ from backend_service.pose_solver import (
     compiled_camera_kernel,
     compiled_residual_kernel,
 )
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 from tests.backend_service.pose_synth import (
     ROBOT,
     example_site,

@@ -11,9 +11,9 @@ import pytest
 from backend_service.estimate import SolverConfig, estimate_pose
 from backend_service.frame_set import PlanarPose
 from backend_service.pose_solver import DEFAULT_METHOD, get_problem, robust_weights
-from protocol.camera import CameraModel
-from protocol.geometry import wrap_angle
-from smartedge.evaluation.cramer_rao import cramer_rao_bound
+from core.camera import CameraModel
+from core.geometry import wrap_angle
+from lab.evaluation.cramer_rao import cramer_rao_bound
 from tests.backend_service.pose_synth import (
     ROBOT,
     example_site,

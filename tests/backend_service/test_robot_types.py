@@ -24,10 +24,10 @@ from backend_service.association import (
 )
 from backend_service.frame_set import PlanarPose
 from backend_service.projection import project_planar, stacked_cameras
+from core.site import load_site
 from protocol import codec
 from protocol.errors import DecodeError
 from protocol.messages import Detection, RobotDetections
-from protocol.site import load_site
 from tests.conftest import REPO_ROOT
 
 SITE = load_site(REPO_ROOT / "simulation" / "sites" / "two_types_lab.yaml")

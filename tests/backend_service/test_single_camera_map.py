@@ -19,7 +19,7 @@ import pytest
 
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
 from backend_service.frame_set import FrameSet, PlanarPose
-from protocol.camera import CameraModel
+from core.camera import CameraModel
 from tests.backend_service.pose_synth import (
     ERRORS,
     ROBOT,

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from backend_service.ownership import OwnershipTable, choose_owner
+from core.runtime import ScriptedRunner
 from protocol import encode, keys
 from protocol.messages import PoseEstimate, RobotDetections
-from protocol.runtime import ScriptedRunner
 
 from .two_robots import TwoRobotRun, two_robot_run, two_robot_site
 

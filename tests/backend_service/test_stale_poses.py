@@ -13,11 +13,11 @@ pytest.importorskip("gtsam")
 
 from backend_service.pipeline import PipelineConfig, PipelineOutput
 from backend_service.service import BackendNode
+from core.runtime import Outgoing, ScriptedRunner
+from core.site import ClockPolicy, Site, load_site
 from protocol import encode, keys
 from protocol.errors import SiteConfigError
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from protocol.runtime import Outgoing, ScriptedRunner
-from protocol.site import ClockPolicy, Site, load_site
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario
 

@@ -8,9 +8,9 @@ import numpy as np
 from backend_service.fusion import FusionConfig
 from backend_service.pipeline import BackendPipeline
 from backend_service.service import BackendNode
+from core.runtime import ScriptedRunner
 from protocol import encode, keys
 from protocol.messages import Odometry, PoseEstimate
-from protocol.runtime import ScriptedRunner
 from tests.backend_service.pose_synth import example_site
 
 SITE = example_site()

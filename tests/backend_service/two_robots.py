@@ -16,8 +16,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from core.site import Site
 from protocol.messages import Message
-from protocol.site import Site
 from simulation.fleet import fleet_run, fleet_site, merged_messages
 from simulation.runner import SimulationRun
 

@@ -29,6 +29,7 @@ import pytest
 pytest.importorskip("onnxruntime")
 cv2 = pytest.importorskip("cv2")
 
+from core.runtime import Outgoing  # noqa: E402
 from edge_agent.frames import Frame, LatestFrameReader  # noqa: E402
 from edge_agent.models import ModelError, RobotKeypointPipeline  # noqa: E402
 from edge_agent.pipeline import EdgePipeline, StageLatency  # noqa: E402
@@ -37,7 +38,6 @@ from edge_agent.sources import CameraFrameSource  # noqa: E402
 from protocol import codec, keys  # noqa: E402
 from protocol.errors import UnknownIdError, UsageError  # noqa: E402
 from protocol.messages import RobotDetections, ServiceStatus  # noqa: E402
-from protocol.runtime import Outgoing  # noqa: E402
 from tests.conftest import REPO_ROOT, free_port, wait_until  # noqa: E402
 
 SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
@@ -423,7 +423,7 @@ def test_edge_agent_cli_publishes_detections_over_zenoh(tiny_models: Path, image
     a real Zenoh subscriber on loopback receives :class:`RobotDetections` for cam1 and an
     ``ok`` status naming the image source; SIGTERM stops the process with exit code 0."""
     zenoh = pytest.importorskip("zenoh")
-    from protocol.session import loopback_config
+    from core.session import loopback_config
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     received: list[RobotDetections] = []

@@ -218,9 +218,9 @@ def test_training_crops_use_the_deployed_crop() -> None:
     """A rendered view's training rows (no jitter) hold exactly the crop the edge pipeline cuts
     for the labelled box, and keypoint labels at ``to_crop`` of the frame keypoints."""
     pytest.importorskip("moderngl", reason="rendering needs moderngl")
-    from edge_agent.training.data import Geometry, view_records
     from simulation.dataset import SampleGenerator
     from simulation.scenario import load_scenario
+    from training.data import Geometry, view_records
 
     gen = SampleGenerator(load_scenario(), "randomized", seed=11, width=256, height=192)
     geometry = Geometry(det_w=128, det_h=96, crop_w=CROP_W, crop_h=CROP_H, crop_jitter=False)

@@ -30,7 +30,7 @@ def test_edge_agent_on_rendered_images_publishes_keypoints_near_the_labels(
         tmp_path: Path) -> None:
     import cv2
 
-    from protocol.session import loopback_config
+    from core.session import loopback_config
     from simulation.dataset import SampleGenerator
     from simulation.scenario import load_scenario
 

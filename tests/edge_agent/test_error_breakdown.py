@@ -1,4 +1,4 @@
-"""The keypoint error breakdown (``smartedge.evaluation.keypoints.error_breakdown``) separates a
+"""The keypoint error breakdown (``lab.evaluation.keypoints.error_breakdown``) separates a
 keypoint's systematic error (bias) from its random one (spread), and per distance a shift
 common to all keypoints from the rest that turns the heading. Checked on planted errors: the
 pipeline's answer is the true keypoints plus a known bias per keypoint, a known shift per
@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from edge_agent.models import RobotObservation
-from smartedge.evaluation.keypoints import error_breakdown
+from lab.evaluation.keypoints import error_breakdown
 
 NAMES = ["front_top", "left_top", "rear_top", "right_top"]
 RING = np.array([[40.0, 0.0], [0.0, -20.0], [-40.0, 0.0], [0.0, 20.0]])

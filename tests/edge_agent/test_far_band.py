@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.camera import CameraModel
+from core.site import load_site, look_at_T_world_cam
 from edge_agent.far_band import FAR_BAND_CHOICES, FarBand, far_band_for_camera, far_rows
 from edge_agent.models import (
     FAR_BAND_EDGE_PX,
@@ -24,8 +26,6 @@ from edge_agent.models import (
     merge_far_band_boxes,
 )
 from edge_agent.pipeline import EdgePipeline, camera_far_band, far_band_from_args
-from protocol.camera import CameraModel
-from protocol.site import load_site, look_at_T_world_cam
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PAPER_SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
@@ -200,9 +200,9 @@ def test_a_far_robot_the_whole_frame_misses_is_found_with_the_band(lab_views) ->
     assert len(_hits(models(far.image_rgb, far_band=band), box)) == 1
     assert models.far_band_added == 1
     # through the edge's per-frame pipeline, as the agent runs it, counted in its status
+    from core.runtime import Stats
     from edge_agent.frames import Frame
     from edge_agent.sources import PipelineSource
-    from protocol.runtime import Stats
 
     edge = EdgePipeline(far.camera.camera_id, models, far_band=band,
                         expected_size=(far.camera.width, far.camera.height))

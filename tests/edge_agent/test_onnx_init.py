@@ -21,13 +21,13 @@ from edge_agent.models import (  # noqa: E402
     mirror_permutation,
     reference_path,
 )
-from edge_agent.training.nets import KeypointNet, RobotDetector  # noqa: E402
-from edge_agent.training.onnx_init import (  # noqa: E402
+from tests.edge_agent.conftest import TINY_ARGS  # noqa: E402
+from training.nets import KeypointNet, RobotDetector  # noqa: E402
+from training.onnx_init import (  # noqa: E402
     OnnxInitError,
     init_from_onnx,
     keypoint_map,
 )
-from tests.edge_agent.conftest import TINY_ARGS  # noqa: E402
 
 SHIPPED = default_model_dir()
 KP_ONNX = SHIPPED / "keypoints.onnx"

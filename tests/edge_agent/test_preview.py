@@ -13,13 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
+from core.site import load_site
 from edge_agent.frames import Frame
 from edge_agent.preview import encode_preview
 from edge_agent.service import EdgeAgentNode, build_node, build_parser
 from protocol import codec, keys
 from protocol.errors import UsageError, ValidationError
 from protocol.messages import CameraImage, RobotDetections
-from protocol.site import load_site
 from tests.conftest import REPO_ROOT
 
 SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"

@@ -21,6 +21,7 @@ import pytest
 ort = pytest.importorskip("onnxruntime")
 cv2 = pytest.importorskip("cv2")
 
+from core.site import load_site  # noqa: E402
 from edge_agent import models as models_module  # noqa: E402
 from edge_agent.models import (  # noqa: E402
     CPU,
@@ -37,7 +38,6 @@ from edge_agent.models import (  # noqa: E402
 from edge_agent.service import EdgeAgentNode, build_cloud_maker, build_node, build_parser  # noqa: E402
 from edge_agent.sources import execution_providers_from_args  # noqa: E402
 from protocol.errors import UsageError  # noqa: E402
-from protocol.site import load_site  # noqa: E402
 from tests.conftest import REPO_ROOT  # noqa: E402
 
 SITE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"

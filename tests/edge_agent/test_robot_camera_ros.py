@@ -33,6 +33,8 @@ pytest.importorskip("onnxruntime")
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("rosbags.typesys")
 
+from core.session import loopback_config  # noqa: E402
+from core.site import load_site  # noqa: E402
 from edge_agent import ros_source as rs  # noqa: E402
 from edge_agent import ros_tf  # noqa: E402
 from edge_agent.robot_camera import (  # noqa: E402
@@ -45,8 +47,6 @@ from edge_agent.robot_camera import (  # noqa: E402
 )
 from protocol import keys  # noqa: E402
 from protocol.messages import SemanticCloud  # noqa: E402
-from protocol.session import loopback_config  # noqa: E402
-from protocol.site import load_site  # noqa: E402
 from tests.conftest import REPO_ROOT, free_port  # noqa: E402
 
 SITE_PATH = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"

@@ -21,6 +21,7 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
+from core.site import load_site
 from edge_agent.frames import Frame
 from edge_agent.models import (
     KeypointCard,
@@ -35,7 +36,6 @@ from edge_agent.models import (
 from edge_agent.pipeline import EdgePipeline
 from protocol import codec
 from protocol.messages import RobotDetections
-from protocol.site import load_site
 from tests.conftest import REPO_ROOT
 from tests.edge_agent.conftest import TINY_ARGS
 

@@ -28,10 +28,10 @@ pytest.importorskip("onnxruntime")
 cv2 = pytest.importorskip("cv2")
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 
+from core.site import load_site  # noqa: E402
 from edge_agent import ros_source as rs  # noqa: E402
 from protocol import keys  # noqa: E402
 from protocol.messages import SemanticCloud  # noqa: E402
-from protocol.site import load_site  # noqa: E402
 from tests.conftest import REPO_ROOT  # noqa: E402
 
 SITE_PATH = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"

@@ -30,12 +30,12 @@ pytest.importorskip("onnxruntime")
 cv2 = pytest.importorskip("cv2")
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 
+from core.site import load_site  # noqa: E402
 from edge_agent import ros_source as rs  # noqa: E402
 from edge_agent.service import EdgeAgentNode, build_node, build_parser  # noqa: E402
 from protocol import keys  # noqa: E402
 from protocol.errors import UsageError  # noqa: E402
 from protocol.messages import RobotDetections  # noqa: E402
-from protocol.site import load_site  # noqa: E402
 from tests.conftest import REPO_ROOT  # noqa: E402
 
 SITE_PATH = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
@@ -532,10 +532,10 @@ def test_the_service_loop_subscribes_and_publishes_detections(views: list[Any]) 
     import threading
 
     zenoh = pytest.importorskip("zenoh")
+    from core.runtime import ZenohRunner
+    from core.session import loopback_config
     from protocol import codec
     from protocol.messages import ServiceStatus
-    from protocol.runtime import ZenohRunner
-    from protocol.session import loopback_config
     from tests.conftest import free_port, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

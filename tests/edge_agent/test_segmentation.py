@@ -104,7 +104,7 @@ def test_class_weights_balance_rare_classes() -> None:
     """sqrt(median frequency / frequency) over the present classes, clipped to [0.2, 5]; absent
     classes weigh 0."""
     pytest.importorskip("torch")
-    from edge_agent.training.train import class_weights
+    from training.train import class_weights
 
     # floor 70 %, wall 20 %, robot 9 %, person 1 % (of 1000 pixels)
     labels = np.repeat([1, 2, 12, 11], [700, 200, 90, 10]).reshape(1, 10, 100)
@@ -123,8 +123,8 @@ def test_class_weights_balance_rare_classes() -> None:
 
 def test_train_config_checks_the_segmentation_label_size() -> None:
     pytest.importorskip("torch")
-    from edge_agent.training.data import Geometry, SetSpec
-    from edge_agent.training.train import TrainConfig, TrainingError
+    from training.data import Geometry, SetSpec
+    from training.train import TrainConfig, TrainingError
 
     sets = (SetSpec("randomized", 1, 8),), (SetSpec("site", 1001, 8),)
     TrainConfig("segmentation", *sets, Geometry(seg_w=212, seg_h=120))
@@ -138,8 +138,8 @@ def test_detector_and_keypoint_checkpoints_keep_their_identity() -> None:
     """The segmentation label size is not part of a detector or keypoint checkpoint's
     geometry (checkpoints written before it existed still resume); it is for segmentation."""
     pytest.importorskip("torch")
-    from edge_agent.training.data import Geometry
-    from edge_agent.training.train import _geometry_identity
+    from training.data import Geometry
+    from training.train import _geometry_identity
 
     before = {"det_w", "det_h", "crop_w", "crop_h", "crops_per_robot", "crop_jitter",
               "frame_w", "frame_h"}
@@ -191,7 +191,7 @@ def test_segmentation_shards_hold_labels_and_old_shards_still_load(
     (floor and wall at least); a shard written before labels existed (no ``seg_labels``)
     loads with empty label images."""
     pytest.importorskip("torch")
-    from edge_agent.training.data import RenderedSet
+    from training.data import RenderedSet
 
     shard = next((tiny_segmentation / "cache").glob("site-s2-*.npz"))
     data = RenderedSet.load(shard)
@@ -213,9 +213,9 @@ def test_fine_tuning_from_a_checkpoint_of_another_kind_is_refused(tiny_segmentat
                                                                   ) -> None:
     """``--init-from`` a detector checkpoint for a segmentation run fails, naming the file."""
     torch = pytest.importorskip("torch")
-    from edge_agent.training.nets import RobotDetector
     from smartedge.cli import main
     from tests.edge_agent.conftest import TINY_ARGS
+    from training.nets import RobotDetector
 
     ckpt = tmp_path / "detector.ckpt"
     torch.save({"model": RobotDetector().state_dict(), "opt": {},
@@ -233,9 +233,9 @@ def test_check_onnxruntime_catches_a_segmentation_mismatch(tmp_path: Path) -> No
     """An exported segmentation network passes the check against itself and fails against a
     differently initialised one, naming the file."""
     torch = pytest.importorskip("torch")
-    from edge_agent.training.data import Geometry, SetSpec
-    from edge_agent.training.nets import SemanticSegNet
-    from edge_agent.training.train import (
+    from training.data import Geometry, SetSpec
+    from training.nets import SemanticSegNet
+    from training.train import (
         TrainConfig,
         TrainingError,
         check_onnxruntime,

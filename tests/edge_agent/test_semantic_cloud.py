@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_from_rpy, undistort_normalized
 from edge_agent.models import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
@@ -18,9 +20,7 @@ from edge_agent.semantic_cloud import (
     pixel_rays,
     voxel_downsample,
 )
-from protocol.camera import CameraModel
 from protocol.codec import decode, encode
-from protocol.geometry import invert_transform, rotation_from_rpy, undistort_normalized
 from protocol.messages import SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
 
@@ -56,7 +56,7 @@ def _plane_depth(camera: CameraModel, n_cam: np.ndarray, d: float) -> np.ndarray
 
 def test_undistortion_inverts_the_lens_model() -> None:
     """Distorting the undistorted coordinates gives back the pixel's, to 1e-12."""
-    from protocol.geometry import distort_normalized
+    from core.geometry import distort_normalized
 
     cam = _camera()
     rays = pixel_rays(cam, W, H).rays

@@ -43,7 +43,7 @@ FLOORS = {
 
 
 def test_shipped_models_are_there_small_and_for_the_paper_robot() -> None:
-    from protocol.site import load_site
+    from core.site import load_site
 
     folder = default_model_dir()
     det = DetectorCard.read(folder / "detector.json")
@@ -99,9 +99,9 @@ def test_shipped_models_meet_accuracy_floors_on_held_out_renders(mode: str) -> N
     """Rendered 848x480 views from a seed never trained on: the detector's AP@0.5 and the
     whole pipeline's median keypoint error (robots the detector found) meet the floors."""
     pytest.importorskip("moderngl")
+    from lab.evaluation.keypoints import evaluate_set
     from simulation.dataset import SampleGenerator
     from simulation.scenario import load_scenario
-    from smartedge.evaluation.keypoints import evaluate_set
 
     scenario = load_scenario()
     model = scenario.site.robot_model(scenario.robot_id)
@@ -247,11 +247,11 @@ def test_boxes_without_keypoints_are_counted_in_the_agents_status() -> None:
     """The boxes the keypoint floor drops reach the edge agent's status counters
     (``boxes_without_keypoints``), through the same path as every per-frame figure."""
     pytest.importorskip("moderngl")
+    from core.runtime import Stats
     from edge_agent.frames import Frame
     from edge_agent.models import RobotKeypointPipeline
     from edge_agent.pipeline import EdgePipeline
     from edge_agent.sources import PipelineSource
-    from protocol.runtime import Stats
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 

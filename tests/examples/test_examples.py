@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 import protocol
+from core.geometry import se3_from_planar
+from core.session import loopback_config
+from core.site import load_site
 from protocol import keys
-from protocol.geometry import se3_from_planar
-from protocol.session import loopback_config
-from protocol.site import load_site
 from tests.conftest import EXAMPLE_SITE, REPO_ROOT, free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
@@ -165,7 +165,7 @@ def test_subscribe_pose_stops_after_its_timeout(hub) -> None:
 
 
 def test_read_recording_counts_every_channel(tmp_path: Path) -> None:
-    from smartedge.record import Recorder  # the writer of `smartedge record`
+    from smartedge.commands.record import Recorder  # the writer of `smartedge record`
 
     site = load_site(EXAMPLE_SITE)
     cov = np.diag([1e-4, 1e-4, 1e-4])

@@ -10,17 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.geometry import rotation_z
+from core.history import StampedHistory
+from core.runtime import ScriptedRunner
+from core.site import load_site
 from mapper.map_io import save_map_npz, write_map_ply
 from mapper.mapping import MappingConfig, SemanticMapping, interpolate_pose
 from mapper.semantic_map import SemanticMapConfig, SemanticVoxelMap
 from mapper.service import MapperNode, load_or_start_map
 from protocol import encode, keys
-from protocol.geometry import rotation_z
-from protocol.history import StampedHistory
 from protocol.messages import PoseEstimate, SemanticCloud
-from protocol.runtime import ScriptedRunner
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
-from protocol.site import load_site
 from simulation.synthetic_room import robot_view, sample_room, synthetic_room
 from tests.conftest import EXAMPLE_SITE
 

@@ -11,9 +11,9 @@ import time
 import numpy as np
 import pytest
 
-from protocol.geometry import angle_diff, se2_compose, se2_inverse, wrap_angle
+from core.geometry import angle_diff, se2_compose, se2_inverse, wrap_angle
+from core.site import Thresholds
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
-from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose, OdometrySample
 from robot_bridge.adapters.sim import SimRobotAdapter, SimulatedRobotPort
 from robot_bridge.bridge import BridgeConfig, Outbox, RobotBridge
@@ -502,8 +502,8 @@ def test_bridge_section_holds_what_the_bridge_trusts(example_site_path) -> None:
     cameras' positions +- ``floor_margin_m``; bad values name the file and the key."""
     import yaml
 
+    from core.site import parse_site
     from protocol.errors import SiteConfigError
-    from protocol.site import parse_site
 
     doc = yaml.safe_load(example_site_path.read_text())
 

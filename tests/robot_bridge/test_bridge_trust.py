@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.runtime import Subscription, dispatch
 from protocol import encode, keys
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
-from protocol.runtime import Subscription, dispatch
 from robot_bridge.adapters.sim import SimRobotAdapter
 from robot_bridge.service import RobotBridgeNode
 from tests.conftest import wait_until

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from protocol import acl
+from core import acl
+from core.site import load_site
 from protocol.errors import ConfigFileError, UsageError, ValidationError
-from protocol.site import load_site
 from robot_bridge.adapters.ros2 import RosConfig
 from robot_bridge.adapters.ros_plugin import ros_config, ros_topics
 from simulation.scenario import SITES_DIR
-from smartedge.site_tool import main as site_main
+from smartedge.commands.site import main as site_main
 
 PAPER_SITE = (SITES_DIR / "paper_lab.yaml").read_text()
 ONE_ROBOT = "  - {id: hsr, model: hsr}"

@@ -205,7 +205,7 @@ def test_config_checks_and_the_site_section(tmp_path, example_site_path) -> None
             mo.MapOutputConfig(**bad)
     import yaml
 
-    from protocol.site import load_site
+    from core.site import load_site
 
     doc = yaml.safe_load(example_site_path.read_text())
     doc["map_output"] = {"rate_hz": 0.5, "resolution_m": 0.1, "obstacle_classes": "box,wall"}

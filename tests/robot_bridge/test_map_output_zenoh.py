@@ -14,10 +14,10 @@ import time
 import numpy as np
 import pytest
 
+from core.runtime import ZenohRunner
+from core.session import loopback_config
 from protocol import keys
 from protocol.codec import encode
-from protocol.runtime import ZenohRunner
-from protocol.session import loopback_config
 from robot_bridge.adapters import rmw_zenoh as rz
 from robot_bridge.adapters import rmw_zenoh_wire as wire
 from robot_bridge.adapters import ros2

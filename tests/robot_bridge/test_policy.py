@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.geometry import MotionState, StaticDetector, wrap_angle
+from core.geometry import MotionState, StaticDetector, wrap_angle
+from core.site import Thresholds
 from protocol.messages import PoseEstimate
-from protocol.site import Thresholds
 from robot_bridge.adapters.base import LocalizationPose
 from robot_bridge.policy import (
     ALREADY_SENT,

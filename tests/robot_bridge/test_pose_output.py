@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from core.geometry import se2_compose, se2_inverse, yaw_to_quaternion
+from core.site import ClockPolicy
 from protocol.errors import ConfigFileError
-from protocol.geometry import se2_compose, se2_inverse, yaw_to_quaternion
 from protocol.messages import PoseEstimate
-from protocol.site import ClockPolicy
 from robot_bridge.adapters.base import MapToOdom, OdometrySample
 from robot_bridge.adapters.sim import SimRobotAdapter
 from robot_bridge.bridge import BridgeConfig, RobotBridge
@@ -166,7 +166,7 @@ def test_bridge_feeds_the_output_only_what_it_accepted() -> None:
 
 
 def test_site_sections_parse_and_errors_name_the_key(tmp_path, example_site_path) -> None:
-    from protocol.site import load_site
+    from core.site import load_site
     from robot_bridge.adapters.ros_plugin import ros_config, ros_topics
 
     text = example_site_path.read_text()

@@ -417,7 +417,7 @@ def test_plugin_reads_the_site_files_ros_section(zenoh_pair, tmp_path, example_s
                                                  monkeypatch) -> None:
     """Topics, namespace and domain id come from the site file's ``ros`` section;
     ``$ROS_DOMAIN_ID`` and the command line override it."""
-    from protocol.site import load_site
+    from core.site import load_site
 
     bridge_side, _, _ = zenoh_pair
     path = tmp_path / "site.yaml"

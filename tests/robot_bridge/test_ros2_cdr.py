@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.geometry import angle_diff
+from core.geometry import angle_diff
 from protocol.messages import PoseCorrection
 from robot_bridge.adapters import ros2
 from robot_bridge.adapters.base import OdometrySample

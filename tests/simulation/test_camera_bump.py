@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from protocol.geometry import se3_from_planar
+from core.geometry import se3_from_planar
 from simulation.detections import CameraBump, DetectionSimulator
 from simulation.scenario import NoiseConfig, load_scenario
 

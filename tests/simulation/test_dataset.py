@@ -161,8 +161,8 @@ def test_robot_head_views_from_inside_the_room_label_floor_and_furniture(scenari
     1 m above the floor; floor and walls or furniture are labelled, the robot itself is not in
     its own view, and a training row of such a view is a detector negative without crops (or
     labels the other robot instance when one stands in front)."""
-    from edge_agent.training.data import Geometry, view_records
     from simulation.world import World
+    from training.data import Geometry, view_records
 
     gen = SampleGenerator(scenario, "robot", seed=2, width=160, height=120)
     world = World(scenario)

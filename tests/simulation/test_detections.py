@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from core.geometry import se3_from_planar
 from protocol.codec import decode, encode
-from protocol.geometry import se3_from_planar
 from protocol.messages import RobotDetections
 from simulation.detections import DetectionSimulator, true_cameras
 from simulation.scenario import load_scenario

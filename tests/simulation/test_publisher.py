@@ -11,14 +11,14 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from core.session import loopback_config  # noqa: E402
+from lab.processes import free_port  # noqa: E402
 from protocol import keys  # noqa: E402
 from protocol.codec import decode, encode  # noqa: E402
 from protocol.messages import Odometry, PoseCorrection, RobotDetections  # noqa: E402
-from protocol.session import loopback_config  # noqa: E402
 from simulation.publisher import publish_run  # noqa: E402
 from simulation.runner import SimulationRun  # noqa: E402
 from simulation.scenario import load_scenario  # noqa: E402
-from smartedge.processes import free_port  # noqa: E402
 
 
 def test_publish_over_zenoh_and_apply_correction() -> None:

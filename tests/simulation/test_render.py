@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.camera import CameraModel
+from core.camera import CameraModel
+from core.geometry import invert_transform, rotation_from_rpy
+from core.site import look_at_T_world_cam
 from protocol.errors import SmartedgeError
-from protocol.geometry import invert_transform, rotation_from_rpy
-from protocol.site import look_at_T_world_cam
 from simulation.labels import instance_bbox, keypoint_labels
 from simulation.mesh import (
     CLASS_ID,

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.site import RobotModel, load_site
 from protocol.errors import SmartedgeError
-from protocol.site import RobotModel, load_site
 from simulation.mesh import Mesh
 from simulation.robot_files import RobotMeshError, load_keypoint_file, load_robot_mesh, load_urdf
 from simulation.robot_mesh import (

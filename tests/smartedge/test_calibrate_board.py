@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import yaml
 
-from backend_service.calibration.board import board_image, load_board_spec
-from protocol.geometry import rpy_from_rotation
-from protocol.site import load_camera_calibration, load_site
+from calibration.board import board_image, load_board_spec
+from core.geometry import rpy_from_rotation
+from core.site import load_camera_calibration, load_site
 from simulation.board_views import BoardRenderer, BoardTexture, calibration_sweep
 from simulation.detections import true_cameras
 from simulation.scenario import load_scenario
-from smartedge.calibrate.cli import main as calibrate_main
-from smartedge.site_tool import main as site_main
-from tests.backend_service.calibration.rendered import (
+from smartedge.commands.calibrate import main as calibrate_main
+from smartedge.commands.site import main as site_main
+from tests.calibration.rendered import (
     EXTRINSICS_BOARD,
     PAPER_LAB,
     paper_lab_board_poses,
@@ -173,7 +173,7 @@ def test_extrinsics_names_what_it_could_not_use(lab_sightings, tmp_path, capsys)
 
 
 def test_intrinsics_from_a_video_file(tmp_path, capsys) -> None:
-    from tests.backend_service.calibration.rendered import INTRINSICS_BOARD, sweep_views
+    from tests.calibration.rendered import INTRINSICS_BOARD, sweep_views
 
     cam, views = sweep_views()
     video = tmp_path / "wave.avi"

@@ -10,18 +10,18 @@ import numpy as np
 import pytest
 import yaml
 
-from backend_service.calibration.site_file import write_site_with_cameras
+from calibration.site_file import write_site_with_cameras
+from core.geometry import pose_error
+from core.site import load_site
 from protocol import keys
 from protocol.codec import decode
-from protocol.geometry import pose_error
 from protocol.messages import RobotDetections
-from protocol.site import load_site
 from simulation.calibration_drive import perturbed_camera_poses, record_drive
 from simulation.detections import true_cameras
 from simulation.scenario import load_scenario
-from smartedge.calibrate import cli
-from smartedge.calibrate.robot_cmd import main
-from smartedge.record import Recorder
+from smartedge.commands import calibrate as cli
+from smartedge.commands.calibrate_robot import main
+from smartedge.commands.record import Recorder
 
 DRIVE_S = 60.0
 FAST = ["--max-rate", "3"]
@@ -140,7 +140,7 @@ def test_empty_missing_and_damaged_recordings(lab, tmp_path, capsys):
 def test_nan_keypoints_and_unknown_camera_are_counted(lab, tmp_path, capsys):
     """A recording with hostile messages among the good ones: the good ones calibrate, the
     bad ones are counted and the first error of each kind is named."""
-    from smartedge.record import read_recording
+    from smartedge.commands.record import read_recording
 
     site_name = lab["scenario"].site.name
     path = tmp_path / "mixed.mcap"
@@ -179,8 +179,8 @@ def test_live_on_the_bus(lab, tmp_path, capsys):
 
     import zenoh
 
-    from protocol.session import loopback_config
-    from smartedge.record import read_recording
+    from core.session import loopback_config
+    from smartedge.commands.record import read_recording
     from tests.conftest import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

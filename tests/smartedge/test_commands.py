@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from smartedge.bench import BENCHES
-from smartedge.cli import COMMANDS
+from lab.bench import BENCHES
+from smartedge.cli import all_commands
 from smartedge.commands import EXIT_UNAVAILABLE, Command, run_command
 
 
 def test_every_registered_command_names_a_module_and_help() -> None:
-    for table in (COMMANDS, BENCHES):
+    for table in (all_commands(), BENCHES):
         for name, command in table.items():
             assert isinstance(command, Command), name
             assert command.module and command.function.isidentifier() and command.help

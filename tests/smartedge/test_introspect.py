@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
-from smartedge.introspect import echo_main, format_table, status_main, status_rows, summarize
+from smartedge.commands.status import echo_main, format_table, status_main, status_rows, summarize
 from tests.conftest import free_port, stop_process, wait_until
 
 
@@ -29,8 +29,8 @@ def agent(tmp_path_factory: pytest.TempPathFactory):
     # a detection of cam1 seen by a session of ours (was a fixed 3 s)
     import zenoh
 
+    from core.session import loopback_config
     from protocol import keys
-    from protocol.session import loopback_config
 
     seen: set[str] = set()
     with zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"])) as session:

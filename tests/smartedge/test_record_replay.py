@@ -21,14 +21,14 @@ pytest.importorskip("mcap")
 pytest.importorskip("gtsam")
 
 from backend_service.pipeline import BackendPipeline, PipelineConfig
+from core.session import loopback_config
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from protocol.session import loopback_config
 from simulation.publisher import publish_run
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario
-from smartedge.record import Recorder, RecordingError, read_recording, replay_main
+from smartedge.commands.record import Recorder, RecordingError, read_recording, replay_main
 from tests.conftest import free_port, wait_until
 
 SITE_FILE = Path(__file__).resolve().parents[2] / "simulation" / "sites" / "paper_lab.yaml"

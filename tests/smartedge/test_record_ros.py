@@ -22,6 +22,9 @@ mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 from mcap.reader import make_reader  # noqa: E402
 from mcap.writer import Writer  # noqa: E402
 
+from core.session import loopback_config  # noqa: E402
+from core.trajectory import read_tum, write_tum_planar  # noqa: E402
+from lab.evaluate import main as evaluate_main  # noqa: E402
 from protocol import keys  # noqa: E402
 from protocol.codec import encode  # noqa: E402
 from protocol.messages import (  # noqa: E402
@@ -34,11 +37,8 @@ from protocol.messages import (  # noqa: E402
     SemanticCloud,
     ServiceStatus,
 )
-from protocol.session import loopback_config  # noqa: E402
-from smartedge.evaluate import main as evaluate_main  # noqa: E402
-from smartedge.evaluation.trajectory_io import read_tum, write_tum_planar  # noqa: E402
-from smartedge.export import main as export_main  # noqa: E402
-from smartedge.record import Recorder, RecordingError, read_recording  # noqa: E402
+from smartedge.commands.export import main as export_main  # noqa: E402
+from smartedge.commands.record import Recorder, RecordingError, read_recording  # noqa: E402
 from tests.conftest import free_port  # noqa: E402
 
 SITE, ROBOT, CAM = "lab", "hsr", "cam-1"

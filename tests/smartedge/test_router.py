@@ -1,4 +1,5 @@
-"""``smartedge router``: the site's Zenoh router from the smartedge package (smartedge/router.py).
+"""``smartedge router``: the site's Zenoh router from the smartedge package
+(smartedge/commands/router.py).
 
 Run as the deployment runs it (a subprocess of ``python -m smartedge router``): two client-mode
 sessions that only know the router's endpoint exchange a message through it, SIGTERM stops it
@@ -18,8 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from protocol.runtime import EXIT_CONFIG
-from smartedge.router import one_line
+from core.runtime import EXIT_CONFIG
+from smartedge.commands.router import one_line
 from tests.conftest import REPO_ROOT, free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")

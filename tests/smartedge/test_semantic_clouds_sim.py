@@ -17,6 +17,7 @@ import pytest
 
 pytest.importorskip("moderngl")
 
+from core.geometry import se3_from_planar
 from edge_agent.models import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
@@ -25,7 +26,6 @@ from edge_agent.semantic_cloud import (
     build_semantic_cloud,
 )
 from protocol import decode, keys
-from protocol.geometry import se3_from_planar
 from protocol.messages import RobotDetections, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID
 from tests.conftest import free_port, wait_until
@@ -175,11 +175,11 @@ def test_edge_agent_publishes_a_decodable_cloud_over_zenoh_loopback() -> None:
     with the camera's T_world_cam, on the floor; counters and latencies in the agent's stats."""
     import zenoh
 
+    from core.runtime import ZenohRunner
+    from core.session import loopback_config
     from edge_agent.service import EdgeAgentNode
-    from protocol.runtime import ZenohRunner
-    from protocol.session import loopback_config
     from simulation.live import RenderedCameraFeed
-    from smartedge.sim.plugins import RenderedCameraSource
+    from smartedge.simulated_site import RenderedCameraSource
 
     live = _live(start_in_s=-5.0)
     feed = RenderedCameraFeed(live, "cam1", rate_hz=5.0)
@@ -221,7 +221,7 @@ def test_edge_agent_publishes_a_decodable_cloud_over_zenoh_loopback() -> None:
 
 def test_robot_camera_service_publishes_clouds_in_base_link() -> None:
     from simulation.live import LiveSimSpec
-    from smartedge.sim.robot_camera import build_node, build_parser
+    from smartedge.simulated_head_camera import build_node, build_parser
 
     epoch = time.time_ns() - 3 * 10**9
     argv = ["--cloud-rate", "2", *LiveSimSpec(epoch_ns=epoch).to_argv()]
@@ -264,7 +264,7 @@ def test_robot_camera_without_a_model_or_a_head_camera(tmp_path, caplog) -> None
 
     from protocol.errors import UsageError
     from simulation.scenario import PAPER_SCENARIO
-    from smartedge.sim.robot_camera import build_node, build_parser
+    from smartedge.simulated_head_camera import build_node, build_parser
 
     caplog.set_level(logging.ERROR)
     args = build_parser().parse_args(["--segmentation-model", str(tmp_path / "none.onnx")])
@@ -286,7 +286,7 @@ def test_robot_camera_without_a_model_or_a_head_camera(tmp_path, caplog) -> None
 
 def test_edge_agent_source_without_depth_logs_once_and_runs_without_clouds(caplog) -> None:
     from edge_agent.service import build_node, build_parser
-    from smartedge.sim.plugins import register_sim_source
+    from smartedge.simulated_site import register_sim_source
 
     register_sim_source()
     caplog.set_level(logging.INFO)

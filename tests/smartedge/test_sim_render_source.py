@@ -61,7 +61,7 @@ def test_edge_agent_sim_cnn_source_publishes_detections(tiny_models: Path) -> No
     RobotDetections of the rendered frames (full image size, the model's id) and whose status
     names the rendered source; render and network latencies are recorded."""
     from edge_agent.service import build_node, build_parser
-    from smartedge.sim.plugins import register_sim_source
+    from smartedge.simulated_site import register_sim_source
 
     register_sim_source()
     args = build_parser().parse_args(["--camera", "cam2", "--source", "sim", "--detections",

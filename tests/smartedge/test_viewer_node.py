@@ -13,9 +13,9 @@ import pytest
 
 pytest.importorskip("rerun")
 
+from core.runtime import ScriptedRunner
 from protocol import encode, keys
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate
-from protocol.runtime import ScriptedRunner
 from smartedge.viewer.node import ViewerNode
 from smartedge.viewer.rerun_view import RerunTarget, RerunView
 

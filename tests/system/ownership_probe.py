@@ -1,6 +1,6 @@
 """A backend stand-in for the failover tests: the ownership logic on the real runner, no pipeline.
 
-:class:`OwnershipProbe` is a ``backend`` :class:`~protocol.runtime.ServiceNode` wired the way
+:class:`OwnershipProbe` is a ``backend`` :class:`~core.runtime.ServiceNode` wired the way
 ``smartedge backend`` is to use backend_service/ownership.py (:class:`BackendOwnership`): the
 runner declares its ``alive/backend/<id>`` token and feeds it the liveliness of
 ``alive/backend/*`` and ``owner/*/*``; :meth:`attach` runs the start-up liveliness get; every
@@ -29,10 +29,10 @@ from backend_service.ownership import (
     DEFAULT_STALL_S,
     BackendOwnership,
 )
+from core.runtime import Outgoing, ServiceNode, Subscription, service_main
+from core.session import add_session_arguments
 from protocol import keys
 from protocol.messages import PoseEstimate
-from protocol.runtime import Outgoing, ServiceNode, Subscription, service_main
-from protocol.session import add_session_arguments
 
 #: the flag that names the publishing backend on each estimate
 FLAG_PREFIX = "backend."

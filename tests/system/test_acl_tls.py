@@ -168,7 +168,7 @@ def test_liveliness_tokens_only_on_own_alive_key(bus: Bus) -> None:
 
 def test_unknown_certificate_name_gets_nothing(bus: Bus, pki: Path, tmp_path: Path) -> None:
     """A CA-signed certificate whose CN names no identity joins but can neither put nor read."""
-    from smartedge.certs import _issue, _new_key
+    from smartedge.commands.certs import _issue, _new_key
 
     work = tmp_path / "rogue"
     work.mkdir()

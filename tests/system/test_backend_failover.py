@@ -7,7 +7,7 @@ Real parts: ``smartedge router`` on a loopback port, three backends (two
 subprocess that gets SIGKILL), each on its own client session with the runner's liveliness
 token, and a monitor session that records, in arrival order, every owner token change and every
 estimate with the backend named in its flags. The probes are the ownership half of the backend
-(backend_service/ownership.py on :class:`~protocol.runtime.ZenohRunner`), without a pipeline.
+(backend_service/ownership.py on :class:`~core.runtime.ZenohRunner`), without a pipeline.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ from typing import Any
 import pytest
 
 from backend_service.ownership import choose_owner, parse_liveliness
+from core.runtime import ZenohRunner
 from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
-from protocol.runtime import ZenohRunner
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 from tests.system.ownership_probe import FLAG_PREFIX, OwnershipProbe
 

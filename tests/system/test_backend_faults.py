@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.session import loopback_config
 from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
-from protocol.session import loopback_config
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")

@@ -19,10 +19,10 @@ import pytest
 import yaml
 
 from backend_service.frame_set import PlanarPose
+from core.session import loopback_config
+from core.site import Site, load_site
 from protocol import decode, encode, keys
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
-from protocol.session import loopback_config
-from protocol.site import Site, load_site
 from tests.backend_service.pose_synth import ROBOT, SITE_PATH, project_pose
 from tests.conftest import free_port, stop_process, wait_until
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from smartedge.demo import Monitor, Services, run_demo
+from lab.demo import Monitor, Services, run_demo
 from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.slow
@@ -74,8 +74,8 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
     )
     # TUM files per source; the fused track's APE against the ground-truth track is the
     # demo's own fused RMS (same stamps, same truth)
-    from smartedge.evaluation.metrics import ape
-    from smartedge.evaluation.trajectory_io import read_tum
+    from core.trajectory import read_tum
+    from lab.evaluation.metrics import ape
 
     tum = tmp_path / "tum"
     for name in ("camera", "fused", "localization", "ground_truth"):

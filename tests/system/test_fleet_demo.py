@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from smartedge.demo import FLEET_SITE_FILE, run_demo, wrong_robot_corrections
+from lab.demo import FLEET_SITE_FILE, run_demo, wrong_robot_corrections
 
 pytestmark = pytest.mark.slow
 

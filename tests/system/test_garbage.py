@@ -11,10 +11,10 @@ import msgpack
 import numpy as np
 import pytest
 
+from core.runtime import ZenohRunner
+from core.session import loopback_config
 from protocol import decode, encode, keys
 from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
-from protocol.runtime import ZenohRunner
-from protocol.session import loopback_config
 from tests.conftest import free_port, wait_until
 
 zenoh = pytest.importorskip("zenoh")
@@ -130,7 +130,7 @@ def test_backend_survives_garbage_on_every_key(tmp_path) -> None:
 
 def test_robot_bridge_survives_garbage_on_every_key() -> None:
     from robot_bridge.service import build_node, build_parser
-    from smartedge.sim.plugins import register_simulation
+    from smartedge.simulated_site import register_simulation
 
     register_simulation()
     args = build_parser().parse_args(["--adapter", "sim", "--sim-epoch-ns", str(time.time_ns())])

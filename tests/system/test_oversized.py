@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.session import loopback_config
+from lab.processes import RssSampler, rss_mib
 from protocol import decode, encode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
-from protocol.session import loopback_config
 from simulation.hostile import hostile_payloads
-from smartedge.processes import RssSampler, rss_mib
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
