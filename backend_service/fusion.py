@@ -48,12 +48,11 @@ import numpy as np
 from core.geometry import rotation_z
 from core.history import StampedHistory
 from core.site import ClockPolicy, Site
-from protocol.messages import Odometry, PoseEstimate
+from protocol.messages import NS_PER_S, Odometry, PoseEstimate
 
 logger = logging.getLogger(__name__)
 
 ROBUST_KERNELS: Final = ("huber", "cauchy", "none")
-_NS_PER_S: Final = 1e9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -418,7 +417,7 @@ class PoseGraphFusion:
                     (last_stamp - stamp) * 1e-9)
                 return self._restart_after_jump(stamp, T_odom, cov)
             self._ooo_run = 0
-            if self._is_jump(last.item.T_odom_robot, T_odom, (stamp - last_stamp) / _NS_PER_S):
+            if self._is_jump(last.item.T_odom_robot, T_odom, (stamp - last_stamp) / NS_PER_S):
                 return self._restart_after_jump(stamp, T_odom, cov)
         self._odom.insert(stamp, _OdomSample(T_odom, cov))
         self.counters["odometry_accepted"] += 1
@@ -508,7 +507,7 @@ class PoseGraphFusion:
         ``out_of_order_reset_count`` of them, in order among themselves and all more than
         ``out_of_order_reset_gap_s`` older than ``last_stamp``, says the newest accepted stamp
         is the one that is wrong."""
-        if last_stamp - stamp <= self.config.out_of_order_reset_gap_s * _NS_PER_S:
+        if last_stamp - stamp <= self.config.out_of_order_reset_gap_s * NS_PER_S:
             self._ooo_run = 0  # close to what the fusion has: a duplicate or a replay
             return False
         if self._ooo_run and stamp <= self._ooo_last_stamp:
@@ -627,7 +626,7 @@ class PoseGraphFusion:
     def _between_record(self, a: _Keyframe, b: _Keyframe) -> _Factor:
         cov = self._odometry_noise(
             a.T_odom_robot, a.cov_odom, b.T_odom_robot, b.cov_odom,
-            (b.stamp_ns - a.stamp_ns) / _NS_PER_S,
+            (b.stamp_ns - a.stamp_ns) / NS_PER_S,
         )
         measured = a.T_odom_robot.between(b.T_odom_robot)
         return _Factor("between", a.key, b.key, measured, cov, robust=False)
@@ -640,7 +639,7 @@ class PoseGraphFusion:
         cfg = self.config
         dist_m, angle_rad = _motion(last.T_odom_robot.between(T_odom))
         moved = dist_m > cfg.static_motion_m or angle_rad > cfg.static_motion_rad
-        dt_s = (stamp - last.stamp_ns) / _NS_PER_S
+        dt_s = (stamp - last.stamp_ns) / NS_PER_S
         if (
             dist_m >= cfg.keyframe_distance_m
             or angle_rad >= cfg.keyframe_angle_rad
@@ -851,7 +850,7 @@ class PoseGraphFusion:
         delta = kf.T_odom_robot.between(T_odom)
         adj = delta.inverse().AdjointMap()
         q = self._odometry_noise(
-            kf.T_odom_robot, kf.cov_odom, T_odom, cov_odom, (stamp_ns - kf.stamp_ns) / _NS_PER_S
+            kf.T_odom_robot, kf.cov_odom, T_odom, cov_odom, (stamp_ns - kf.stamp_ns) / NS_PER_S
         )
         cov = adj @ cov_kf_body @ adj.T + q
         return 0.5 * (cov + cov.T)
@@ -889,7 +888,7 @@ class PoseGraphFusion:
     # ----------------------------------------------------------------------------------------
 
     def _prune_pre_anchor_buffer(self) -> None:
-        self._odom.trim_to_age(int(self.config.pre_anchor_buffer_s * _NS_PER_S))
+        self._odom.trim_to_age(int(self.config.pre_anchor_buffer_s * NS_PER_S))
 
     def _droppable(self) -> int:
         """Keyframes outside the window (time or count), keeping at least the latest."""
@@ -897,7 +896,7 @@ class PoseGraphFusion:
             return 0
         cfg = self.config
         n = len(self._kfs)
-        horizon = self._kf_stamps[-1] - int(cfg.window_s * _NS_PER_S)
+        horizon = self._kf_stamps[-1] - int(cfg.window_s * NS_PER_S)
         too_old = bisect.bisect_left(self._kf_stamps, horizon)
         return min(max(too_old, n - cfg.max_keyframes), n - 1)
 

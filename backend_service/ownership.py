@@ -85,6 +85,7 @@ from core.runtime import Subscription
 from core.session import drain_replies
 from protocol import keys
 from protocol.errors import ValidationError
+from protocol.messages import NS_PER_S
 from protocol.validation import check_id
 
 log = logging.getLogger(__name__)
@@ -115,7 +116,6 @@ SYNC_RETRY_S: Final = 1.0
 #: frozen backend reconnected: it missed the other backends), and a get over a link that has
 #: died unnoticed answers nothing
 DEFAULT_RESYNC_S: Final = 1.0
-NS: Final = 1_000_000_000
 
 
 @functools.lru_cache(maxsize=4096)
@@ -217,12 +217,12 @@ class OwnershipTable:
         self.instance_id = check_id("instance_id", instance_id)
         self.robots: tuple[str, ...] = tuple(dict.fromkeys(robots))
         self.pinned = dict(pinned or {})
-        self.confirm_ns = round(confirm_s * NS)
-        self.join_delay_ns = round(join_delay_s * NS)
-        self.stall_ns = round(stall_s * NS)
+        self.confirm_ns = round(confirm_s * NS_PER_S)
+        self.join_delay_ns = round(join_delay_s * NS_PER_S)
+        self.stall_ns = round(stall_s * NS_PER_S)
         self._last_decide_ns: int | None = None
         self._started_ns = started_ns
-        self.area_grace_ns = round(DEFAULT_AREA_GRACE_S * NS)
+        self.area_grace_ns = round(DEFAULT_AREA_GRACE_S * NS_PER_S)
         #: live backends -> when this table first saw them (self: from ``started_ns``)
         self._members: dict[str, int] = {self.instance_id: started_ns}
         #: robot -> other backends whose owner token for it is in sight
@@ -454,7 +454,7 @@ class OwnershipTable:
             self.counters["ownership.stalls"] += 1
             decision = self.forget(now_ns)
             log.warning("backend %s: no decision for %.1f s; dropped %s, re-syncing",
-                        self.instance_id, (now_ns - last) / NS,
+                        self.instance_id, (now_ns - last) / NS_PER_S,
                         ", ".join(decision.release) or "no robot")
             return decision
         claim: list[str] = []
@@ -728,7 +728,7 @@ class BackendOwnership:
                  areas: AreaMap | None = None,
                  own_areas: Sequence[str] = ()) -> None:
         self.site = site
-        self.resync_ns = round(resync_s * NS)
+        self.resync_ns = round(resync_s * NS_PER_S)
         self.table = OwnershipTable(instance_id, robots, started_ns=started_ns, pinned=pinned,
                                     confirm_s=confirm_s, join_delay_s=join_delay_s,
                                     stall_s=stall_s, areas=areas, own_areas=own_areas)
@@ -811,7 +811,7 @@ class BackendOwnership:
         assert self._clock is not None
         was_synced = self.table.is_synced
         self.table.counters["ownership.sync_errors"] += 1
-        self._next_sync_ns = self._clock() + round(SYNC_RETRY_S * NS)
+        self._next_sync_ns = self._clock() + round(SYNC_RETRY_S * NS_PER_S)
         log.exception("backend %s: the liveliness get of the backends and owner tokens "
                       "failed%s", self.table.instance_id,
                       "" if was_synced else "; publishing nothing until it succeeds")

@@ -24,8 +24,9 @@ from typing import Final
 
 import numpy as np
 
+from protocol.messages import NS_PER_S
+
 _TAU: Final = 2.0 * math.pi
-_NS_PER_S: Final = 1_000_000_000
 
 # --------------------------------------------------------------------------------------------
 # angles
@@ -421,7 +422,7 @@ class StaticDetector:
         self.max_speed_mps = float(max_speed_mps)
         self.max_yaw_rate_radps = float(max_yaw_rate_radps)
         self.dwell_s = float(dwell_s)
-        self._dwell_ns = round(self.dwell_s * _NS_PER_S)
+        self._dwell_ns = round(self.dwell_s * NS_PER_S)
         self._state = MotionState()
 
     @classmethod

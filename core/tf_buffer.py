@@ -55,10 +55,10 @@ import numpy as np
 from core.geometry import quaternion_to_rotation, rotation_to_quaternion
 from core.history import StampedHistory
 from protocol.errors import SmartedgeError
+from protocol.messages import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-_NS_PER_S: Final = 1_000_000_000
 #: tf2 refuses a quaternion whose squared norm is further than this from 1
 _QUATERNION_NORM2_TOLERANCE: Final = 0.01
 #: how far a (4, 4) matrix's rotation block may be from orthonormal
@@ -232,7 +232,7 @@ def _clean_frame(frame: Any) -> str:
 
 
 def _fmt_s(ns: int) -> str:
-    return f"{ns / _NS_PER_S:.3f} s"
+    return f"{ns / NS_PER_S:.3f} s"
 
 
 # --------------------------------------------------------------------------------------------
@@ -248,8 +248,8 @@ class TfBuffer:
 
     def __init__(self, config: TfBufferConfig | None = None) -> None:
         self.config = config or TfBufferConfig()
-        self._history_ns = round(self.config.history_s * _NS_PER_S)
-        self._max_age_ns = round(self.config.max_age_s * _NS_PER_S)
+        self._history_ns = round(self.config.history_s * NS_PER_S)
+        self._max_age_ns = round(self.config.max_age_s * NS_PER_S)
         self._edges: dict[str, _Edge] = {}  # by child frame
         self.counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
         self.last_error: str = ""
@@ -531,7 +531,7 @@ def transform_from_ros(msg: Any) -> TransformReading:
     tr, rot = msg.transform.translation, msg.transform.rotation
     return TransformReading(
         parent=str(msg.header.frame_id), child=str(msg.child_frame_id),
-        stamp_ns=int(stamp.sec) * _NS_PER_S + int(stamp.nanosec),
+        stamp_ns=int(stamp.sec) * NS_PER_S + int(stamp.nanosec),
         translation_m=(float(tr.x), float(tr.y), float(tr.z)),
         q_xyzw=(float(rot.x), float(rot.y), float(rot.z), float(rot.w)))
 

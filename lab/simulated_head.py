@@ -50,6 +50,7 @@ from core.runtime import Outgoing, ServiceNode, service_main
 from core.session import add_session_arguments
 from core.site import HeadCamera, Site
 from protocol.errors import UsageError
+from protocol.messages import NS_PER_S
 from simulation.head import CAMERA_FRAME, FrameTransform, SimulatedHead
 
 if TYPE_CHECKING:
@@ -85,7 +86,6 @@ DEFAULT_NODE_NAME: Final = "hsrb_sim_head"
 TRANSPORTS: Final = ("rmw_zenoh", "ros2dds")
 #: 16UC1 depth: millimetres, 0 = no depth, the largest value a uint16 holds
 DEPTH_MAX_MM: Final = 65535
-_NS_PER_S: Final = 1_000_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,9 +209,9 @@ class HeadRosStream:
             raise ValueError(f"/tf_static period {static_period_s} s: must be > 0")
         self.head = head
         self.feed = feed
-        self._tf_period_ns = round(_NS_PER_S / tf_rate_hz)
+        self._tf_period_ns = round(NS_PER_S / tf_rate_hz)
         self._tf_phase_ns = round(TF_PHASE_FRACTION * self._tf_period_ns)
-        self._static_period_ns = round(static_period_s * _NS_PER_S)
+        self._static_period_ns = round(static_period_s * NS_PER_S)
         self._next_tf: int | None = None
         self._next_static_ns: int | None = None
         self.counters: dict[str, int] = {"tf": 0, "tf_static": 0, "images": 0,
@@ -229,7 +229,7 @@ class HeadRosStream:
         newest = (now_ns - self.tf_stamp(0)) // self._tf_period_ns
         if self._next_tf is None:
             self._next_tf = int(newest)
-        first = max(self._next_tf, int(newest) - round(MAX_TF_CATCH_UP_S * _NS_PER_S
+        first = max(self._next_tf, int(newest) - round(MAX_TF_CATCH_UP_S * NS_PER_S
                                                        / self._tf_period_ns))
         self.counters["tf_skipped"] += max(0, first - self._next_tf)
         out = []

@@ -34,6 +34,9 @@ from protocol.validation import (
     check_text,
 )
 
+#: nanoseconds per second: every ``stamp_ns`` of the contract is an integer count of these
+NS_PER_S: Final = 1_000_000_000
+
 MAX_DETECTIONS: Final = 64
 MAX_KEYPOINTS: Final = 256
 MAX_CLOUD_POINTS: Final = 2_000_000

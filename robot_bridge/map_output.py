@@ -27,12 +27,11 @@ from typing import Any, Final
 
 import numpy as np
 
-from protocol.messages import SemanticCloud
+from protocol.messages import NS_PER_S, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID, class_colors
 
 log = logging.getLogger(__name__)
 
-NS_PER_S: Final = 1_000_000_000
 POINT_CLOUD2_TYPE: Final = "sensor_msgs/msg/PointCloud2"
 OCCUPANCY_GRID_TYPE: Final = "nav_msgs/msg/OccupancyGrid"
 #: sensor_msgs/PointField datatypes

@@ -49,10 +49,8 @@ import numpy.typing as npt
 
 from core.geometry import MotionState, angle_diff
 from core.site import Thresholds
-from protocol.messages import PoseEstimate
+from protocol.messages import NS_PER_S, PoseEstimate
 from robot_bridge.adapters.base import LocalizationPose
-
-NS_PER_S: Final = 1_000_000_000
 
 # Why a pose was (not) sent; also the counter names of the bridge (``skip_<reason>``).
 SEND: Final = "send"

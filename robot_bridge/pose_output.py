@@ -23,10 +23,9 @@ import numpy as np
 from core.geometry import se2_compose, se2_inverse
 from core.history import StampedHistory, lerp_se2
 from core.site import ClockPolicy
-from protocol.messages import PoseEstimate
+from protocol.messages import NS_PER_S, PoseEstimate
 from robot_bridge.adapters.base import MapToOdom
 
-NS_PER_S: Final = 1_000_000_000
 #: odometry kept to find the robot's odometry pose at an estimate's stamp
 ODOMETRY_HISTORY: Final = 2048
 

@@ -30,6 +30,7 @@ from typing import Final
 import numpy as np
 
 from core.geometry import invert_transform, rotation_z
+from protocol.messages import NS_PER_S
 
 #: HSR frame names (hsrb_description)
 BASE_FRAME: Final = "base_link"
@@ -47,7 +48,6 @@ DEFAULT_TILT_IN_PAN_M: Final = (0.02, 0.0, 0.19)
 DEFAULT_PAN_LIMITS_RAD: Final = (-3.84, 1.75)
 DEFAULT_TILT_LIMITS_RAD: Final = (-0.52, 1.57)
 
-_NS_PER_S: Final = 1_000_000_000
 
 
 def rotation_y(angle_rad: float) -> np.ndarray:
@@ -215,7 +215,7 @@ class SimulatedHead:
         """(pan, tilt) radians at ``stamp_ns``, inside the joint limits."""
         if self.motion is None:
             return 0.0, 0.0
-        pan, tilt = self.motion.joints((int(stamp_ns) - self.epoch_ns) / _NS_PER_S)
+        pan, tilt = self.motion.joints((int(stamp_ns) - self.epoch_ns) / NS_PER_S)
         k = self.kinematics
         return (min(max(pan, k.pan_limits_rad[0]), k.pan_limits_rad[1]),
                 min(max(tilt, k.tilt_limits_rad[0]), k.tilt_limits_rad[1]))

@@ -29,9 +29,7 @@ from core.geometry import (
     wrap_angle,
     wrap_angle_array,
 )
-from protocol.messages import Odometry, PoseEstimate
-
-NS_PER_S: Final = 1_000_000_000
+from protocol.messages import NS_PER_S, Odometry, PoseEstimate
 
 
 class PoseFusion(Protocol):

@@ -27,6 +27,7 @@ from typing import Any, Final
 import numpy as np
 
 from protocol.messages import (
+    NS_PER_S,
     CameraImage,
     Message,
     Odometry,
@@ -63,7 +64,6 @@ POSE_TYPES: Final = (
 _CDR_LE: Final = b"\x00\x01\x00\x00"
 _TOPIC_BAD_CHARS: Final = re.compile(r"[^A-Za-z0-9_/]")
 _LEVELS: Final = {"starting": 0, "ok": 0, "degraded": 1, "error": 2, "stopping": 3}
-_NS_PER_S: Final = 1_000_000_000
 
 
 class RosRecordError(ValueError):
@@ -120,7 +120,7 @@ def wire_payload(cdr: bytes | memoryview) -> bytes:
 
 
 def _time(ts: Any, stamp_ns: int) -> Any:
-    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     if not 0 <= sec < 2**31:
         raise RosRecordError(f"stamp {stamp_ns} ns does not fit a ROS 2 time")
     return ts.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
@@ -255,5 +255,5 @@ def pose_from_ros(ros_type: str, cdr: bytes) -> tuple[int, np.ndarray, np.ndarra
     else:
         pose = obj.pose if ros_type.endswith("PoseStamped") else obj.pose.pose
         p, q = pose.position, pose.orientation
-    return (int(stamp.sec) * _NS_PER_S + int(stamp.nanosec), np.array([p.x, p.y, p.z]),
+    return (int(stamp.sec) * NS_PER_S + int(stamp.nanosec), np.array([p.x, p.y, p.z]),
             np.array([q.x, q.y, q.z, q.w]))

@@ -23,7 +23,8 @@ import numpy as np
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
 from lab.processes import rss_mib
-from simulation.synthetic_run import NS_PER_S, make_synthetic_run
+from protocol.messages import NS_PER_S
+from simulation.synthetic_run import make_synthetic_run
 
 
 class _Latencies:

@@ -31,7 +31,7 @@ from typing import Any, Final
 import numpy as np
 
 from core.geometry import quaternion_to_yaw, yaw_to_quaternion
-from protocol.messages import PoseCorrection, PoseEstimate
+from protocol.messages import NS_PER_S, PoseCorrection, PoseEstimate
 from robot_bridge.adapters.base import (
     POSE_STREAMS,
     LocalizationPose,
@@ -69,7 +69,6 @@ ROBOT_PROFILES: Final = ("hsr", "nav2")
 #: (x, y, yaw) → index in the row-major 6x6 (x, y, z, roll, pitch, yaw) ROS covariance.
 _COV6_INDEX: Final = (0, 1, 5)
 _FRAME_BAD_CHARS: Final = re.compile(r"[^A-Za-z0-9_.\-]")
-_NS_PER_S: Final = 1_000_000_000
 
 
 class RosConversionError(ValueError):
@@ -147,7 +146,7 @@ def typestore(ros1: bool = False) -> Any:
 def stamp_ns_to_ros(stamp_ns: int) -> tuple[int, int]:
     """ns since the epoch → ``(sec, nanosec)`` of ``builtin_interfaces/Time``;
     :class:`RosConversionError` past 2038 (``sec`` is an int32 in ROS 2, uint32 in ROS 1)."""
-    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     if not 0 <= sec < 2**31:
         raise RosConversionError(f"stamp {stamp_ns} ns does not fit a ROS time")
     return sec, nanosec
@@ -155,7 +154,7 @@ def stamp_ns_to_ros(stamp_ns: int) -> tuple[int, int]:
 
 def ros_to_stamp_ns(sec: int, nanosec: int) -> int:
     """``builtin_interfaces/Time`` → ns since the epoch."""
-    return int(sec) * _NS_PER_S + int(nanosec)
+    return int(sec) * NS_PER_S + int(nanosec)
 
 
 def orientation_to_yaw(orientation: Any) -> float:

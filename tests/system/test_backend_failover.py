@@ -33,7 +33,7 @@ import pytest
 from backend_service.ownership import choose_owner, parse_liveliness
 from core.runtime import ZenohRunner
 from protocol import decode, encode, keys
-from protocol.messages import Odometry, PoseEstimate, RobotDetections
+from protocol.messages import NS_PER_S, Odometry, PoseEstimate, RobotDetections
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 from tests.system.ownership_probe import FLAG_PREFIX, OwnershipProbe
 
@@ -47,7 +47,6 @@ INSTANCES = ("b1", "b2", "b3")
 ROUTER_CONFIG = REPO_ROOT / "deploy" / "zenoh" / "router.json5"
 #: the issue's target: robots resume within this after their backend died
 FAILOVER_TARGET_S = 3.0
-NS = 1_000_000_000
 
 
 def client_config(endpoint: str) -> Any:
@@ -396,7 +395,7 @@ def test_a_frozen_backend_is_replaced_and_does_not_publish_when_it_thaws(
     print(f"frozen backend {victim} ({orphans}): taken over {taken_ms / 1e6:.0f} ms after "
           f"SIGSTOP (lease 1 s); back to it {back_ms / 1e6:.0f} ms after SIGCONT; the "
           f"survivor's robots never stopped longer than {max(gaps_ms):.0f} ms")
-    assert taken_ms <= FAILOVER_TARGET_S * NS
+    assert taken_ms <= FAILOVER_TARGET_S * NS_PER_S
     assert max(gaps_ms) <= FAILOVER_TARGET_S * 1e3
 
 
@@ -455,7 +454,7 @@ def test_a_killed_backend_s_robot_resumes_from_another_real_backend(tmp_path: Pa
             odom = hub.declare_publisher(keys.odom_key(SIM_SITE, sc.robot_id), **qos)
             wall0 = time.monotonic()
             for tm in run.messages(until_s=SIM_S):
-                t_s = (tm.arrival_ns - sc.start_stamp_ns) / NS
+                t_s = (tm.arrival_ns - sc.start_stamp_ns) / NS_PER_S
                 time.sleep(max(0.0, t_s - (time.monotonic() - wall0)))
                 if t_s >= KILL_S and not victim:
                     held: set[str] = set()

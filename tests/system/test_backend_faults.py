@@ -36,7 +36,7 @@ import pytest
 
 from core.session import loopback_config
 from protocol import decode, encode, keys
-from protocol.messages import Odometry, PoseEstimate, RobotDetections, ServiceStatus
+from protocol.messages import NS_PER_S, Odometry, PoseEstimate, RobotDetections, ServiceStatus
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
 
 zenoh = pytest.importorskip("zenoh")
@@ -48,7 +48,6 @@ SITE_FILE = REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"
 #: simulated seconds published per test, and when the fault starts
 SIM_S = 10.0
 FAULT_S = 3.0
-NS = 1_000_000_000
 AHEAD_CAMERA = "cam1"
 
 
@@ -133,7 +132,7 @@ def camera_ahead() -> tuple[Callable[[Any, float], list[Any]], dict[str, Any]]:
         if isinstance(msg, RobotDetections) and t_s >= FAULT_S:
             if msg.camera_id == AHEAD_CAMERA:
                 notes["shifted"].append(msg.stamp_ns)
-                return [dataclasses.replace(msg, stamp_ns=msg.stamp_ns + NS // 2)]
+                return [dataclasses.replace(msg, stamp_ns=msg.stamp_ns + NS_PER_S // 2)]
             others = notes["others_frames"]
             others[msg.camera_id] = others.get(msg.camera_id, 0) + 1
         return [msg]
@@ -196,7 +195,7 @@ def publish(b: Backend, alter: Callable[[Any, float], list[Any]]) -> Any:
     t0_ns = sc.start_stamp_ns
     try:
         for tm in run.messages(until_s=SIM_S):
-            t_s = (tm.arrival_ns - t0_ns) / NS
+            t_s = (tm.arrival_ns - t0_ns) / NS_PER_S
             time.sleep(max(0.0, t_s - (time.monotonic() - wall0)))
             for msg in alter(tm.message, t_s):
                 if isinstance(msg, RobotDetections):
@@ -213,7 +212,7 @@ def publish(b: Backend, alter: Callable[[Any, float], list[Any]]) -> Any:
 
 def errors_m(run: Any, estimates: list[PoseEstimate]) -> np.ndarray:
     t0 = run.scenario.start_stamp_ns
-    truth = np.array([run.plan.pose_at((e.stamp_ns - t0) / NS).reshape(-1, 3)[0][:2]
+    truth = np.array([run.plan.pose_at((e.stamp_ns - t0) / NS_PER_S).reshape(-1, 3)[0][:2]
                       for e in estimates])
     est = np.array([[e.x, e.y] for e in estimates])
     return np.asarray(np.hypot(*(est - truth).T))
@@ -229,9 +228,9 @@ def test_odometry_stamped_2_63_minus_1_is_counted_and_fusion_goes_on(
     fusion = {k: v for k, v in counters.items() if k.startswith("fusion.")}
     assert fusion.get("fusion.hsr.odometry_out_of_order", 0) == 0, fusion
     # fused poses keep coming after the probe, at the rate they came before, and accurate
-    t_inject = run.scenario.start_stamp_ns + round(injected[0] * NS)
+    t_inject = run.scenario.start_stamp_ns + round(injected[0] * NS_PER_S)
     before = [e for e in backend.fused if e.stamp_ns < t_inject]
-    after = [e for e in backend.fused if e.stamp_ns > t_inject + NS]
+    after = [e for e in backend.fused if e.stamp_ns > t_inject + NS_PER_S]
     assert before and after, (len(before), len(after))
     rate_before = len(before) / injected[0]
     rate_after = len(after) / (SIM_S - injected[0] - 1.0)
@@ -256,13 +255,13 @@ def test_one_camera_half_a_second_ahead_starves_no_one(fault_runs: dict[str, Fau
     assert any(f"camera {AHEAD_CAMERA}" in r and "ahead" in r for r in reasons), reasons
     assert not any(f"camera {c} " in r.split(" | ")[0] for r in reasons for c in others), reasons
     # not starved: a camera pose for (nearly) every frame time of the other cameras
-    t_fault = run.scenario.start_stamp_ns + round(FAULT_S * NS)
+    t_fault = run.scenario.start_stamp_ns + round(FAULT_S * NS_PER_S)
     single = [e for e in backend.camera
               if "multi_frame" not in e.flags and e.stamp_ns >= t_fault]
     expected = max(others_frames.values())
     assert len(single) >= 0.8 * expected, (len(single), expected)
     assert all(AHEAD_CAMERA not in e.camera_ids for e in single)
-    gaps = np.diff(sorted(e.stamp_ns for e in single)) / NS
+    gaps = np.diff(sorted(e.stamp_ns for e in single)) / NS_PER_S
     assert float(gaps.max()) < 1.0, float(gaps.max())
     assert float(np.sqrt(np.mean(errors_m(run, single) ** 2))) < 0.1
     assert math.isfinite(float(np.mean([e.reprojection_rmse_px for e in single])))

@@ -37,9 +37,8 @@ from lab.demo import Monitor, Services
 from lab.processes import RssSampler, free_port, rss_mib, stop_processes
 from protocol import decode
 from protocol.errors import DecodeError
-from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
+from protocol.messages import NS_PER_S, PoseCorrection, PoseEstimate, ServiceStatus
 
-NS: Final = 1_000_000_000
 #: seconds between starting the services and the simulation's t = 0
 STARTUP_S: Final = 10.0
 #: sequence numbers of the attacker's own messages start here (so the monitor can tell them)
@@ -223,7 +222,7 @@ class Run:
         self.fault = (probe.fault[0] * scale, probe.fault[1] * scale)
         scenario = load_scenario()
         self.spec = LiveSimSpec(trajectory=TRAJECTORY, seed=0,
-                                epoch_ns=time.time_ns() + round(startup_s * NS),
+                                epoch_ns=time.time_ns() + round(startup_s * NS_PER_S),
                                 stop_s=STOP_S, max_speed_mps=MAX_SPEED_MPS)
         self.live = LiveSimulation(self.spec, scenario)
         self.site = scenario.site.name
@@ -254,10 +253,10 @@ class Run:
 
     def sim_t(self, wall_ns: int | None = None) -> float:
         """Simulated seconds at ``wall_ns`` (default: now)."""
-        return ((time.time_ns() if wall_ns is None else wall_ns) - self.spec.epoch_ns) / NS
+        return ((time.time_ns() if wall_ns is None else wall_ns) - self.spec.epoch_ns) / NS_PER_S
 
     def wall_ns(self, sim_s: float) -> int:
-        return self.spec.epoch_ns + round(sim_s * NS)
+        return self.spec.epoch_ns + round(sim_s * NS_PER_S)
 
     def sleep_until(self, sim_s: float) -> bool:
         """Sleep until simulated time ``sim_s``; ``False`` when the run is being stopped."""
@@ -288,7 +287,7 @@ class Run:
                if "multi_frame" not in e.flags and t0 <= self.sim_t(e.stamp_ns) < t1]
         err = self._errors(est)
         stamps = sorted([self.wall_ns(t0)] + [e.stamp_ns for e in est] + [self.wall_ns(t1)])
-        gap = float(np.max(np.diff(stamps))) / NS
+        gap = float(np.max(np.diff(stamps))) / NS_PER_S
         if not est:
             return CameraFigures(0, 0.0, math.nan, math.nan, math.nan, gap)
         return CameraFigures(len(est), len(est) / max(t1 - t0, 1e-9),
@@ -339,7 +338,7 @@ class Run:
     def status_gap_s(self, name: str, t0: float, t1: float) -> float:
         assert self.monitor is not None
         at = [a for a, _ in self.monitor.statuses.get(name, []) if t0 <= self.sim_t(a) < t1]
-        return float(np.max(np.diff([self.wall_ns(t0), *at, self.wall_ns(t1)]))) / NS
+        return float(np.max(np.diff([self.wall_ns(t0), *at, self.wall_ns(t1)]))) / NS_PER_S
 
     def degraded(self, name: str, t0: float, t1: float) -> list[str]:
         """The distinct reasons (the parts of the status detail before ``|``) of ``name``'s
@@ -445,7 +444,6 @@ class Run:
 
 __all__ = [
     "FAKE_SEQ0",
-    "NS",
     "STARTUP_S",
     "TRAJECTORY",
     "CameraFigures",

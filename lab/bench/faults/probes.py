@@ -17,10 +17,10 @@ from typing import Any, Final
 
 import numpy as np
 
-from lab.bench.faults.harness import FAKE_SEQ0, NS, Probe, Run, Verdict
+from lab.bench.faults.harness import FAKE_SEQ0, Probe, Run, Verdict
 from protocol import decode, encode, keys
 from protocol.errors import DecodeError
-from protocol.messages import Odometry, PoseEstimate, RobotDetections
+from protocol.messages import NS_PER_S, Odometry, PoseEstimate, RobotDetections
 from simulation.hostile import hostile_payloads
 
 #: the status is published every second; a longer gap means a pinned worker
@@ -73,7 +73,7 @@ def _fake_estimates(offset_m: tuple[float, float], *, covariance: np.ndarray,
             base = run.latest_localization()
             if base is None:
                 base = run.live.ground_truth(now)
-            est = PoseEstimate(run.robot_id, now + round(ahead_s * NS), FAKE_SEQ0 + i,
+            est = PoseEstimate(run.robot_id, now + round(ahead_s * NS_PER_S), FAKE_SEQ0 + i,
                                float(base[0] + offset_m[0]), float(base[1] + offset_m[1]),
                                float(base[2]), covariance, "fused")
             return encode(est)
@@ -291,7 +291,8 @@ def _inject_camera_ahead(run: Run) -> None:
         while not run.stop.is_set():
             for msg in feed.poll(time.time_ns()):
                 if run.in_fault:
-                    msg = dataclasses.replace(msg, stamp_ns=msg.stamp_ns + round(AHEAD_S * NS))
+                    ahead_ns = round(AHEAD_S * NS_PER_S)
+                    msg = dataclasses.replace(msg, stamp_ns=msg.stamp_ns + ahead_ns)
                     shifted += 1
                 pub.put(encode(msg))
             time.sleep(0.005)
@@ -469,7 +470,7 @@ def _judge_restart(run: Run, ref: Run | None) -> Verdict:
 
     def first_after(arrivals: list[int]) -> float:
         later = [a for a in arrivals if a > restarted]
-        return (later[0] - restarted) / NS if restarted and later else math.nan
+        return (later[0] - restarted) / NS_PER_S if restarted and later else math.nan
 
     cam_s = first_after(run.monitor.camera_arrivals)
     fused_s = first_after(run.monitor.fused_arrivals)
