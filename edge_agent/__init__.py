@@ -11,6 +11,7 @@ detections and semantic clouds and publishes them; a service (``smartedge edge-a
   camera as semantic clouds;
 - ``models``: the networks at run time: model cards, onnxruntime sessions, decoding (the
   shipped models are in ``edge_agent/models/``);
+- ``boxes``: box overlap and IoU, and whether two boxes are one robot (the one place);
 - ``crop``: image geometry shared by training and inference (detector input, keypoint crops);
 - ``far_band``: the rows of a static camera's frame where far robots appear, which the
   detector runs again at twice its scale;

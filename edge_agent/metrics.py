@@ -7,14 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """IoU of two (4,) ``x0, y0, x1, y1`` boxes (edge coordinates)."""
-    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = iw * ih
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return float(inter / union) if union > 0 else 0.0
+from edge_agent.boxes import box_iou
 
 
 def detection_ap(detections: Sequence[np.ndarray], gt_boxes: np.ndarray,

@@ -17,7 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from edge_agent.models import RobotKeypointPipeline, box_iou
+from edge_agent.boxes import box_iou
+from edge_agent.models import RobotKeypointPipeline
 from lab.evaluation.keypoints import MIN_VISIBLE_KEYPOINTS, CameraFarBands
 from simulation.dataset import SampleGenerator
 from simulation.scenario import PAPER_SCENARIO, load_scenario

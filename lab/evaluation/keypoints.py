@@ -20,8 +20,9 @@ from typing import Any, Final
 
 import numpy as np
 
+from edge_agent.boxes import box_iou
 from edge_agent.far_band import FarBand, far_band_for_camera
-from edge_agent.metrics import box_iou, detection_ap, keypoint_metrics
+from edge_agent.metrics import detection_ap, keypoint_metrics
 from edge_agent.models import RobotKeypointPipeline
 
 #: the default held-out seed (the shipped models train on seeds 1-2, validate on 1001-1002)

@@ -123,7 +123,8 @@ def test_fused_boxes_average_both_passes_and_halve_a_one_sided_box() -> None:
 
 
 def test_mirrored_render_gives_mirrored_boxes_with_the_detectors_flip(site_view) -> None:  # type: ignore[no-untyped-def]
-    from edge_agent.models import Detector, box_iou
+    from edge_agent.boxes import box_iou
+    from edge_agent.models import Detector
 
     image = site_view.image_rgb
     w = image.shape[1]
@@ -157,14 +158,14 @@ def test_the_detector_card_decides_its_flip(tmp_path) -> None:  # type: ignore[n
 
 
 def test_the_iou_matrix_is_box_iou_of_every_pair() -> None:
-    from edge_agent.models import _iou_matrix, box_iou
+    from edge_agent.boxes import box_iou, iou_matrix
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 100, (12, 2))
     boxes = np.concatenate([xy, xy + rng.uniform(0, 40, (12, 2))], axis=1)
     boxes[3] = boxes[2]  # identical pair
     boxes[5, 2:] = boxes[5, :2]  # empty box
-    m = _iou_matrix(boxes)
+    m = iou_matrix(boxes)
     want = np.array([[box_iou(a, b) for b in boxes] for a in boxes])
     np.testing.assert_allclose(m, want, atol=1e-12)
     assert m[2, 3] == 1.0 and m[5, 5] == 0.0

@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from edge_agent.metrics import box_iou, detection_ap, keypoint_metrics, spearman
+from edge_agent.boxes import box_iou
+from edge_agent.metrics import detection_ap, keypoint_metrics, spearman
 
 NO_BOX = np.full(4, np.nan)
 AP = "AP@0.5"

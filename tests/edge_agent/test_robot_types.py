@@ -22,6 +22,7 @@ import pytest
 pytest.importorskip("onnxruntime")
 
 from core.site import load_site
+from edge_agent.boxes import box_iou
 from edge_agent.frames import Frame
 from edge_agent.models import (
     KeypointCard,
@@ -29,7 +30,6 @@ from edge_agent.models import (
     RobotKeypointPipeline,
     RobotObservation,
     RobotTypesPipeline,
-    box_iou,
     models_for_site,
     suppress_across_models,
 )

@@ -210,7 +210,8 @@ def test_boxes_without_the_robots_keypoints_are_not_reported() -> None:
     The detector's own test-time flip already removes that box (it is boxed in one orientation
     only), so the floor is tested without it, and the flip on the same views."""
     pytest.importorskip("moderngl")
-    from edge_agent.models import MIN_KEYPOINT_CONFIDENCE, RobotKeypointPipeline, box_iou
+    from edge_agent.boxes import box_iou
+    from edge_agent.models import MIN_KEYPOINT_CONFIDENCE, RobotKeypointPipeline
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
