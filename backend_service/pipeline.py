@@ -452,10 +452,12 @@ class BackendPipeline:
                                        deferred_marginalization=deferred_upkeep)
         self._fusion_factory = fusion_factory if with_fusion else None
 
-        self.sync = FrameSetSynchronizer(site)
         #: several robots: unnamed detections go to robots by where each is expected to be
         self.router: DetectionRouter | None = (
             DetectionRouter(site, self.config.association) if len(site.robots) > 1 else None)
+        # several robots: a robot's frame-set waits only for the cameras that can see it
+        self.sync = FrameSetSynchronizer(
+            site, relevant_cameras=self._cameras_seeing if self.router is not None else None)
         self.tracks: dict[str, RobotTrack] = {
             rid: RobotTrack(rid, self.config,
                             fusion_factory(rid) if with_fusion and fusion_factory else None,
@@ -475,9 +477,6 @@ class BackendPipeline:
         #: the robots' predictions for the latest image stamp routed (stamp, by robot)
         self._predictions: tuple[int, dict[str, RobotPrediction | None]] | None = None
         self._fusion_reset_at: dict[str, int] = {}
-        if self.router is not None:
-            # a robot's frame-set waits only for the cameras that can see it
-            self.sync.relevant_cameras = self._cameras_seeing
 
     # -- inputs ------------------------------------------------------------------------------
 

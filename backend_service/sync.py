@@ -57,6 +57,10 @@ from protocol.messages import RobotDetections
 
 log = logging.getLogger(__name__)
 
+#: ``(robot_id, stamp_ns) -> cameras`` that can see that robot at that stamp (``None``: any);
+#: see :class:`FrameSetSynchronizer`'s ``relevant_cameras``
+RelevantCameras = Callable[[str, int], "frozenset[str] | None"]
+
 COUNTER_NAMES: Final = (
     "received", "emitted", "late", "duplicate", "future", "unknown_camera", "bad_keypoints",
     "image_size", "not_seen", "replaced", "overflow", "empty", "rate_limited", "closed_early",
@@ -97,7 +101,7 @@ class FrameSetSynchronizer:
     """
 
     def __init__(self, site: Site, robot_id: str | None = None, max_open_windows: int = 32,
-                 ) -> None:
+                 relevant_cameras: RelevantCameras | None = None) -> None:
         th = site.thresholds
         self.site = site
         self.window_ns = int(th.sync_window_ms * 1e6)
@@ -143,7 +147,7 @@ class FrameSetSynchronizer:
         #: ``(robot_id, stamp_ns) -> cameras`` that can hold a detection of that robot at that
         #: (clock-corrected) stamp, ``None`` for any camera; asked once per window, when it
         #: opens. ``None`` (the default): every live camera is waited for.
-        self.relevant_cameras: Callable[[str, int], frozenset[str] | None] | None = None
+        self.relevant_cameras = relevant_cameras
         #: per robot, the recently emitted windows closed before some live camera reported:
         #: (anchor, the cameras that could contribute)
         self._closed_early: dict[str, collections.deque[tuple[int, frozenset[str]]]] = {

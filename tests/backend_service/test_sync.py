@@ -197,15 +197,16 @@ def test_a_window_waits_only_for_the_cameras_that_can_see_its_robot() -> None:
     ``after_close``, not ``late``. A relevant camera after the close is still ``late``, and
     without a relevant set (no prediction) every live camera is waited for."""
     asked: list[tuple[str, int]] = []
-    relevant: dict[str, frozenset[str] | None] = {"v": frozenset(CAMS[:2])}
+    relevant: dict[str, frozenset[str] | None] = {"v": None}  # the warm-up: any camera
 
     def hook(robot_id: str, stamp_ns: int) -> frozenset[str] | None:
         asked.append((robot_id, stamp_ns))
         return relevant["v"]
 
-    sync = FrameSetSynchronizer(SITE)
+    sync = FrameSetSynchronizer(SITE, relevant_cameras=hook)
     _warm(sync, T0)
-    sync.relevant_cameras = hook
+    asked.clear()
+    relevant["v"] = frozenset(CAMS[:2])
     t1 = T0 + 1000 * MS
     out = sync.push(det_msg(CAMS[0], t1, seq=1), t1 + 5 * MS)
     assert out == [] and asked == [(next(iter(SITE.robots)), t1)]
