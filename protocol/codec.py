@@ -247,7 +247,7 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[M] | None = N
 def decode_checked(payload: bytes | bytearray | memoryview,
                    expected: type[M] | None = None) -> M:
     """:func:`decode` by the careful path alone (no native fast path): the reference the fast
-    path is tested against, and the previous release's decode for ``smartedge bench codec``."""
+    path is tested against, and the peer of the fast paths in ``smartedge bench codec``."""
     return _decode(payload, expected, native=False)
 
 

@@ -53,7 +53,7 @@ BENCHES: Final[dict[str, Command]] = {
                              "bumped-camera detection: delay, false alarms per hour, CPU"),
     "reliability": Command("lab.bench.faults", "main",
                            "the fault harness: hostile and faulty input against the running "
-                           "services (issue 17's probes)"),
+                           "services, one verdict per probe"),
 }
 
 

@@ -1,4 +1,4 @@
-"""CPU per frame-set by stage of the backend's pipeline, against the previous release's peer.
+"""CPU per frame-set by stage of the backend's pipeline, against a finite-difference peer.
 
 The same :class:`~backend_service.pipeline.BackendPipeline` the service runs is driven
 in-process (no Zenoh) with the ring site's detections, and the deployed functions are wrapped
@@ -6,7 +6,7 @@ with thread-CPU timers (about a microsecond each): decode (``protocol.decode``),
 (:meth:`FrameSetSynchronizer.push` / ``poll``), solve (``estimate_pose`` without the
 propagated covariance), covariance (``propagate_correlated``), averaging
 (:meth:`MultiFrameAverager.add`), fusion (the GTSAM pose graph's updates) and publish
-(``protocol.encode`` of the outputs). The peer is the previous release's propagated
+(``protocol.encode`` of the outputs). The peer is the finite-difference propagated
 covariance: the extrinsic Jacobian by one-sided finite differences, six perturbed cameras per
 camera
 (:func:`finite_difference_extrinsic_jacobian`), swapped in for the closed form; everything
@@ -42,7 +42,7 @@ from simulation.camera_ring import detection_payloads, robot_pose, write_ring_si
 
 #: the stages, in the order a frame-set goes through them
 STAGES: Final = ("decode", "sync", "solve", "covariance", "averaging", "fusion", "publish")
-#: the previous release's finite-difference steps: rotation (rad), translation (m)
+#: the finite-difference peer's steps: rotation (rad), translation (m)
 FD_STEP_ROT: Final = 1e-4
 FD_STEP_T: Final = 1e-3
 
@@ -50,7 +50,7 @@ FD_STEP_T: Final = 1e-3
 def finite_difference_extrinsic_jacobian(cameras: Sequence[CameraModel],
                                          points_world: np.ndarray
                                          ) -> tuple[np.ndarray, np.ndarray]:
-    """The previous release's ``(uv, G)`` of
+    """The finite-difference peer's ``(uv, G)`` of
     :func:`backend_service.covariance.project_with_extrinsic_jacobian`: per camera, six
     cameras perturbed on the left (rotation about the optical centre, world axes; position),
     each built and validated as a :class:`CameraModel` and projected."""
@@ -195,7 +195,7 @@ def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool =
 def print_stage_table(camera_counts: Sequence[int], frames: int) -> None:
     """The breakdown for each camera count, this release against the previous one."""
     print(f"CPU per frame-set by stage, in-process pipeline, {frames} frame-sets per case "
-          "after 5 unmeasured (ms; peer = the previous release's finite-difference covariance, "
+          "after 5 unmeasured (ms; peer = the finite-difference covariance, "
           "same run)")
     head = "".join(f"{s:>11}" for s in STAGES)
     print(f"{'cameras':>8} {'release':>9}{head}{'total':>9}{'ratio':>7}{'first':>9}")

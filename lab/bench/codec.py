@@ -1,7 +1,7 @@
 """``smartedge bench codec``: encode+decode round trips of the wire codec.
 
 Measures a detections message (1 robot, 12 keypoints) and a 100k-point semantic cloud. Peers
-in the same run: the careful decode path alone (``decode_checked``: the previous release's
+in the same run: the careful decode path alone (``decode_checked``: the per-field
 decode, every limit located in the raw bytes first), the unbounded decode (``msgpack.unpackb``
 with no limits, then the same message construction and validation: what the limits cost), and
 the same content as JSON with arrays as float lists (what a naive wire format would do).
@@ -101,6 +101,6 @@ def main(argv: Sequence[str]) -> int:
               f"{_us(per_free):>11}{_us(per_json):>11}   {per_careful / per:.2f}x, "
               f"{per / per_free:.2f}x, {per_json / per:.1f}x")
     print("round trip = encode + decode of the expected type with every limit checked; careful = "
-          "the careful path alone (previous release); unbounded = msgpack without limits + the "
-          "same validation; json = float lists")
+          "the careful path alone (per-field checks, no fast paths); unbounded = msgpack "
+          "without limits + the same validation; json = float lists")
     return 0

@@ -1,4 +1,4 @@
-"""``smartedge bench fleet``: a simulated facility on loopback (issue 30, the scale benchmark).
+"""``smartedge bench fleet``: a simulated facility on loopback (the scale benchmark).
 
 R ``smartedge router`` processes connected in a chain (router k connects to router k-1), B
 ``smartedge backend`` processes (backend j a client of router j mod R) sharing the site's robots

@@ -44,13 +44,13 @@ from lab.experiments.accuracy import (
     RunResult,
     SourceErrors,
     StopSample,
+    accuracy_by_camera_count,
     accuracy_tables,
     nees_table,
-    run_experiment1,
+    rms_by_trajectory,
     run_once,
+    run_pose_accuracy,
     source_errors,
-    table1,
-    table2,
 )
 from lab.experiments.comparison import PAPER_FIGURES, compare_markdown, compare_rows
 from lab.experiments.config import (
@@ -72,9 +72,9 @@ from lab.experiments.feedback import (
     failure_model,
     feedback_table,
     robustness_table,
-    run_experiment2,
-    run_experiment3,
+    run_correction_feedback,
     run_feedback,
+    run_robustness,
 )
 from lab.experiments.paper import PaperReport, run_paper
 
@@ -97,6 +97,7 @@ __all__ = [
     "RunResult",
     "SourceErrors",
     "StopSample",
+    "accuracy_by_camera_count",
     "accuracy_tables",
     "compare_markdown",
     "compare_rows",
@@ -106,14 +107,13 @@ __all__ = [
     "make_detector",
     "nees_table",
     "paper_pipeline_config",
+    "rms_by_trajectory",
     "robustness_table",
-    "run_experiment1",
-    "run_experiment2",
-    "run_experiment3",
+    "run_correction_feedback",
     "run_feedback",
     "run_once",
     "run_paper",
+    "run_pose_accuracy",
+    "run_robustness",
     "source_errors",
-    "table1",
-    "table2",
 ]

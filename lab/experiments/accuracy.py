@@ -315,7 +315,7 @@ class Experiment1Worker:
         return res, (None if stats is None or before is None else stats - before)
 
 
-def run_experiment1(scenario: Scenario, trajectories: Sequence[str], config: PaperConfig,
+def run_pose_accuracy(scenario: Scenario, trajectories: Sequence[str], config: PaperConfig,
                     fusion_factory: FusionFactory | None, world: World,
                     detector: DetectionSimulator, say: Callable[[str], None],
                     service_site: Site | None = None) -> list[RunResult]:
@@ -406,8 +406,9 @@ def _cell(ms: MeanStd, scale: float, digits: int) -> str:
     return f"{ms.mean * scale:.{digits}f} ± {ms.std * scale:.{digits}f}"
 
 
-def table1(results: Sequence[RunResult], fusion_available: bool, align: bool = False,
-           ) -> tuple[str, dict[str, dict[str, dict[str, float]]]]:
+def accuracy_by_camera_count(results: Sequence[RunResult], fusion_available: bool,
+                             align: bool = False,
+                             ) -> tuple[str, dict[str, dict[str, dict[str, float]]]]:
     """Table I as Markdown, and its numbers ({source: {group: {t_mean_cm, ...}}})."""
     header = ("| Pose Estimation | 1 Camera (cm) | 1 Camera (°) | 2 Cameras (cm) | 2 Cameras (°) "
               "| 4 Cameras (cm) | 4 Cameras (°) | **Average** (cm) | **Average** (°) |")
@@ -447,8 +448,8 @@ def _trajectory_errors(res: RunResult, source: str, align: bool) -> np.ndarray:
     return translation_errors(gt[:, :2], e[:, :2])
 
 
-def table2(results: Sequence[RunResult], fusion_available: bool, align: bool = False,
-           ) -> tuple[str, dict[str, dict[str, float]]]:
+def rms_by_trajectory(results: Sequence[RunResult], fusion_available: bool,
+                      align: bool = False) -> tuple[str, dict[str, dict[str, float]]]:
     """Table II (RMS translation error per trajectory, cm) as Markdown, and its numbers."""
     names = sorted({r.trajectory for r in results})
     lines = ["| Pose Estimation | " + " | ".join(names) + " | **Avg.** |",
@@ -493,8 +494,8 @@ class AccuracyTables:
 def accuracy_tables(results: Sequence[RunResult], fusion_available: bool, align: bool = False,
                     ) -> AccuracyTables:
     """Table I, Table II and the NEES table of ``results``."""
-    t1_md, t1 = table1(results, fusion_available, align)
-    t2_md, t2 = table2(results, fusion_available, align)
+    t1_md, t1 = accuracy_by_camera_count(results, fusion_available, align)
+    t2_md, t2 = rms_by_trajectory(results, fusion_available, align)
     nees_md, nees = nees_table(results)
     return AccuracyTables(table1_markdown=t1_md, table1=t1, table2_markdown=t2_md, table2=t2,
                           nees_markdown=nees_md, nees=nees, fusion_available=fusion_available)

@@ -51,7 +51,7 @@ from lab.experiments.accuracy import (
     ROW_NAMES,
     RunResult,
     accuracy_tables,
-    run_experiment1,
+    run_pose_accuracy,
     source_errors,
 )
 from lab.experiments.config import PaperConfig, default_fusion_factory, make_detector
@@ -242,7 +242,7 @@ def run_robot_calibration(argv: Sequence[str], log_path: Path) -> tuple[int, dic
     return code, data, wall
 
 
-def table1_summary(results: Sequence[RunResult]) -> dict[str, dict[str, float]]:
+def accuracy_summary(results: Sequence[RunResult]) -> dict[str, dict[str, float]]:
     """Mean translation (cm) and heading (deg) error of each camera source at waypoints seen
     by >= 2 cameras, and the sample count."""
     out: dict[str, dict[str, float]] = {}
@@ -437,10 +437,10 @@ def _tables(sc: Scenario, config: CalibrationEvalConfig, sites: Mapping[str, Sit
             say(f"Table I with {SITE_NAMES[name]}: no site file (its calibration wrote none)")
             continue
         say(f"Table I with {SITE_NAMES[name]}")
-        results = run_experiment1(sc, trajectories, paper, factory, world, detector,
+        results = run_pose_accuracy(sc, trajectories, paper, factory, world, detector,
                                   lambda line: say("  " + line), service_site=site)
         tables = accuracy_tables(results, factory is not None)
-        numbers[name] = {"at_least_2_cameras": table1_summary(results),
+        numbers[name] = {"at_least_2_cameras": accuracy_summary(results),
                          "table1": tables.table1}
         markdown[name] = tables.table1_markdown
         five = numbers[name]["at_least_2_cameras"].get("five_frames", {})

@@ -4,9 +4,9 @@ bridge (Sec. IV-B end, Fig. 7) and robustness over repeated runs (Sec. IV-D, Tab
 A run (:func:`run_feedback`) drives a route through the backend's one pipeline, as experiment 1
 does; with feedback, the real :class:`robot_bridge.bridge.RobotBridge` decides on corrections
 from the published poses and pushes them to the simulated robot, which takes them only while
-static. Experiment 2 (:func:`run_experiment2`) compares the robot's own localization without and
-with feedback over ``PaperConfig.long_route``; experiment 3 (:func:`run_experiment3`) counts the
-runs of ``PaperConfig.robustness_route`` that fail (:class:`FailureModel`). Poses are
+static. Experiment 2 (:func:`run_correction_feedback`) compares the robot's own localization
+without and with feedback over ``PaperConfig.long_route``; experiment 3 (:func:`run_robustness`)
+counts the runs of ``PaperConfig.robustness_route`` that fail (:class:`FailureModel`). Poses are
 ``(x, y, theta)`` in the world frame (metres, radians).
 """
 
@@ -401,7 +401,7 @@ def _feedback_runs(sc: Scenario, config: PaperConfig, factory: FusionFactory | N
     return map_runs(FeedbackWorker.run, plan, jobs, FeedbackWorker, state_args)
 
 
-def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+def run_correction_feedback(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
                     world: World, detector: DetectionSimulator,
                     say: Callable[[str], None]) -> list[FeedbackRun]:
     """Experiment 2: ``config.long_route`` without and with feedback, per seed (the same seed
@@ -420,7 +420,7 @@ def run_experiment2(sc: Scenario, config: PaperConfig, factory: FusionFactory | 
     return runs
 
 
-def run_experiment3(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+def run_robustness(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
                     world: World, detector: DetectionSimulator,
                     say: Callable[[str], None]) -> list[FeedbackRun]:
     """Experiment 3: ``robustness.runs`` runs without, then as many with feedback, each with

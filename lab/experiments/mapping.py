@@ -450,7 +450,7 @@ def run_mapping(scenario: Any, config: MappingExperimentConfig, out_dir: str | P
         source.release()
 
 
-def run_experiment4(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
+def run_semantic_mapping(sc: Scenario, config: PaperConfig, factory: FusionFactory | None,
                     world: World, detector: DetectionSimulator, out: Path,
                     say: Callable[[str], None]) -> tuple[str, list[Path]]:
     """Experiment 4 as ``smartedge evaluate paper`` runs it: the static cameras' clouds, then

@@ -22,7 +22,7 @@ from pathlib import Path
 from lab.experiments.accuracy import (
     RunResult,
     accuracy_tables,
-    run_experiment1,
+    run_pose_accuracy,
     write_experiment1,
 )
 from lab.experiments.config import (
@@ -37,8 +37,8 @@ from lab.experiments.feedback import (
     feedback_table,
     plot_feedback,
     robustness_table,
-    run_experiment2,
-    run_experiment3,
+    run_correction_feedback,
+    run_robustness,
     run_summary,
 )
 from simulation.scenario import PAPER_SCENARIO, Scenario, load_scenario
@@ -124,7 +124,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     t2: dict[str, dict[str, float]] = {}
     files: list[Path] = []
     if 1 in config.experiments:
-        results = run_experiment1(sc, names, config, factory, world, detector, say)
+        results = run_pose_accuracy(sc, names, config, factory, world, detector, say)
         tables = accuracy_tables(results, fusion_available, config.align)
         t1_md, t1 = tables.table1_markdown, tables.table1
         t2_md, t2 = tables.table2_markdown, tables.table2
@@ -136,7 +136,7 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
     if 2 in config.experiments:
         say(f"paper experiment 2: {config.long_route} without and with correction feedback, "
             f"{config.feedback_seeds} seed(s)")
-        fb_runs = run_experiment2(sc, config, factory, world, detector, say)
+        fb_runs = run_correction_feedback(sc, config, factory, world, detector, say)
         fb_md, fb_numbers = feedback_table(fb_runs)
         files.append(plot_feedback(fb_runs, out / "fig7_feedback_error_over_distance.png"))
         (out / "experiment2.md").write_text(fb_md, encoding="utf-8")
@@ -149,16 +149,16 @@ def run_paper(config: PaperConfig, out_dir: str | Path,
         say(f"paper experiment 3: {config.robustness_route}, "
             f"{config.robustness_runs or sc.robustness.runs} runs without and with feedback "
             f"(WP tolerance {fm.waypoint_tolerance_m} m, footprint {fm.footprint_m} m)")
-        rb_runs = run_experiment3(sc, config, factory, world, detector, say)
+        rb_runs = run_robustness(sc, config, factory, world, detector, say)
         rb_md, rb_numbers = robustness_table(rb_runs)
         (out / "table3.md").write_text(rb_md, encoding="utf-8")
         files.append(out / "table3.md")
     map_md = ""
     if 4 in config.experiments:
         # open3d and the renderer are imported only when the mapping experiment runs
-        from lab.experiments.mapping import run_experiment4
+        from lab.experiments.mapping import run_semantic_mapping
 
-        map_md, map_files = run_experiment4(sc, config, factory, world, detector, out, say)
+        map_md, map_files = run_semantic_mapping(sc, config, factory, world, detector, out, say)
         files += map_files
     if 2 in config.experiments or 3 in config.experiments:
         (out / "feedback_results.json").write_text(json.dumps({

@@ -1,5 +1,5 @@
 """``smartedge bench backend``'s stage breakdown: every stage measured on the deployed code, the
-previous release's peer computes the same covariance, and the wrapping leaves nothing behind."""
+finite-difference peer computes the same covariance, and the wrapping leaves nothing behind."""
 
 from __future__ import annotations
 

@@ -7,8 +7,9 @@ the paper site's ``traj3``, injects one fault from a separate *attacker* Zenoh s
 kills a process), and measures what the system did against the simulator's ground truth:
 crashes, the services' counters and status, the backend's resident memory (``/proc``), camera
 pose rate and error, fused error, the robot's own localization error, corrections pushed, and
-recovery times. One Markdown table row per probe: probe, the figure issue 17 measured before
-the fixes, the figures now, the verdict against what must hold (``--list`` prints the probes).
+recovery times. One Markdown table row per probe: probe, the figure the first fault survey
+measured before the fixes (docs/reliability.md), the figures now, the verdict against what
+must hold (``--list`` prints the probes).
 
 The ``baseline`` probe runs the same system without a fault; the other probes compare their
 fault window with the same window of the baseline run (same trajectory, same seed), or with
@@ -123,7 +124,7 @@ def main(argv: Sequence[str]) -> int:
     t0 = time.monotonic()
     rows = run_probes(chosen, args.seconds, out_dir, args.progress_s, args.startup_s)
     print(f"\n{len(rows)} probes in {time.monotonic() - t0:.0f} s\n")
-    print("| probe | before (issue 17) | now | verdict |")
+    print("| probe | before the fixes | now | verdict |")
     print("|---|---|---|---|")
     for row in rows:
         print(row.markdown())

@@ -163,10 +163,10 @@ class Verdict:
 class Probe:
     """One fault. ``name`` is how ``--probes`` selects it; ``sends`` says what the attacker
     does (or what is done to a process) and ``holds`` what must hold for a pass; ``before`` is
-    what issue 17 measured before the fixes. The fault is on in ``fault`` (simulated seconds of
-    the ``run_s`` observed); ``inject(run)`` runs it in a thread (returns when done or
-    ``run.stop`` is set) and ``judge(run, reference)`` measures it (``reference``: the
-    baseline run, or ``None``)."""
+    what the first fault survey measured before the fixes. The fault is on in ``fault``
+    (simulated seconds of the ``run_s`` observed); ``inject(run)`` runs it in a thread
+    (returns when done or ``run.stop`` is set) and ``judge(run, reference)`` measures it
+    (``reference``: the baseline run, or ``None``)."""
 
     name: str
     sends: str
