@@ -11,7 +11,8 @@
 - ``train``: ``smartedge train``, a network trained on synthetic renders only;
 - ``simulated_head``: ``smartedge sim-head``, the simulated robot's moving head as a ROS 2
   robot publishes it;
-- ``processes``: helpers for commands that start, watch and stop OS processes;
+- ``launcher``: the one service launcher: a smartedge service as a process with its log,
+  waited for until it listens, stopped; free ports, process memory;
 - ``rendered_detections``: the closed loop in simulated time: rendered images through the
   edge's ONNX pipeline as a detection source;
 - ``training_views``: the simulation's renderer as the training data's view source;

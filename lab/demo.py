@@ -31,9 +31,7 @@ import argparse
 import collections
 import dataclasses
 import math
-import os
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -46,7 +44,7 @@ import numpy as np
 from core.geometry import wrap_angle_array
 from core.session import loopback_config
 from core.site import Site
-from lab.processes import free_port, stop_processes
+from lab.launcher import ServiceProcess, free_port, start_service, stop_services
 from protocol import decode, keys
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
 
@@ -258,7 +256,7 @@ class Services:
         self.endpoint = endpoint
         self.rrd = rrd
         self.camera_ids = list(camera_ids)
-        self.procs: list[subprocess.Popen] = []
+        self.procs: list[ServiceProcess] = []
         self.runners: list[Any] = []
         self.threads: list[threading.Thread] = []
 
@@ -327,15 +325,8 @@ class Services:
     def start(self, log_dir: Path) -> None:
         if self.args.processes:
             for name, argv in self.commands():
-                log_file = open(log_dir / f"{name.replace('/', '_')}.log", "w")  # noqa: SIM115
-                self.procs.append(
-                    subprocess.Popen(
-                        [sys.executable, "-m", "smartedge", *argv],
-                        stdout=log_file,
-                        stderr=subprocess.STDOUT,
-                        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                    )
-                )
+                self.procs.append(start_service(
+                    argv, log_dir / f"{name.replace('/', '_')}.log", name=name))
             return
         from core.runtime import ZenohRunner
 
@@ -349,12 +340,12 @@ class Services:
 
     def alive(self) -> bool:
         if self.procs:
-            return all(p.poll() is None for p in self.procs)
+            return all(p.running() for p in self.procs)
         return all(t.is_alive() for t in self.threads)
 
     def stop(self) -> list[int]:
         """Stop everything (SIGTERM for processes); returns the exit codes."""
-        codes = stop_processes(list(reversed(self.procs)), timeout_s=20.0)
+        codes = list(stop_services(list(reversed(self.procs)), timeout_s=20.0).values())
         for runner in reversed(self.runners):
             runner.stop()
         for thread in reversed(self.threads):

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from lab.processes import free_port
+from lab.launcher import free_port
 from smartedge.viewer.rerun_view import rerun_cli
 
 CHROMIUM_ARGS = [

@@ -1,7 +1,7 @@
 """Shared fixtures: repository paths, the example site, loopback Zenoh sessions.
 
 The process helpers (:func:`free_port`, :func:`stop_process`) are the project's own, from
-:mod:`lab.processes`, re-exported here for the tests."""
+:mod:`lab.launcher`, re-exported here for the tests."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from lab.processes import free_port, stop_process  # noqa: F401 (re-exported)
+from lab.launcher import free_port, stop_process  # noqa: F401 (re-exported)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_SITE = REPO_ROOT / "deploy" / "site.example.yaml"

@@ -18,8 +18,6 @@ import contextlib
 import math
 import os
 import platform
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
@@ -29,7 +27,7 @@ import numpy as np
 
 from core.session import loopback_config
 from core.site import Site
-from lab.processes import free_port, stop_process
+from lab.launcher import free_port, start_service
 from protocol import decode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from simulation.camera_ring import detection_payloads, robot_pose, write_ring_site
@@ -65,12 +63,9 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
     site_path = workdir / f"ring_{n_cameras}.yaml"
     site = write_ring_site(site_path, n_cameras)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    backend = subprocess.Popen(
-        [sys.executable, "-m", "smartedge", "--log-level", "WARNING", "backend", "--site",
-         str(site_path), "--connect", endpoint, "--listen",
-         "tcp/127.0.0.1:0"],
-        stdout=subprocess.DEVNULL, stderr=(workdir / f"backend_{n_cameras}.log").open("w"),
-        env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    backend = start_service(
+        ["backend", "--site", str(site_path), "--connect", endpoint, "--listen",
+         "tcp/127.0.0.1:0"], workdir / f"backend_{n_cameras}.log", log_level="WARNING")
     poses: list[tuple[int, int]] = []  # (receive ns, stamp ns)
     statuses: list[ServiceStatus] = []
     try:
@@ -134,7 +129,7 @@ def run_case(n_cameras: int, seconds: float, rate_hz: float, warmup_s: float,
             "backend_shed": float(last.counters.get("shed", 0)) if last else math.nan,
         }
     finally:
-        stop_process(backend, timeout_s=20.0)
+        backend.stop(timeout_s=20.0)
 
 
 def _busy_loop() -> None:

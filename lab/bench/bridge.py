@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from lab.processes import free_port
+from lab.launcher import free_port
 from protocol import codec
 from protocol.messages import PoseEstimate
 

@@ -49,9 +49,6 @@ import logging
 import math
 import os
 import platform
-import socket
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -63,7 +60,13 @@ import yaml
 
 from core.geometry import rotation_z
 from core.site import Site, load_site
-from lab.processes import free_port, stop_processes
+from lab.launcher import (
+    LaunchError,
+    ServiceProcess,
+    free_port,
+    start_service,
+    stop_services,
+)
 from protocol import decode, encode, keys
 from protocol.messages import Detection, Odometry, PoseEstimate, RobotDetections, ServiceStatus
 
@@ -307,18 +310,6 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
-def _wait_listening(proc: subprocess.Popen, port: int, timeout_s: float, log: Path) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"router exited with {proc.returncode}; see {log}")
-        with socket.socket() as sock:
-            if sock.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.05)
-    raise RuntimeError(f"router never listened on port {port}; see {log}")
-
-
 @dataclasses.dataclass
 class RowResult:
     backends: int
@@ -370,28 +361,25 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
     site, layout = write_fleet_site(site_path, n_robots, n_cameras, n_areas)
     served = {f"b{b}": (backend_areas_of(b, n_backends, len(site.section("areas")))
                         if n_areas else []) for b in range(n_backends)}
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    procs: dict[str, subprocess.Popen] = {}
+    procs: dict[str, ServiceProcess] = {}
     endpoints: list[str] = []
     try:
         for r in range(n_routers):
             port = free_port()
             endpoint = f"tcp/127.0.0.1:{port}"
-            log = workdir / f"router{r}.log"
-            procs[f"router{r}"] = subprocess.Popen(
-                [sys.executable, "-m", "smartedge", "router", "--config", str(ROUTER_CONFIG),
-                 "--listen", endpoint, *(("--connect", endpoints[-1]) if endpoints else ())],
-                cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=log.open("w"), env=env)
-            _wait_listening(procs[f"router{r}"], port, 30.0, log)
+            procs[f"router{r}"] = start_service(
+                ["router", "--config", str(ROUTER_CONFIG), "--listen", endpoint,
+                 *(("--connect", endpoints[-1]) if endpoints else ())],
+                workdir / f"router{r}.log", name=f"router{r}", cwd=REPO_ROOT)
+            procs[f"router{r}"].wait_listening(port, timeout_s=30.0)
             endpoints.append(endpoint)
         for b in range(n_backends):
-            procs[f"backend{b}"] = subprocess.Popen(
-                [sys.executable, "-m", "smartedge", "--log-level", "WARNING", "backend",
-                 "--site", str(site_path), "--id", f"b{b}", "--mode", "client", "--connect",
-                 endpoints[b % n_routers], "--no-multicast-scouting",
+            procs[f"backend{b}"] = start_service(
+                ["backend", "--site", str(site_path), "--id", f"b{b}", "--mode", "client",
+                 "--connect", endpoints[b % n_routers], "--no-multicast-scouting",
                  *(a for area in served[f"b{b}"] for a in ("--area", area))],
-                cwd=REPO_ROOT, stdout=subprocess.DEVNULL,
-                stderr=(workdir / f"backend{b}.log").open("w"), env=env)
+                workdir / f"backend{b}.log", name=f"backend{b}", log_level="WARNING",
+                cwd=REPO_ROOT)
         poses: list[tuple[int, str, bytes]] = []  # (arrival ns, robot, payload)
         statuses: dict[str, ServiceStatus] = {}
         history: list[ServiceStatus] = []  # every status, in arrival order
@@ -418,8 +406,9 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
             deadline = time.monotonic() + 90
             while len(statuses) < n_backends and time.monotonic() < deadline:
                 for name, p in procs.items():
-                    if p.poll() is not None:
-                        raise RuntimeError(f"{name} exited with {p.returncode}; see {workdir}")
+                    if not p.running():
+                        raise LaunchError(f"{name} exited with {p.returncode}; see "
+                                          f"{p.log_path}:\n{p.log_tail()}")
                 time.sleep(0.1)
             if len(statuses) < n_backends:
                 raise RuntimeError(f"only {sorted(statuses)} of {n_backends} backends started; "
@@ -480,7 +469,7 @@ def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate
             for s in sessions:
                 s.close()
     finally:
-        stop_processes(list(procs.values())[::-1])
+        stop_services(list(procs.values())[::-1])
     got: dict[tuple[str, int], list[int]] = {}
     for rx, robot, payload in poses:
         est = decode(payload)

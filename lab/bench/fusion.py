@@ -22,7 +22,7 @@ from typing import Final
 import numpy as np
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
-from lab.processes import rss_mib
+from lab.launcher import rss_mib
 from protocol.messages import NS_PER_S
 from simulation.synthetic_run import make_synthetic_run
 

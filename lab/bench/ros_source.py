@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from core.runtime import ZenohRunner
     from core.session import loopback_config
     from edge_agent.service import build_node, build_parser
-    from lab.processes import free_port
+    from lab.launcher import free_port
     from protocol import codec, keys
     from protocol.messages import RobotDetections
     from simulation.scenario import SITES_DIR

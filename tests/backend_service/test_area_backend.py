@@ -97,7 +97,7 @@ def test_a_backend_with_an_area_receives_and_solves_only_its_areas_cameras() -> 
     from backend_service.service import BackendNode
     from core.runtime import ZenohRunner
     from core.session import loopback_config
-    from lab.processes import free_port
+    from lab.launcher import free_port
 
     site = facility_site()
     node = BackendNode(site, "bw", areas=("west",))

@@ -12,7 +12,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from core.session import loopback_config  # noqa: E402
-from lab.processes import free_port  # noqa: E402
+from lab.launcher import free_port  # noqa: E402
 from protocol import keys  # noqa: E402
 from protocol.codec import decode, encode  # noqa: E402
 from protocol.messages import Odometry, PoseCorrection, RobotDetections  # noqa: E402

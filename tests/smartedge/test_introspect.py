@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import io
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from lab.launcher import start_service
 from protocol.messages import Detection, PoseEstimate, RobotDetections, ServiceStatus
 from smartedge.commands.status import echo_main, format_table, status_main, status_rows, summarize
-from tests.conftest import free_port, stop_process, wait_until
+from tests.conftest import free_port, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -20,11 +19,10 @@ def agent(tmp_path_factory: pytest.TempPathFactory):
     """An edge agent (simulated camera, noise model) listening on a free loopback port."""
     port = free_port()
     log = tmp_path_factory.mktemp("agent") / "agent.log"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "smartedge", "edge-agent", "--camera", "cam1", "--source", "sim",
-         "--listen", f"tcp/127.0.0.1:{port}", "--connect", f"tcp/127.0.0.1:{port}",
-         "--no-multicast-scouting"],
-        stdout=log.open("w"), stderr=subprocess.STDOUT)
+    proc = start_service(
+        ["edge-agent", "--camera", "cam1", "--source", "sim", "--listen",
+         f"tcp/127.0.0.1:{port}", "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"],
+        log)
     # session open and the simulation running (its epoch is 2 s ahead): the agent's status and
     # a detection of cam1 seen by a session of ours (was a fixed 3 s)
     import zenoh
@@ -38,12 +36,12 @@ def agent(tmp_path_factory: pytest.TempPathFactory):
                                    lambda _s: seen.add("detections"))
         session.declare_subscriber(keys.status_key("paper_lab", "*", "*"),
                                    lambda _s: seen.add("status"))
-        assert wait_until(lambda: seen == {"detections", "status"} or proc.poll() is not None,
+        assert wait_until(lambda: seen == {"detections", "status"} or not proc.running(),
                           30.0, 0.05)
-    assert proc.poll() is None, Path(log).read_text()[-2000:]
+    assert proc.running(), proc.log_tail(2000)
     assert seen == {"detections", "status"}, (seen, Path(log).read_text()[-2000:])
     yield port
-    assert stop_process(proc, timeout_s=20.0) == 0, Path(log).read_text()[-2000:]
+    assert proc.stop(timeout_s=20.0) == 0, proc.log_tail(2000)
 
 
 def _session_args(port: int) -> list[str]:

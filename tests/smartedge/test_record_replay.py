@@ -7,9 +7,6 @@ recorded receive times gives the estimates the live backend published."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -22,6 +19,7 @@ pytest.importorskip("gtsam")
 
 from backend_service.pipeline import BackendPipeline, PipelineConfig
 from core.session import loopback_config
+from lab.launcher import ServiceProcess, start_service
 from protocol import keys
 from protocol.codec import decode, encode
 from protocol.messages import Odometry, PoseEstimate, RobotDetections
@@ -37,19 +35,8 @@ SITE_FILE = Path(__file__).resolve().parents[2] / "simulation" / "sites" / "pape
 SIM_S = 10.0
 
 
-def _spawn(argv: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "smartedge", *argv],
-                            stdout=log.open("w"), stderr=subprocess.STDOUT)
-
-
-def _stop(proc: subprocess.Popen, log: Path) -> None:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise AssertionError(f"did not stop: {log.read_text()[-2000:]}") from None
-    assert proc.returncode == 0, log.read_text()[-3000:]
+def _stop(proc: ServiceProcess) -> None:
+    assert proc.stop(timeout_s=30.0) == 0, proc.log_tail()
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +58,8 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # only the recorder (it takes smartedge/**) subscribes to this key; nothing is put on it
     recorder_probe = hub.declare_publisher(f"{keys.ROOT}/{site}/test_probe/recorder_ready")
     try:
-        backend = _spawn(["backend", "--site", str(SITE_FILE), *zargs], tmp / "backend.log")
-        recorder = _spawn(["record", str(tmp / "live.mcap"), *zargs], tmp / "record.log")
+        backend = start_service(["backend", "--site", str(SITE_FILE), *zargs], tmp / "backend.log")
+        recorder = start_service(["record", str(tmp / "live.mcap"), *zargs], tmp / "record.log")
         # sessions open, subscriptions declared (was a fixed 3 s): the backend publishes its
         # status (after its subscriptions), the recorder's subscription reached the hub
         assert wait_until(lambda: bool(statuses), 60, 0.05), (tmp / "backend.log").read_text()
@@ -89,8 +76,8 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
         last_ns = sc.start_stamp_ns + round((SIM_S - 0.2) * 1e9)
         wait_until(lambda: any(t >= last_ns for t in pose_stamps_ns), 1.5, 0.05)
         time.sleep(0.3)
-        _stop(recorder, tmp / "record.log")
-        _stop(backend, tmp / "backend.log")
+        _stop(recorder)
+        _stop(backend)
     finally:
         hub.close()
     assert "recorded" in (tmp / "record.log").read_text()

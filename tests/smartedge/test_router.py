@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from core.runtime import EXIT_CONFIG
+from lab.launcher import ServiceProcess, start_service
 from smartedge.commands.router import one_line
 from tests.conftest import REPO_ROOT, free_port, wait_until
 
@@ -43,21 +44,17 @@ def _client(endpoint: str):
 
 
 @pytest.fixture
-def router(tmp_path: Path) -> Iterator[tuple[subprocess.Popen, str]]:
+def router(tmp_path: Path) -> Iterator[tuple[ServiceProcess, str]]:
     """``smartedge router`` on the shipped router config, listening on a free loopback port
     (``--listen`` overrides the config's ``tcp/0.0.0.0:7447``), started and logging."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen(
-        _router_argv("--config", str(ROUTER_CONFIG), "--listen", endpoint,
-                     "--status-period", "0.5"),
-        cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    proc = start_service(["router", "--config", str(ROUTER_CONFIG), "--listen", endpoint,
+                          "--status-period", "0.5"], tmp_path / "router.log", cwd=REPO_ROOT)
     try:
         yield proc, endpoint
     finally:
-        if proc.poll() is None:
+        if proc.running():
             proc.kill()
-            proc.communicate(timeout=10)
 
 
 @contextlib.contextmanager
@@ -69,15 +66,9 @@ def _socket_listening() -> Iterator[str]:
         yield f"tcp/127.0.0.1:{sock.getsockname()[1]}"
 
 
-def _wait_listening(endpoint: str, proc: subprocess.Popen) -> None:
+def _wait_listening(endpoint: str, proc: ServiceProcess) -> None:
     host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
-
-    def listening() -> bool:
-        assert proc.poll() is None, proc.communicate()
-        with socket.socket() as sock:
-            return sock.connect_ex((host, int(port))) == 0
-
-    assert wait_until(listening, timeout_s=30.0, step_s=0.1), "router never listened"
+    proc.wait_listening(int(port), timeout_s=30.0, host=host)
 
 
 def test_router_carries_traffic_between_two_clients_and_stops_on_sigterm(router) -> None:
@@ -95,9 +86,9 @@ def test_router_carries_traffic_between_two_clients_and_stops_on_sigterm(router)
                           timeout_s=10.0, step_s=0.1)  # fmt: skip
         assert got[0] == b"through the router"
         time.sleep(1.0)  # the router's status line (every 0.5 s) sees both clients
-        proc.send_signal(signal.SIGTERM)
-        code = proc.wait(timeout=20)
-    _, stderr = proc.communicate(timeout=10)
+        proc.popen.send_signal(signal.SIGTERM)
+        code = proc.popen.wait(timeout=20)
+    stderr = proc.log_path.read_text()
     assert code == 0, stderr
     assert "Traceback" not in stderr
     assert f"listening on {endpoint}" in stderr and "zenoh router " in stderr
@@ -108,8 +99,8 @@ def test_router_carries_traffic_between_two_clients_and_stops_on_sigterm(router)
 def test_sigint_stops_the_router_cleanly_too(router) -> None:
     proc, endpoint = router
     _wait_listening(endpoint, proc)
-    proc.send_signal(signal.SIGINT)
-    assert proc.wait(timeout=20) == 0, proc.communicate()
+    proc.popen.send_signal(signal.SIGINT)
+    assert proc.popen.wait(timeout=20) == 0, proc.log_tail()
 
 
 @pytest.mark.parametrize("content", [None, "this is { not json5", '{mode: "router", bogus: 1}'])

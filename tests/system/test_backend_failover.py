@@ -19,7 +19,6 @@ import dataclasses
 import itertools
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -32,6 +31,7 @@ import pytest
 
 from backend_service.ownership import choose_owner, parse_liveliness
 from core.runtime import ZenohRunner
+from lab.launcher import start_service
 from protocol import decode, encode, keys
 from protocol.messages import NS_PER_S, Odometry, PoseEstimate, RobotDetections
 from tests.conftest import REPO_ROOT, free_port, stop_process, wait_until
@@ -149,42 +149,36 @@ def check_exclusive(events: list[tuple[Any, ...]]) -> list[str]:
 
 
 @contextlib.contextmanager
-def smartedge_router(connect: Sequence[str] = ()) -> Iterator[str]:
+def smartedge_router(log_dir: Path, connect: Sequence[str] = ()) -> Iterator[str]:
     """``smartedge router`` on a free loopback port (connected to the ``connect`` routers),
     listening; yields its endpoint, stops it with SIGTERM (exit 0)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "smartedge", "router", "--config", str(ROUTER_CONFIG),
-         "--listen", endpoint, *(a for e in connect for a in ("--connect", e))],
-        cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    port = int(endpoint.rsplit(":", 1)[1])
-
-    def listening() -> bool:
-        assert proc.poll() is None, proc.communicate()[1][-3000:]
-        with socket.socket() as sock:
-            return sock.connect_ex(("127.0.0.1", port)) == 0
-
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    proc = start_service(
+        ["router", "--config", str(ROUTER_CONFIG), "--listen", endpoint,
+         *(a for e in connect for a in ("--connect", e))],
+        log_dir / f"router-{port}.log", cwd=REPO_ROOT)
     try:
-        assert wait_until(listening, 30.0, 0.05), "the router never listened"
+        proc.wait_listening(port, timeout_s=30.0)
         yield endpoint
     finally:
-        assert stop_process(proc) == 0, proc.communicate()[1][-3000:]
+        assert proc.stop() == 0, proc.log_tail()
 
 
 @pytest.fixture
-def router() -> Iterator[str]:
-    with smartedge_router() as endpoint:
+def router(tmp_path: Path) -> Iterator[str]:
+    with smartedge_router(tmp_path) as endpoint:
         yield endpoint
 
 
 @pytest.fixture(params=[1, 2], ids=["one_router", "two_routers"])
-def routers(request: pytest.FixtureRequest) -> Iterator[tuple[str, str]]:
+def routers(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[str, str]]:
     """(a, b): one router twice, or two routers, b connected to a (a facility's areas)."""
-    with smartedge_router() as a:
+    with smartedge_router(tmp_path) as a:
         if request.param == 1:
             yield a, a
             return
-        with smartedge_router(connect=[a]) as b:
+        with smartedge_router(tmp_path, connect=[a]) as b:
             yield a, b
 
 
@@ -426,7 +420,7 @@ def test_a_killed_backend_s_robot_resumes_from_another_real_backend(tmp_path: Pa
     def on_status(sample: Any) -> None:
         details[str(sample.key_expr).rsplit("/", 1)[1]] = decode(sample.payload.to_bytes()).detail
 
-    with smartedge_router() as router:
+    with smartedge_router(tmp_path) as router:
         hub = zenoh.open(client_config(router))
         subs = [
             hub.declare_subscriber(keys.pose_key(SIM_SITE, "*"), lambda s: poses.append(

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -14,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from lab.demo import Monitor, Services, run_demo
+from lab.launcher import start_service, stop_services
 from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.slow
@@ -124,10 +124,6 @@ def test_demo_with_separate_processes(tmp_path: Path) -> None:
 EPOCH_AHEAD_NS = 4_000_000_000
 
 
-def _popen(argv: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "smartedge", *argv], stdout=log.open("w"), stderr=subprocess.STDOUT
-    )
 
 
 def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
@@ -153,7 +149,7 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
     commands = dict(services.commands())
     monitor = Monitor(scenario.site.name, live.robot_id, endpoint)
     procs = {
-        name: _popen(argv, tmp_path / f"{name.replace('/', '_')}.log")
+        name: start_service(argv, tmp_path / f"{name.replace('/', '_')}.log", name=name)
         for name, argv in commands.items()
     }
     try:
@@ -169,8 +165,7 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
 
         assert wait_until(everyone_up, 60, 0.2), ("no poses before the kill",
                                                   sorted(monitor.seen.status))
-        procs["backend"].send_signal(signal.SIGKILL)
-        procs["backend"].wait(10)
+        procs["backend"].kill()
         killed_ns = time.time_ns()
         status_before = {k: v.seq for k, v in monitor.seen.status.items()}
 
@@ -187,8 +182,9 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
             15,
             0.2,
         ), "bridge did not notice"
-        assert all(p.poll() is None for n, p in procs.items() if n != "backend")
-        procs["backend"] = _popen(commands["backend"], tmp_path / "backend_restarted.log")
+        assert all(p.running() for n, p in procs.items() if n != "backend")
+        procs["backend"] = start_service(commands["backend"], tmp_path / "backend_restarted.log",
+                                         name="backend")
         restarted_ns = time.time_ns()
         assert wait_until(lambda: camera_poses_after(restarted_ns), 40, 0.2), (
             "backend did not resume producing poses"
@@ -211,9 +207,7 @@ def test_backend_killed_and_restarted_mid_run(tmp_path: Path) -> None:
         bridge_counters = monitor.seen.status["robot-bridge/hsr"].counters
         assert bridge_counters.get("bridge.odometry_lost", 0) == 0, bridge_counters
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        codes = {n: p.wait(30) for n, p in procs.items()}
+        codes = stop_services(list(procs.values()), timeout_s=30.0)
         monitor.close()
-    assert codes == dict.fromkeys(procs, 0), codes
+    assert codes == dict.fromkeys(procs, 0), {n: (c, procs[n].log_tail(1500))
+                                               for n, c in codes.items() if c != 0}

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from core.session import loopback_config
-from lab.processes import RssSampler, rss_mib
+from lab.launcher import RssSampler, rss_mib
 from protocol import decode, encode, keys
 from protocol.messages import PoseEstimate, ServiceStatus
 from simulation.hostile import hostile_payloads

@@ -19,11 +19,7 @@ import argparse
 import collections
 import dataclasses
 import math
-import os
 import re
-import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -34,7 +30,14 @@ import numpy as np
 
 from core.session import loopback_config
 from lab.demo import Monitor, Services
-from lab.processes import RssSampler, free_port, rss_mib, stop_processes
+from lab.launcher import (
+    RssSampler,
+    ServiceProcess,
+    free_port,
+    rss_mib,
+    start_service,
+    stop_services,
+)
 from protocol import decode
 from protocol.errors import DecodeError
 from protocol.messages import NS_PER_S, PoseCorrection, PoseEstimate, ServiceStatus
@@ -110,40 +113,34 @@ class Stack:
     def __init__(self, commands: dict[str, list[str]], log_dir: Path) -> None:
         self.commands = commands
         self.log_dir = log_dir
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self.killed: list[subprocess.Popen[bytes]] = []
+        self.procs: dict[str, ServiceProcess] = {}
+        self.killed: list[ServiceProcess] = []
         self._starts: collections.Counter[str] = collections.Counter()
 
     def start(self, name: str | None = None) -> None:
         for n in [name] if name else list(self.commands):
             suffix = f".{self._starts[n]}" if self._starts[n] else ""
-            log = (self.log_dir / f"{n.replace('/', '_')}{suffix}.log").open("w")
             self._starts[n] += 1
-            self.procs[n] = subprocess.Popen(
-                [sys.executable, "-m", "smartedge", *self.commands[n]],
-                stdout=log, stderr=subprocess.STDOUT,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"})
-            log.close()
+            self.procs[n] = start_service(
+                self.commands[n], self.log_dir / f"{n.replace('/', '_')}{suffix}.log", name=n)
 
     def kill(self, name: str) -> None:
         proc = self.procs[name]
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
+        proc.kill()
         self.killed.append(proc)
 
     def pid(self, name: str) -> int:
-        return int(self.procs[name].pid)
+        return self.procs[name].pid
 
     def unexpected_exits(self) -> list[str]:
         killed = {id(p) for p in self.killed}
-        return [n for n, p in self.procs.items() if p.poll() is not None and id(p) not in killed]
+        return [n for n, p in self.procs.items() if not p.running() and id(p) not in killed]
 
     def stop(self) -> dict[str, int]:
         """SIGTERM to every process still running (last started first), SIGKILL after
         :data:`STOP_TIMEOUT_S`; the exit codes by name."""
-        names = list(reversed(self.procs))
-        codes = stop_processes([self.procs[n] for n in names], timeout_s=STOP_TIMEOUT_S)
-        return dict(zip(names, codes, strict=True))
+        return stop_services([self.procs[n] for n in reversed(self.procs)],
+                             timeout_s=STOP_TIMEOUT_S)
 
 
 # ------------------------------------------------------------------------------------------
