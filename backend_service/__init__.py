@@ -39,7 +39,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
@@ -54,7 +54,7 @@ _LAZY = {
     "PoseGraphFusion": "backend_service.fusion",
 }
 
-__all__ = ["CameraObservation", "FrameSet", "PlanarPose", *_LAZY]
+__all__ = ["CameraObservation", "FrameSet", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

@@ -62,9 +62,10 @@ from typing import Final
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose, image_scale, scale_detection
+from backend_service.frame_set import image_scale, scale_detection
 from backend_service.projection import pixels_from_camera_frame, stacked_cameras
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from core.site import Site
 from protocol.messages import Detection, RobotDetections
 

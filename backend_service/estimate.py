@@ -41,13 +41,14 @@ from backend_service.covariance import (
     propagate_correlated,
     valid_covariance,
 )
-from backend_service.frame_set import FrameSet, PlanarPose, frame_set_from_detections
+from backend_service.frame_set import FrameSet, frame_set_from_detections
 from backend_service.pose_init import View, init_from_prior, init_without_prior
 from backend_service.pose_solver import PoseProblem, SolverConfig, get_problem, robust_weights
 from backend_service.projection import stacked_cameras, weighted_residuals
 from backend_service.single_camera import apply_single_camera_heuristic
 from core.camera import CameraModel
 from core.geometry import rotation_from_rpy, rpy_from_rotation, wrap_angle
+from core.pose import PlanarPose
 from core.site import Site
 from protocol.messages import PoseEstimate, RobotDetections
 
@@ -143,7 +144,7 @@ def estimate_from_detections(site: Site, detections: Sequence[RobotDetections] |
         raise TypeError(f"site: expected core.site.Site (load_site(path)), got "
                         f"{type(site).__name__}")
     if prior is not None and not isinstance(prior, PlanarPose):
-        raise TypeError(f"prior: expected backend_service.PlanarPose or None, got "
+        raise TypeError(f"prior: expected core.pose.PlanarPose or None, got "
                         f"{type(prior).__name__}")
     if config is not None and not isinstance(config, SolverConfig):
         raise TypeError(f"config: expected SolverConfig or None, got {type(config).__name__}")

@@ -13,24 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from core.geometry import se3_from_planar
 from protocol.messages import Detection, RobotDetections
-
-
-@dataclasses.dataclass(frozen=True)
-class PlanarPose:
-    """A planar pose (x, y in metres, theta in radians) of the robot base in some frame."""
-
-    x: float
-    y: float
-    theta: float
-
-    def as_array(self) -> np.ndarray:
-        return np.array([self.x, self.y, self.theta])
-
-    def T(self) -> np.ndarray:
-        """(4, 4) homogeneous transform of this pose (robot base → frame), z = 0."""
-        return se3_from_planar(self.x, self.y, self.theta)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

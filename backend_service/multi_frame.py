@@ -22,9 +22,9 @@ import numpy as np
 
 from backend_service.covariance import CovarianceParts
 from backend_service.estimate import PoseResult
-from backend_service.frame_set import PlanarPose
 from backend_service.pose_init import circular_mean
 from core.geometry import angle_diff
+from core.pose import PlanarPose
 
 
 @dataclasses.dataclass(frozen=True)

@@ -63,11 +63,12 @@ from backend_service.association import (
 )
 from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor, NoiseModel
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, solver_views
-from backend_service.frame_set import FrameSet, PlanarPose
+from backend_service.frame_set import FrameSet
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
 from backend_service.sync import PROBLEM_HOLD_NS, FrameSetSynchronizer
 from core.geometry import MotionState, StaticDetector, se2_between, se2_compose
 from core.history import StampedHistory
+from core.pose import PlanarPose
 from core.site import ClockPolicy, Site
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 

@@ -24,9 +24,9 @@ from typing import Final
 import cv2
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from core.camera import CameraModel
 from core.geometry import angle_diff, se2_from_matrix, wrap_angle
+from core.pose import PlanarPose
 
 log = logging.getLogger(__name__)
 

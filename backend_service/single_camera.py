@@ -20,9 +20,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from core.camera import CameraModel
 from core.geometry import angle_diff, wrap_angle
+from core.pose import PlanarPose
 
 #: (B, 3) poses -> (B, K) weighted residuals in px (e.g. projection.weighted_residuals).
 ResidualFn = Callable[[np.ndarray], np.ndarray]

@@ -16,6 +16,7 @@ contract (that is :mod:`protocol`).
   looked up at a stamp;
 - ``acl``: who may put what on the bus: the ``access_control`` block of the site's router;
 - ``plugins``: named plug-ins chosen by a command-line option (``--source``, ``--adapter``);
+- ``pose``: the one planar pose type, ``PlanarPose`` (x, y, theta in a frame);
 - ``trajectory``: the one trajectory type (stamped 3D poses) and its TUM files.
 
 Imports only :mod:`protocol` of the project; of third parties numpy, PyYAML (``config_file``,

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service import PlanarPose, estimate_from_detections
+from backend_service import estimate_from_detections
 from core.camera import CameraModel
 from core.geometry import angle_diff
+from core.pose import PlanarPose
 from core.site import RobotModel, load_site
 from protocol import Detection, RobotDetections
 

@@ -18,7 +18,6 @@ The ``smartedge_msgs`` definitions are the ``.msg`` files under ``smartedge/ros_
 from __future__ import annotations
 
 import functools
-import math
 import re
 import struct
 from pathlib import Path
@@ -26,6 +25,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from core.geometry import yaw_to_quaternion
 from protocol.messages import (
     NS_PER_S,
     CameraImage,
@@ -132,10 +132,10 @@ def _header(ts: Any, stamp_ns: int, frame_id: str) -> Any:
 
 def _planar_pose(ts: Any, x: float, y: float, theta: float) -> Any:
     t = ts.types
+    qx, qy, qz, qw = yaw_to_quaternion(theta)
     return t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-        orientation=t["geometry_msgs/msg/Quaternion"](
-            x=0.0, y=0.0, z=math.sin(0.5 * theta), w=math.cos(0.5 * theta)))
+        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
 
 
 def _cov6(cov3: np.ndarray) -> np.ndarray:

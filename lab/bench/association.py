@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from backend_service.association import DetectionRouter, RobotPrediction
-from backend_service.frame_set import PlanarPose
 from core.geometry import rotation_z
+from core.pose import PlanarPose
 from core.site import Site, load_site
 from protocol.messages import Detection, RobotDetections
 from simulation.camera_ring import write_ring_site

@@ -21,10 +21,10 @@ from typing import Final
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from backend_service.pose_solver import DEFAULT_METHOD, get_problem
 from backend_service.projection import StackedCameras, numeric_jacobian, weighted_residuals
 from core.geometry import wrap_angle_array
+from core.pose import PlanarPose
 from core.site import load_site
 from simulation.camera_ring import ring_cameras
 

@@ -22,8 +22,9 @@ from typing import Final
 import numpy as np
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
 from core.geometry import wrap_angle
+from core.pose import PlanarPose
 from core.site import load_site
 from lab.bench.pose import SITE_FILE
 from lab.evaluation.cramer_rao import fisher_information

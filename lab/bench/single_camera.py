@@ -28,9 +28,10 @@ import numpy as np
 
 from backend_service.covariance import ErrorModel
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
 from core.camera import CameraModel
 from core.geometry import invert_transform, rotation_from_rotvec, wrap_angle
+from core.pose import PlanarPose
 from core.site import Site, load_site
 from lab.bench.pose import SITE_FILE
 from simulation.camera_ring import ring_cameras

@@ -20,9 +20,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from backend_service.pose_solver import get_problem
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from core.site import RobotModel, Site
 
 

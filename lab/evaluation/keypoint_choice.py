@@ -31,8 +31,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from backend_service.covariance import ErrorModel, propagate_correlated
-from backend_service.frame_set import PlanarPose
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from core.site import RobotModel
 
 #: derivative step of the numeric Jacobian (m, rad)

@@ -17,8 +17,8 @@ import logging
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from backend_service.pipeline import FusionFactory, PipelineConfig
+from core.pose import PlanarPose
 from core.site import Site
 from protocol.messages import PoseEstimate
 from simulation.detections import DetectionSimulator

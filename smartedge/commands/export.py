@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.geometry import yaw_to_quaternion
 from core.trajectory import Trajectory
 from protocol.codec import decode
 from protocol.errors import DecodeError, SmartedgeError
@@ -35,8 +36,8 @@ class ExportError(SmartedgeError):
 
 
 def _planar(x: float, y: float, theta: float) -> tuple[np.ndarray, np.ndarray]:
-    return (np.array([x, y, 0.0]),
-            np.array([0.0, 0.0, np.sin(0.5 * theta), np.cos(0.5 * theta)]))
+    """(position (3,), quaternion x, y, z, w (4,)) of a planar pose at z = 0."""
+    return np.array([x, y, 0.0]), np.array(yaw_to_quaternion(theta))
 
 
 def _smartedge_poses(path: Path, key: str) -> dict[int, tuple[np.ndarray, np.ndarray]] | None:

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
 from core.camera import CameraModel
 from core.geometry import angle_diff, invert_transform
+from core.pose import PlanarPose
 from core.site import Site, load_site, look_at_T_world_cam
 
 REPO = Path(__file__).resolve().parents[2]

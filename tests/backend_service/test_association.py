@@ -25,9 +25,9 @@ from backend_service.association import (
     predicted_covariance,
     predicted_views,
 )
-from backend_service.frame_set import PlanarPose
 from backend_service.projection import project_planar, stacked_cameras
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from protocol.messages import Detection, PoseEstimate, RobotDetections
 
 from .two_robots import ROBOTS, TwoRobotRun, two_robot_run, two_robot_site

@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor
-from backend_service.frame_set import PlanarPose
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from core.site import Site, load_site
 from protocol.errors import SiteConfigError
 from simulation.detections import CameraBump

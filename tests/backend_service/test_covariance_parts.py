@@ -15,8 +15,8 @@ from backend_service.covariance import (
     valid_covariance,
 )
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import PlanarPose
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
+from core.pose import PlanarPose
 from lab.evaluation.keypoints import common_error_summary, detection_common_error
 from tests.backend_service.pose_synth import example_site, make_frame_set
 

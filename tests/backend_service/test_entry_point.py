@@ -11,7 +11,8 @@ import pytest
 
 import backend_service
 from backend_service.estimate import SolverConfig, estimate_from_detections, estimate_pose
-from backend_service.frame_set import PlanarPose, frame_set_from_detections
+from backend_service.frame_set import frame_set_from_detections
+from core.pose import PlanarPose
 from protocol.messages import Detection, RobotDetections
 from tests.backend_service.pose_synth import ROBOT, example_site, pose_error, project_pose
 

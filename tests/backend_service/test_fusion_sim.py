@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import PlanarPose
 from backend_service.fusion import PoseGraphFusion
 from backend_service.multi_frame import MultiFrameAverager
 from backend_service.sync import FrameSetSynchronizer
 from core.geometry import se2_between, se2_compose
+from core.pose import PlanarPose
 from protocol.messages import Odometry, RobotDetections
 from simulation.runner import SimulationRun
 from simulation.scenario import load_scenario

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import estimate_pose
-from backend_service.frame_set import PlanarPose, image_scale, scale_detection
+from backend_service.frame_set import image_scale, scale_detection
 from backend_service.sync import FrameSetSynchronizer
+from core.pose import PlanarPose
 from protocol.messages import Detection, RobotDetections
 from tests.backend_service.pose_synth import ROBOT, example_site, pose_error, project_pose
 

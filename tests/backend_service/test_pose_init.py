@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
 from backend_service.pose_init import View, circular_mean, init_without_prior, pnp_candidate
+from core.pose import PlanarPose
 from tests.backend_service.pose_synth import ROBOT, example_site, make_frame_set, pose_error
 
 SITE = example_site()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import PlanarPose
 from backend_service.pose_solver import DEFAULT_METHOD, get_problem, robust_weights
 from core.camera import CameraModel
 from core.geometry import wrap_angle
+from core.pose import PlanarPose
 from lab.evaluation.cramer_rao import cramer_rao_bound
 from tests.backend_service.pose_synth import (
     ROBOT,

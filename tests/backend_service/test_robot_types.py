@@ -22,8 +22,8 @@ from backend_service.association import (
     associate,
     association_costs,
 )
-from backend_service.frame_set import PlanarPose
 from backend_service.projection import project_planar, stacked_cameras
+from core.pose import PlanarPose
 from core.site import load_site
 from protocol import codec
 from protocol.errors import DecodeError

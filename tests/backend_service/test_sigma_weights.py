@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
+from core.pose import PlanarPose
 from protocol.messages import Detection
 from tests.backend_service.pose_synth import ROBOT, example_site, make_frame_set, pose_error
 

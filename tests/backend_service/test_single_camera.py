@@ -8,9 +8,9 @@ import math
 import numpy as np
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import PlanarPose
 from backend_service.multi_frame import MultiFrameAverager
 from backend_service.single_camera import apply_single_camera_heuristic, camera_ground_xy
+from core.pose import PlanarPose
 from tests.backend_service.pose_synth import example_site, make_frame_set, pose_error, project_pose
 
 SITE = example_site()

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose
-from backend_service.frame_set import FrameSet, PlanarPose
+from backend_service.frame_set import FrameSet
 from core.camera import CameraModel
+from core.pose import PlanarPose
 from tests.backend_service.pose_synth import (
     ERRORS,
     ROBOT,

@@ -10,7 +10,8 @@ import math
 import numpy as np
 
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.frame_set import CameraObservation, FrameSet, PlanarPose
+from backend_service.frame_set import CameraObservation, FrameSet
+from core.pose import PlanarPose
 from core.site import load_site
 from simulation.camera_ring import ring_cameras
 from tests.conftest import EXAMPLE_SITE

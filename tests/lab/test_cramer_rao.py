@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from backend_service.frame_set import PlanarPose
 from backend_service.projection import StackedCameras, numeric_jacobian
+from core.pose import PlanarPose
 from lab.evaluation.cramer_rao import (
     cramer_rao_bound,
     greedy_camera_selection,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from backend_service.covariance import ErrorModel
-from backend_service.frame_set import PlanarPose
+from core.pose import PlanarPose
 from lab.evaluate import main as evaluate_main
 from lab.evaluation.cramer_rao import fisher_information
 from lab.evaluation.keypoint_choice import (

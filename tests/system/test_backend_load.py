@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import yaml
 
-from backend_service.frame_set import PlanarPose
+from core.pose import PlanarPose
 from core.session import loopback_config
 from core.site import Site, load_site
 from protocol import decode, encode, keys
