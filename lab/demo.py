@@ -41,9 +41,10 @@ from typing import Any, Final
 
 import numpy as np
 
-from core.geometry import wrap_angle_array
 from core.session import loopback_config
 from core.site import Site
+from lab.evaluation import scoring
+from lab.evaluation.scoring import live_truth, pose_errors, rms_m
 from lab.launcher import ServiceProcess, free_port, start_service, stop_services
 from protocol import decode, keys
 from protocol.messages import PoseCorrection, PoseEstimate, ServiceStatus
@@ -117,21 +118,7 @@ class Monitor:
 
 def _errors(estimates: list[PoseEstimate], live: Any) -> tuple[np.ndarray, np.ndarray]:
     """Translation (m) and orientation (rad) errors of estimates against ground truth."""
-    if not estimates:
-        return np.zeros(0), np.zeros(0)
-    est = np.array([[e.x, e.y, e.theta] for e in estimates])
-    truth = np.array([_truth(live, e) for e in estimates])
-    dt = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
-    dth = np.abs(wrap_angle_array(est[:, 2] - truth[:, 2]))
-    return dt, dth
-
-
-def _truth(live: Any, est: PoseEstimate) -> np.ndarray:
-    """The true pose of the estimate's robot at its stamp (a fleet: that robot's)."""
-    runs = getattr(live, "runs", None)
-    if runs and len(runs) > 1 and est.robot_id in runs:
-        return live.ground_truth(est.stamp_ns, est.robot_id)
-    return live.ground_truth(est.stamp_ns)
+    return pose_errors(estimates, live_truth(live))
 
 
 def _fmt(values_m: np.ndarray) -> str:
@@ -162,7 +149,7 @@ def summarize(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[str, flo
         if dt.size == 0:
             print(f"  {name:<34}{0:>6}{'-':>10}{'-':>10}{'-':>10}{'-':>8}", file=out)
             continue
-        rms = float(np.sqrt(np.mean(dt**2)))
+        rms = rms_m(dt)
         print(
             f"  {name:<34}{dt.size:>6}{100 * dt.mean():>7.1f} cm{100 * np.median(dt):>7.1f} cm"
             f"{100 * rms:>7.1f} cm{math.degrees(float(np.mean(dth))):>8.2f}",
@@ -196,8 +183,7 @@ def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[st
         fused = [e for e in seen.fused if e.robot_id == rid]
         dc, _ = _errors(single, live)
         df, _ = _errors(fused, live)
-        rc = float(np.sqrt(np.mean(dc ** 2))) if dc.size else math.nan
-        rf = float(np.sqrt(np.mean(df ** 2))) if df.size else math.nan
+        rc, rf = rms_m(dc), rms_m(df)
         n_corr = sum(c.robot_id == rid for c in seen.corrections)
         print(f"  {rid:<10}{models.get(rid, '?'):<10}{dc.size:>9}{100 * rc:>6.1f} cm"
               f"{df.size:>9}{100 * rf:>6.1f} cm{n_corr:>13}", file=out)
@@ -221,19 +207,11 @@ def summarize_fleet(seen: Observed, live: Any, out: Any = sys.stdout) -> dict[st
 
 def wrong_robot_corrections(seen: Observed, live: Any) -> int:
     """Corrections that went to the wrong robot: sent on another robot's key, or placing the
-    robot nearer another robot's true position than its own."""
-    wrong = 0
-    keyed = seen.correction_keys or [c.robot_id for c in seen.corrections]
-    for corr, key_robot in zip(seen.corrections, keyed, strict=True):
-        if key_robot and key_robot != corr.robot_id:
-            wrong += 1
-            continue
-        xy = np.array([corr.x, corr.y])
-        own = float(np.hypot(*(live.ground_truth(corr.stamp_ns, corr.robot_id)[:2] - xy)))
-        if any(float(np.hypot(*(live.ground_truth(corr.stamp_ns, r)[:2] - xy))) < own
-               for r in live.robot_ids if r != corr.robot_id):
-            wrong += 1
-    return wrong
+    robot nearer another robot's true position than its own
+    (:func:`lab.evaluation.scoring.wrong_robot_corrections`)."""
+    return scoring.wrong_robot_corrections(
+        seen.corrections, live_truth(live), list(live.robot_ids),
+        key_robots=seen.correction_keys or None)
 
 
 class Services:
@@ -657,10 +635,11 @@ def _write_robot_trajectories(seen: Observed, live: Any, folder: Path, write: An
             write_estimates_tum(folder / f"{name}.tum", estimates)
             written.append(name)
     reference = seen.fused or seen.camera or seen.localization
+    truth_at = live_truth(live)
     if reference:
         truth = [dataclasses.replace(e, x=float(g[0]), y=float(g[1]), theta=float(g[2]))
                  for e in reference
-                 for g in [_truth(live, e)]]
+                 for g in [truth_at(e.stamp_ns, e.robot_id)]]
         write_estimates_tum(folder / "ground_truth.tum", truth)
         written.append("ground_truth")
     return written

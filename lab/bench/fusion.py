@@ -22,6 +22,7 @@ from typing import Final
 import numpy as np
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
+from lab.evaluation.metrics import translation_errors
 from lab.launcher import rss_mib
 from protocol.messages import NS_PER_S
 from simulation.synthetic_run import make_synthetic_run
@@ -119,8 +120,8 @@ def main(argv: Sequence[str]) -> int:
     rss_end, graph_end = rss_mib(), fusion.graph_size()
 
     valid = ~np.isnan(fused[:, 0])
-    fused_err = np.hypot(*(fused[valid, :2] - run.truth[valid, :2]).T)
-    odom_err = np.hypot(*(run.odometry_in_world()[valid, :2] - run.truth[valid, :2]).T)
+    fused_err = translation_errors(run.truth[valid, :2], fused[valid, :2])
+    odom_err = translation_errors(run.truth[valid, :2], run.odometry_in_world()[valid, :2])
     print(f"replayed in {wall_s:.1f} s wall ({duration_s / wall_s:.0f}x real time); "
           f"FusionConfig defaults (window {config.window_s:g} s / {config.max_keyframes} "
           f"keyframes, marginalized in batches of {config.marginalize_batch})")

@@ -51,6 +51,7 @@ import numpy as np
 
 from backend_service.pipeline import BackendPipeline, PipelineConfig
 from lab.evaluation.metrics import rms, translation_errors
+from lab.evaluation.scoring import wrong_robot_corrections
 from lab.experiments.config import LOCALIZATION_RATE_HZ, paper_pipeline_config, pose_array
 from protocol.messages import Odometry, PoseCorrection, RobotDetections
 from simulation.fleet import (
@@ -372,19 +373,10 @@ def identity_score(fleet: FleetRun, rid: str, estimates: np.ndarray) -> tuple[in
 def count_wrong_corrections(fleet: FleetRun, rid: str, dr: Drive) -> int:
     """Corrections pushed to ``rid`` decided on data holding another robot's detection, or
     placing it nearer another robot than itself."""
-    n = 0
-    since = dr.contaminated_from_ns.get(rid)
-    others = [r for r in fleet.runs if r != rid]
-    for corr, _took in dr.corrections[rid]:
-        if since is not None and corr.stamp_ns >= since:
-            n += 1
-            continue
-        xy = np.array([corr.x, corr.y])
-        own = float(np.hypot(*(fleet.true_pose(rid, corr.stamp_ns)[:2] - xy)))
-        if any(float(np.hypot(*(fleet.true_pose(o, corr.stamp_ns)[:2] - xy))) < own
-               for o in others):
-            n += 1
-    return n
+    return wrong_robot_corrections(
+        [corr for corr, _took in dr.corrections[rid]],
+        lambda stamp_ns, robot: np.asarray(fleet.true_pose(robot, stamp_ns)), list(fleet.runs),
+        tainted_from_ns=dr.contaminated_from_ns.get(rid))
 
 
 def run_fleet_once(config: FleetConfig, seed: int, scenario: Scenario | None = None,

@@ -30,6 +30,7 @@ import numpy as np
 
 from core.session import loopback_config
 from lab.demo import Monitor, Services
+from lab.evaluation.scoring import live_truth, pose_errors, rms_m
 from lab.launcher import (
     RssSampler,
     ServiceProcess,
@@ -297,7 +298,7 @@ class Run:
         err = self._errors(est)
         if not est:
             return 0, math.nan, math.nan
-        return len(est), 100 * float(np.sqrt(np.mean(err**2))), 100 * float(np.max(err))
+        return len(est), 100 * rms_m(err), 100 * float(np.max(err))
 
     def localization_error(self, t0: float, t1: float) -> np.ndarray:
         """The robot's own localization errors (m) stamped in [t0, t1)."""
@@ -354,11 +355,8 @@ class Run:
         return out
 
     def _errors(self, estimates: Sequence[PoseEstimate]) -> np.ndarray:
-        if not estimates:
-            return np.zeros(0)
-        est = np.array([[e.x, e.y] for e in estimates])
-        truth = np.array([self.live.ground_truth(e.stamp_ns)[:2] for e in estimates])
-        return np.asarray(np.hypot(*(est - truth).T))
+        """Translation errors (m) against the simulated robot's truth."""
+        return pose_errors(estimates, live_truth(self.live))[0]
 
     # -- running it ------------------------------------------------------------------------
 
