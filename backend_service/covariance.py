@@ -35,7 +35,8 @@ import numpy as np
 
 from backend_service.projection import stacked_cameras
 from core.camera import CameraModel
-from core.geometry import distort_normalized, distort_normalized_jacobian, wrap_angle
+from core.geometry import wrap_angle
+from core.projection import project_world_points
 
 __all__ = [
     "CovarianceParts",
@@ -89,36 +90,15 @@ def project_with_extrinsic_jacobian(cameras: Sequence[CameraModel], points_world
 
     Returns ``uv`` (C, M, 2) distorted pixels (NaN behind a camera) and ``G`` (C, M, 2, 6):
     d(u, v)/d(rotation of the camera about its optical centre (rad, world axes), position of
-    the camera (m, world axes)) — the camera's ``T_world_cam`` perturbed on the left,
-    R' = Exp(w) R, c' = c + dc. With a = p - c, the camera-frame point p_cam = R^T a moves by
-    R^T [a]x dw - R^T dc; the chain rule through the perspective division, the lens distortion
-    (:func:`core.geometry.distort_normalized_jacobian`) and the focal lengths gives G.
+    the camera (m, world axes)), from the one projection with Jacobians
+    (:func:`core.projection.project_world_points`).
     """
     stack = stacked_cameras(tuple(cameras))
-    P = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-    R, t = stack.R_cw, stack.t_cw
-    focal, principal = stack.K[:, :2, :2], stack.K[:, :2, 2]
-    p_cam = np.einsum("cij,mj->cmi", R, P) + t[:, None, :]  # (C, M, 3)
-    z = p_cam[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = np.where(z > 1e-9, 1.0 / z, np.nan)
-    xy = p_cam[..., :2] * inv_z[..., None]
-    dist = stack.dist[:, None, :]
-    xy_d = distort_normalized(xy, dist)
-    uv = np.einsum("cij,cmj->cmi", focal, xy_d) + principal[:, None, :]
-    # d(x, y)/d(p_cam): [[1/z, 0, -x/z], [0, 1/z, -y/z]]
-    d_xy = np.zeros((*z.shape, 2, 3))
-    d_xy[..., 0, 0] = inv_z
-    d_xy[..., 1, 1] = inv_z
-    d_xy[..., :, 2] = -xy * inv_z[..., None]
-    d_uv = np.einsum("cij,cmjk,cmkl->cmil", focal,
-                     distort_normalized_jacobian(xy, dist), d_xy)  # (C, M, 2, 3)
-    d_uv_a = np.einsum("cmij,cjk->cmik", d_uv, R)  # d(u, v)/d(a), a = p - c in world axes
-    a = P[None, :, :] - stack.centre_world[:, None, :]  # (C, M, 3)
-    G = np.empty((*z.shape, 2, 6))
-    G[..., 0:3] = np.cross(d_uv_a, a[..., None, :])  # row . (a x dw) = (row x a) . dw
-    G[..., 3:] = -d_uv_a
-    return uv, G
+    P = np.asarray(points_world, dtype=np.float64).reshape(1, -1, 3)
+    proj = project_world_points(np.swapaxes(stack.R_cw, 1, 2)[:, None], stack.centre_world[:, None],
+                                stack.K[:, None], stack.dist[:, None], P)
+    assert proj.d_uv_d_camera is not None
+    return proj.uv, proj.d_uv_d_camera
 
 
 def propagate_correlated(A: np.ndarray, cameras: Sequence[CameraModel],

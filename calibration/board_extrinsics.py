@@ -36,13 +36,12 @@ from calibration.site_file import pose_node
 from core.camera import CameraModel
 from core.config_file import ConfigReader, join_key, read_yaml_file
 from core.geometry import (
-    distort_normalized,
-    distort_normalized_jacobian,
     invert_transform,
     quaternion_to_rotation,
     rotation_from_rotvec,
     rotation_from_rpy,
 )
+from core.projection import SOLVER_MIN_DEPTH_M, project_world_points
 
 log = logging.getLogger(__name__)
 
@@ -208,26 +207,16 @@ class _Problem:
         with respect to the corner's camera and board (columns: :meth:`columns`)."""
         ci, bi = self.obs_cam, self.obs_board
         RX = np.einsum("nij,nj->ni", R_wb[bi], self.X_board)
-        p_w = RX + t_wb[bi]
-        R_cw = np.transpose(R_wc[ci], (0, 2, 1))
-        v = p_w - c_w[ci]
-        p_c = np.einsum("nij,nj->ni", R_cw, v)
-        z = p_c[:, 2]
-        xy = p_c[:, :2] / z[:, None]
-        d = distort_normalized(xy, self.dist[ci])
-        Kc = self.K[ci]
-        uv = np.einsum("nij,nj->ni", Kc[:, :2, :2], d) + Kc[:, :2, 2]
-        r = uv - self.uv
+        proj = project_world_points(R_wc[ci], c_w[ci], self.K[ci], self.dist[ci],
+                                    RX + t_wb[bi], jacobians=jacobian,
+                                    min_depth_m=SOLVER_MIN_DEPTH_M)
+        r = proj.uv - self.uv
         if not jacobian:
             return r, None
-        Jd = distort_normalized_jacobian(xy, self.dist[ci])
-        Jp = np.zeros((len(z), 2, 3))
-        Jp[:, 0, 0] = Jp[:, 1, 1] = 1.0 / z
-        Jp[:, 0, 2] = -xy[:, 0] / z
-        Jp[:, 1, 2] = -xy[:, 1] / z
-        A = Kc[:, :2, :2] @ Jd @ Jp  # (N, 2, 3) d uv / d p_c
-        J_cam = np.concatenate([A @ -R_cw, A @ R_cw @ _skew(v)], axis=2)
-        J_board = np.concatenate([A @ R_cw, A @ R_cw @ -_skew(RX)], axis=2)
+        assert proj.d_uv_d_camera is not None and proj.d_uv_d_point is not None
+        G, D = proj.d_uv_d_camera, proj.d_uv_d_point  # (N, 2, 6) rotation, position; (N, 2, 3)
+        J_cam = np.concatenate([G[..., 3:], G[..., :3]], axis=2)  # position, then rotation
+        J_board = np.concatenate([D, D @ -_skew(RX)], axis=2)
         # each corner touches its camera's 6 columns and its board's 6 (a fixed board's go to
         # a dummy column P, dropped when the normal equations are assembled)
         J = np.concatenate([J_cam, J_board], axis=2)  # (N, 2, 12)

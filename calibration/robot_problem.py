@@ -19,12 +19,11 @@ import numpy as np
 
 from core.camera import CameraModel
 from core.geometry import (
-    distort_normalized,
-    distort_normalized_jacobian,
     rotation_from_rotvec,
     rotvec_from_rotation,
     wrap_angle_array,
 )
+from core.projection import SOLVER_MIN_DEPTH_M, project_world_points
 
 __all__ = [
     "JointProblem",
@@ -96,32 +95,12 @@ def project_keypoints(R_wc: np.ndarray, c_w: np.ndarray, K: np.ndarray, dist: np
              cam: np.ndarray, pw: np.ndarray, jacobians: bool
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Pixels (n, 2), depth (n,), and with ``jacobians`` d(u, v)/d(camera rotation, camera
-    position) (n, 2, 6) and d(u, v)/d(world point) (n, 2, 3)."""
-    R = R_wc[cam]
-    a = pw - c_w[cam]
-    p = np.einsum("nji,nj->ni", R, a)  # R^T a
-    z = p[:, 2]
-    zs = np.maximum(z, 1e-3)
-    xy = p[:, :2] / zs[:, None]
-    d = dist[cam]
-    xyd = distort_normalized(xy, d)
-    Kc = K[cam]
-    u = Kc[:, 0, 0] * xyd[:, 0] + Kc[:, 0, 1] * xyd[:, 1] + Kc[:, 0, 2]
-    v = Kc[:, 1, 1] * xyd[:, 1] + Kc[:, 1, 2]
-    uv = np.stack([u, v], axis=-1)
-    if not jacobians:
-        return uv, z, None, None
-    d_xy = np.zeros((len(z), 2, 3))
-    d_xy[:, 0, 0] = 1.0 / zs
-    d_xy[:, 1, 1] = 1.0 / zs
-    d_xy[:, :, 2] = -xy / zs[:, None]
-    d_uv_p = np.einsum("nij,njk,nkl->nil", Kc[:, :2, :2], distort_normalized_jacobian(xy, d),
-                       d_xy)  # (n, 2, 3) wrt camera-frame point
-    d_uv_a = np.einsum("nij,nkj->nik", d_uv_p, R)  # wrt a (world axes): d_uv_p @ R^T
-    G = np.empty((len(z), 2, 6))
-    G[:, :, 0:3] = np.cross(d_uv_a, a[:, None, :])
-    G[:, :, 3:] = -d_uv_a
-    return uv, z, G, d_uv_a
+    position) (n, 2, 6) and d(u, v)/d(world point) (n, 2, 3), observation i through camera
+    ``cam[i]`` (:func:`core.projection.project_world_points`; the depth clamped to
+    :data:`core.projection.SOLVER_MIN_DEPTH_M` so the solver sees finite values)."""
+    proj = project_world_points(R_wc[cam], c_w[cam], K[cam], dist[cam], pw,
+                                jacobians=jacobians, min_depth_m=SOLVER_MIN_DEPTH_M)
+    return proj.uv, proj.depth_m, proj.d_uv_d_camera, proj.d_uv_d_point
 
 
 class JointProblem:

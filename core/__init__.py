@@ -9,6 +9,8 @@ contract (that is :mod:`protocol`).
 - ``config_file``: reading YAML configuration files with errors that name the file and the
   dotted key;
 - ``camera``: the pinhole camera with OpenCV lens distortion, in plain numpy;
+- ``projection``: the one projection of world points into cameras with its Jacobians (vs the
+  camera's pose and vs the point), used by the covariances, camera health and calibration;
 - ``geometry``: plain-numpy angles, SE(2), SE(3), quaternions, the lens distortion model and
   the static-robot detector;
 - ``history``: the one stamped history: items in stamp order, looked up, interpolated, trimmed;

@@ -103,7 +103,7 @@ class NestedStageTimer:
 
 
 @contextlib.contextmanager
-def _patched(clock: NestedStageTimer, previous_release: bool) -> Iterator[None]:
+def _patched(clock: NestedStageTimer, finite_difference: bool) -> Iterator[None]:
     """Wrap the deployed functions with the stage timers (and swap in the peer's Jacobian)."""
     targets: list[tuple[Any, str, str]] = [
         (sync.FrameSetSynchronizer, "push", "sync"),
@@ -120,7 +120,7 @@ def _patched(clock: NestedStageTimer, previous_release: bool) -> Iterator[None]:
     try:
         for owner, attr, stage in targets:
             setattr(owner, attr, clock.wrap(stage, getattr(owner, attr)))
-        if previous_release:
+        if finite_difference:
             covariance.project_with_extrinsic_jacobian = finite_difference_extrinsic_jacobian
         yield
     finally:
@@ -145,7 +145,7 @@ class StageFigures:
         return sum(self.per_stage_ms.values())
 
 
-def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool = False,
+def measure_stages(n_cameras: int, frames: int = 60, *, finite_difference: bool = False,
                    rate_hz: float = 30.0, warmup: int = 5) -> StageFigures:
     """Drive one :class:`BackendPipeline` over ``warmup + frames`` frame-sets of
     ``n_cameras`` ring cameras and return the CPU per frame-set by stage of the last
@@ -165,7 +165,7 @@ def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool =
     solved = 0
     first_solve_ms = math.nan
     warming = True
-    with _patched(clock, previous_release):
+    with _patched(clock, finite_difference):
         pipe = pipeline.BackendPipeline(site)
         for k, frame in enumerate(payloads):
             arrival_ns = start_ns + k * period_ns + 2_000_000
@@ -193,20 +193,21 @@ def measure_stages(n_cameras: int, frames: int = 60, *, previous_release: bool =
 
 
 def print_stage_table(camera_counts: Sequence[int], frames: int) -> None:
-    """The breakdown for each camera count, this release against the previous one."""
+    """The breakdown for each camera count, the closed-form covariance against the
+    finite-difference peer."""
     print(f"CPU per frame-set by stage, in-process pipeline, {frames} frame-sets per case "
           "after 5 unmeasured (ms; peer = the finite-difference covariance, "
           "same run)")
     head = "".join(f"{s:>11}" for s in STAGES)
-    print(f"{'cameras':>8} {'release':>9}{head}{'total':>9}{'ratio':>7}{'first':>9}")
+    print(f"{'cameras':>8} {'covariance':>12}{head}{'total':>9}{'ratio':>7}{'first':>9}")
     for n in camera_counts:
         measure_stages(n, 5)  # warm-up: CasADi builds its functions for this problem size
         now = measure_stages(n, frames)
-        before = measure_stages(n, frames, previous_release=True)
-        for label, fig in (("this", now), ("previous", before)):
+        before = measure_stages(n, frames, finite_difference=True)
+        for label, fig in (("closed", now), ("finite-d", before)):
             cells = "".join(f"{fig.per_stage_ms[s]:>11.3f}" for s in STAGES)
             ratio = fig.total_ms / now.total_ms if now.total_ms > 0 else math.nan
-            print(f"{n:>8} {label:>9}{cells}{fig.total_ms:>9.2f}{ratio:>6.1f}x"
+            print(f"{n:>8} {label:>12}{cells}{fig.total_ms:>9.2f}{ratio:>6.1f}x"
                   f"{fig.first_solve_ms:>9.1f}", flush=True)
     print("first: solve + covariance CPU of the first frame-set (no prior: per-view PnP "
           "initialization, once per robot start or loss), not in the per-stage figures")

@@ -30,7 +30,7 @@ def test_every_stage_is_measured_and_the_originals_are_restored() -> None:
     originals = (sync.FrameSetSynchronizer.push, pipeline.estimate_pose,
                  estimate.propagate_correlated, covariance.project_with_extrinsic_jacobian)
     now = measure_stages(4, frames=6)
-    before = measure_stages(4, frames=6, previous_release=True)
+    before = measure_stages(4, frames=6, finite_difference=True)
     assert now.frame_sets == before.frame_sets == 6
     for fig in (now, before):
         assert set(fig.per_stage_ms) == set(STAGES)
