@@ -2,7 +2,8 @@
 
 The backend publishes :class:`protocol.PoseEstimate` (world frame: x, y in metres, theta in
 radians, a 3x3 covariance) on ``smartedge/<site>/robot/<robot>/pose`` at the odometry rate.
-Run it next to ``smartedge demo`` with ``--site simulation/sites/paper_lab.yaml``.
+Run it next to ``smartedge demo`` with ``--site simulation/sites/paper_lab.yaml``. Exits 1
+when no pose arrived at all (a health check can use it).
 
     .venv/bin/python examples/subscribe_pose.py --robot hsr --count 20 --timeout-s 30
 """
@@ -13,6 +14,7 @@ import argparse
 import contextlib
 import math
 import queue
+import sys
 from pathlib import Path
 
 import zenoh
@@ -68,5 +70,7 @@ if __name__ == "__main__":
     add_session_arguments(parser)  # --mode, --connect, --listen, --config (as zenoh's examples)
     args = parser.parse_args()
     conf = make_config(options_from_args(args))  # default: a peer on tcp/127.0.0.1:7447
+    received = 0
     with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C: close the session and stop
-        main(conf, args.site, args.robot, args.count, args.timeout_s)
+        received = main(conf, args.site, args.robot, args.count, args.timeout_s)
+    sys.exit(0 if received else 1)  # no pose at all: say so to a script or a health check

@@ -158,9 +158,11 @@ def test_subscribe_pose_prints_the_published_poses(hub) -> None:
 def test_subscribe_pose_stops_after_its_timeout(hub) -> None:
     _, endpoint = hub
     t0 = time.monotonic()
-    out = run([*example("subscribe_pose.py"), "--count", "3", "--timeout-s", "0.5",
-               *client_args(endpoint)])
-    assert "no pose for 0.5 s: stopping" in out and "seq=" not in out
+    proc = subprocess.run([*example("subscribe_pose.py"), "--count", "3", "--timeout-s", "0.5",
+                           *client_args(endpoint)], capture_output=True, text=True, timeout=30,
+                          env=_env(), cwd=REPO_ROOT)
+    assert "no pose for 0.5 s: stopping" in proc.stdout and "seq=" not in proc.stdout
+    assert proc.returncode == 1, proc.stdout + proc.stderr  # no pose at all: a failure
     assert time.monotonic() - t0 < 20.0
 
 
@@ -242,3 +244,129 @@ def test_every_example_is_run_by_a_test_and_listed() -> None:
     assert scripts <= run_here, f"examples no test runs: {sorted(scripts - run_here)}"
     readme = (EXAMPLES_DIR / "README.md").read_text()
     assert all(f"examples/{name}" in readme for name in scripts), "examples/README.md"
+
+
+def _start_example(argv: list[str]) -> tuple[subprocess.Popen, list[str], threading.Thread]:
+    """An example as a process whose output lines are collected as they come."""
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=_env(), cwd=REPO_ROOT)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")),
+                              daemon=True)
+    reader.start()
+    return proc, lines, reader
+
+
+def _stop_example(proc: subprocess.Popen, reader: threading.Thread) -> int:
+    from tests.conftest import stop_process
+
+    code = stop_process(proc, timeout_s=20.0)
+    reader.join(5)
+    return code
+
+
+def test_robot_adapter_robot_is_initialized_from_the_backends_pose(hub) -> None:
+    """The example's robot starts lost: the bridge publishes its odometry and a lost
+    localization, and once fused poses of the backend arrive while it stands still the bridge
+    hands the adapter an initial pose, which the robot's localization then reports."""
+    session, endpoint = hub
+    odometry: list[protocol.Odometry] = []
+    localization: list[protocol.PoseEstimate] = []
+    subs = [
+        session.declare_subscriber(keys.robot_key("lab", "hsr", "odom"), lambda s: odometry.append(
+            protocol.decode(s.payload.to_bytes(), protocol.Odometry))),
+        session.declare_subscriber(keys.robot_key("lab", "hsr", "localization"),
+                                   lambda s: localization.append(
+                                       protocol.decode(s.payload.to_bytes(),
+                                                       protocol.PoseEstimate))),
+    ]
+    proc, lines, reader = _start_example(
+        [*example("robot_adapter.py"), "--site", str(EXAMPLE_SITE), "--robot", "hsr",
+         "--adapter", "wheels", "--wheels-start", "10.5", "5.5", "90", *client_args(endpoint)])
+    try:
+        assert wait_until(lambda: len(odometry) >= 5 or proc.poll() is not None, 30.0), lines
+        assert proc.poll() is None, "".join(lines)
+        pose_pub = session.declare_publisher(keys.pose_key("lab", "hsr"))
+        status_pub = session.declare_publisher(keys.status_key("lab", "backend", "main"))
+        cov = np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2])
+        rng = np.random.default_rng(0)
+
+        def initialized() -> bool:
+            now = time.time_ns()
+            status_pub.put(protocol.encode(protocol.ServiceStatus("backend", "main", now, 0)))
+            pose_pub.put(protocol.encode(protocol.PoseEstimate(
+                "hsr", now, len(lines), 10.5 + rng.normal(0, 0.005), 5.5 + rng.normal(0, 0.005),
+                math.radians(90.0), cov, "fused", ("cam_sw", "cam_se"))))
+            return any(line.startswith("initialization: pose set to") for line in lines)
+
+        assert wait_until(initialized, 30.0, 0.1), "".join(lines)[-3000:]
+        x, y, theta = map(float, re.search(
+            rf"initialization: pose set to x={NUMBER} m y={NUMBER} m theta={NUMBER} deg",
+            "".join(lines)).groups())
+        assert math.hypot(x - 10.5, y - 5.5) < 0.03 and abs(theta - 90.0) < 1.0
+        # the robot now knows where it is: its localization says so, not lost
+        n = len(localization)
+        assert wait_until(lambda: len(localization) > n + 2, 10.0)
+        last = localization[-1]
+        assert math.hypot(last.x - x, last.y - y) < 1e-3
+    finally:
+        code = _stop_example(proc, reader)
+        for sub in subs:
+            sub.undeclare()
+    assert code == 0, "".join(lines)[-3000:]
+    assert all(o.robot_id == "hsr" for o in odometry)
+    assert [o.seq for o in odometry] == sorted(o.seq for o in odometry)
+
+
+@pytest.mark.slow
+def test_frame_source_runs_rendered_frames_through_the_shipped_networks(
+        hub, tmp_path: Path) -> None:
+    """``--source vendor`` of the example on rendered images of cam1 with the robot in view:
+    the edge agent publishes detections whose box holds the robot's true keypoints."""
+    pytest.importorskip("moderngl")
+    pytest.importorskip("onnxruntime")
+    import cv2
+
+    from simulation.dataset import SampleGenerator
+    from simulation.scenario import load_scenario
+
+    gen = SampleGenerator(load_scenario(), "site", seed=11)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    truth: list[np.ndarray] = []
+    i = 0
+    while len(truth) < 3 and i < 400:
+        s = gen(i)
+        i += 1
+        r = s.robots[0]
+        if s.camera.camera_id != "cam1" or r.bbox_xyxy is None or r.in_image.sum() < 8 or \
+                (r.bbox_xyxy[3] - r.bbox_xyxy[1]) < 40:
+            continue
+        cv2.imwrite(str(folder / f"{len(truth):03d}.png"), s.image_rgb[..., ::-1])
+        truth.append(np.asarray(r.bbox_xyxy, float))
+    assert len(truth) == 3
+    session, endpoint = hub
+    received: list[protocol.RobotDetections] = []
+    sub = session.declare_subscriber(
+        keys.detections_key("paper_lab", "cam1"),
+        lambda s: received.append(protocol.decode(s.payload.to_bytes(), protocol.RobotDetections)))
+    proc, lines, reader = _start_example(
+        [*example("frame_source.py"), "--site",
+         str(REPO_ROOT / "simulation" / "sites" / "paper_lab.yaml"), "--camera", "cam1",
+         "--source", "vendor", "--vendor-folder", str(folder), "--vendor-rate", "4",
+         "--threads", "1", *client_args(endpoint)])
+    try:
+        assert wait_until(lambda: len(received) >= 6 or proc.poll() is not None, 90.0, 0.1), \
+            "".join(lines)[-3000:]
+    finally:
+        code = _stop_example(proc, reader)
+        sub.undeclare()
+    assert code == 0, "".join(lines)[-3000:]
+    from edge_agent.boxes import box_iou
+
+    for msg in received:
+        assert (msg.image_width, msg.image_height) == (848, 480)
+    # every image shows the robot: its box is found in (nearly) every published frame
+    hits = [any(max(box_iou(d.bbox_xyxy, t) for t in truth) >= 0.5 for d in msg.detections)
+            for msg in received]
+    assert sum(hits) >= len(received) - 1, hits
