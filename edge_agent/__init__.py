@@ -9,8 +9,12 @@ detections and semantic clouds and publishes them; a service (``smartedge edge-a
 - ``ros_tf``: ``/tf`` and ``/tf_static`` from the bus into a :class:`core.tf_buffer.TfBuffer`;
 - ``robot_camera``: ``smartedge robot-camera --source ros``: the real robot's head RGB-D
   camera as semantic clouds;
-- ``models``: the networks at run time: model cards, onnxruntime sessions, decoding (the
-  shipped models are in ``edge_agent/models/``);
+- ``models``: the robot keypoint pipelines (detector → crop → keypoints, per robot type);
+- ``networks``: the detector, keypoint and segmentation networks on onnxruntime, decoding;
+- ``model_cards``: each ONNX model's card and the export check (the shipped models are in
+  ``edge_agent/models/``);
+- ``providers``: where the networks run: execution providers, fallbacks, sessions;
+- ``flip``: test-time flip, the mirrored frame's answer fused with the frame's;
 - ``boxes``: box overlap and IoU, and whether two boxes are one robot (the one place);
 - ``crop``: image geometry shared by training and inference (detector input, keypoint crops);
 - ``far_band``: the rows of a static camera's frame where far robots appear, which the

@@ -8,7 +8,7 @@ lab's site views; docs/models.md). A static camera's calibration says where thos
 be: standing on the floor (world z = 0) at a camera depth of :data:`FAR_MIN_DEPTH_M` or more,
 they fill a band of rows near the top of a downward-looking camera's frame. The detector runs
 on that band at twice its scale (full resolution for an 848x480 camera) and its boxes join the
-whole frame's (:meth:`edge_agent.models.Detector.detect_many`): the far robots look to it like
+whole frame's (:meth:`edge_agent.networks.Detector.detect_many`): the far robots look to it like
 robots half as far away, which it finds. The band costs one more detector run, on fewer pixels
 than the whole frame's two (848x168 against 424x240 and its mirror image for the paper lab's
 cameras); on two x86 cores that makes the detector + keypoints take 1.6-1.7x as long.

@@ -18,13 +18,9 @@ import numpy as np
 from core.site import Site
 from edge_agent.far_band import FAR_MIN_DEPTH_M, FarBand, far_band_for_camera
 from edge_agent.frames import Frame
-from edge_agent.models import (
-    CUDA,
-    TENSORRT,
-    RobotKeypointPipeline,
-    RobotObservation,
-    RobotTypesPipeline,
-)
+from edge_agent.models import RobotKeypointPipeline, RobotTypesPipeline
+from edge_agent.networks import RobotObservation
+from edge_agent.providers import CUDA, TENSORRT
 from protocol.messages import Detection, RobotDetections
 
 log = logging.getLogger(__name__)

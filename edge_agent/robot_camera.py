@@ -14,7 +14,7 @@ bridge) and, for each frame due at ``--cloud-rate`` (1 Hz by default):
    (``base_link``) AT THE IMAGE STAMP in a :class:`core.tf_buffer.TfBuffer` fed from
    ``/tf`` and ``/tf_static`` (:class:`edge_agent.ros_tf.TfListener`): chains of frames,
    interpolation between two transforms of a moving joint;
-3. segments the colour image (:class:`edge_agent.models.SemanticSegmenter`) and builds the
+3. segments the colour image (:class:`edge_agent.networks.SemanticSegmenter`) and builds the
    :class:`protocol.SemanticCloud` in ``base_link`` with ``T_frame_sensor = T_base_cam``
    (:class:`edge_agent.semantic_cloud.SemanticCloudMaker`, the same code as the simulated head
    camera and the static cameras), published reliably on
@@ -424,7 +424,8 @@ def build_node(args: argparse.Namespace, segmenter: Any = None,
     unavailable = ""
     if segmenter is None:
         try:
-            from edge_agent.models import SemanticSegmenter, providers_available
+            from edge_agent.networks import SemanticSegmenter
+            from edge_agent.providers import providers_available
 
             providers = providers_available() if args.providers == "auto" else [
                 p.strip() for p in args.providers.split(",") if p.strip()]

@@ -41,7 +41,7 @@ from protocol.messages import MAX_CLOUD_POINTS, SemanticCloud
 from protocol.semantic_classes import SEMANTIC_CLASS_ID, SEMANTIC_CLASSES
 
 if TYPE_CHECKING:
-    from edge_agent.models import Segmentation
+    from edge_agent.networks import Segmentation
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +276,7 @@ def build_semantic_cloud(
 ) -> SemanticCloud:
     """A :class:`SemanticCloud` from one RGB-D frame's segmentation.
 
-    ``segmentation``: an :class:`edge_agent.models.Segmentation` of the W x H colour image
+    ``segmentation``: an :class:`edge_agent.networks.Segmentation` of the W x H colour image
     (``class_ids`` (h, w) uint8, ``confidence`` (h, w) float32, any output scale).
     ``depth_m``: (H, W) float32 z in the camera optical frame, metres, aligned to the colour
     image; 0, inf or NaN = no depth. ``camera``: the colour camera's intrinsics and distortion
@@ -336,8 +336,8 @@ class CloudTiming:
 class SemanticCloudMaker:
     """The clouds of one RGB-D sensor at ``rate_hz``.
 
-    ``segmenter``: image (H, W, 3) uint8 RGB → :class:`edge_agent.models.Segmentation` (the
-    :class:`edge_agent.models.SemanticSegmenter`). ``camera``: the colour camera (intrinsics,
+    ``segmenter``: image (H, W, 3) uint8 RGB → :class:`edge_agent.networks.Segmentation` (the
+    :class:`edge_agent.networks.SemanticSegmenter`). ``camera``: the colour camera (intrinsics,
     distortion, size). ``frame_id`` / ``T_frame_sensor``: see :func:`build_semantic_cloud` (a
     static camera: the site's world frame and ``camera.T_world_cam``; a robot:
     :data:`ROBOT_BASE_FRAME` and ``T_base_cam``). Frames are due by their stamps: the first one,

@@ -19,7 +19,7 @@ Sources are plug-ins (:mod:`edge_agent.sources`); ``--source`` offers the regist
   detector noise model. Clearly labelled ``source=sim`` in the status.
 
 Semantic clouds (paper Sec. III-C): a source with depth (a RealSense, the rendered simulated
-camera) also feeds the segmentation network (:class:`edge_agent.models.SemanticSegmenter`);
+camera) also feeds the segmentation network (:class:`edge_agent.networks.SemanticSegmenter`);
 ``--cloud-rate`` times a second (default 1 Hz where the source has depth) the processed frame
 becomes a :class:`protocol.SemanticCloud` in the site's world frame
 (:mod:`edge_agent.semantic_cloud`), published reliably on
@@ -187,7 +187,7 @@ def build_cloud_maker(args: argparse.Namespace, site: Site, camera_id: str, sour
         return None
     if segmenter is None:
         try:
-            from edge_agent.models import SemanticSegmenter
+            from edge_agent.networks import SemanticSegmenter
             from edge_agent.sources import execution_providers_from_args
 
             # the same providers as the detector (--providers, --fp16, --trt-cache)

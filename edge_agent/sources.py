@@ -189,10 +189,11 @@ class CameraFrameSource(PipelineSource):
 
 
 def execution_providers_from_args(args: argparse.Namespace) -> Any:
-    """The :class:`edge_agent.models.ExecutionProviders` of ``--providers``, ``--fp16`` and
+    """The :class:`edge_agent.providers.ExecutionProviders` of ``--providers``, ``--fp16`` and
     ``--trt-cache`` (the same for every network of the agent); ``UsageError`` for an unknown
     provider name or a cache folder that cannot be created."""
-    from edge_agent.models import ModelError, execution_providers
+    from edge_agent.model_cards import ModelError
+    from edge_agent.providers import execution_providers
 
     try:
         return execution_providers(getattr(args, "providers", "auto") or "auto",

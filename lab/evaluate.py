@@ -164,7 +164,7 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 def _keypoints(args: argparse.Namespace) -> int:
-    from edge_agent.models import ModelError
+    from edge_agent.model_cards import ModelError
     from lab.evaluation.keypoints import evaluate_keypoints
 
     if args.count < 1:
@@ -226,7 +226,7 @@ def _record(args: argparse.Namespace, figures: dict[str, dict[str, float]], view
     """``--record``: the figures into the evaluated models' cards, named by what ran."""
     from pathlib import Path
 
-    from edge_agent.models import ModelError
+    from edge_agent.model_cards import ModelError
     from lab.evaluation.keypoints import record_evaluation
 
     what = ("held-out renderer variations" if args.held_out_variations

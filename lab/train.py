@@ -184,7 +184,7 @@ def main(argv: Sequence[str]) -> int:
         batch = args.batch or (32 if args.kind == "keypoints" else 16)
         init_from = args.init_from
         if init_from == "shipped":
-            from edge_agent.models import default_model_dir
+            from edge_agent.model_cards import default_model_dir
 
             init_from = str(default_model_dir() / f"{args.kind}.onnx")
         cfg = TrainConfig(args.kind, train_sets, val_sets, geometry, steps=args.steps,

@@ -18,7 +18,8 @@ import numpy as np
 
 from edge_agent.boxes import box_iou
 from edge_agent.far_band import FarBand
-from edge_agent.models import RobotKeypointPipeline, RobotObservation
+from edge_agent.models import RobotKeypointPipeline
+from edge_agent.networks import RobotObservation
 from edge_agent.pipeline import camera_far_band
 from simulation.dataset import SampleGenerator
 from simulation.scenario import PAPER_SCENARIO, load_scenario

@@ -4,7 +4,7 @@ On the paper's HSR the head camera's frames are segmented on the robot's own boa
 TX2) and sent as semantic point clouds; this service plays that part for the simulated robot.
 It renders the robot model's ``head_camera`` (site file) from the robot's *true* pose at the
 capture time (:class:`simulation.live.HeadCameraFeed`, sensor and depth noise included), runs
-the edge's :class:`edge_agent.models.SemanticSegmenter` and cloud builder on it
+the edge's :class:`edge_agent.networks.SemanticSegmenter` and cloud builder on it
 (:class:`edge_agent.semantic_cloud.SemanticCloudMaker`, the same code as a static camera) and
 publishes a :class:`protocol.SemanticCloud` in ``base_link`` (``T_frame_sensor`` =
 ``T_base_cam``) on ``smartedge/<site>/robot/<robot_id>/cloud``, reliably, ``--cloud-rate``
@@ -131,7 +131,7 @@ def build_node(args: argparse.Namespace, segmenter: Any = None) -> RobotCameraNo
     unavailable = ""
     if segmenter is None:
         try:
-            from edge_agent.models import SemanticSegmenter
+            from edge_agent.networks import SemanticSegmenter
 
             segmenter = SemanticSegmenter(args.segmentation_model, threads=args.threads)
         except (ImportError, SmartedgeError, OSError, RuntimeError) as exc:

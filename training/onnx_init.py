@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from edge_agent.models import KeypointCard, ModelError, card_path
+from edge_agent.model_cards import KeypointCard, ModelError, card_path
 from protocol.errors import SmartedgeError
 
 log = logging.getLogger(__name__)

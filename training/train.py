@@ -22,13 +22,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from edge_agent.flip import mirror_permutation
 from edge_agent.metrics import (
     confusion_matrix,
     detection_ap,
     keypoint_metrics,
     segmentation_metrics,
 )
-from edge_agent.models import (
+from edge_agent.model_cards import (
     CARD_VERSION,
     KINDS,
     DetectorCard,
@@ -36,12 +37,11 @@ from edge_agent.models import (
     SegmentationCard,
     card_machine,
     card_path,
-    decode_detections,
     export_differences,
-    mirror_permutation,
     reference_path,
     usable_cores,
 )
+from edge_agent.networks import decode_detections
 from protocol.errors import SmartedgeError
 from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
 from training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
@@ -85,7 +85,7 @@ class TrainConfig:
     #: bf16 autocast on CUDA (None: on where the GPU supports bf16; never on CPU)
     amp: bool | None = None
     #: keypoints: mirror half the crops left/right, keypoints swapped with their mirror
-    #: partners (:func:`edge_agent.models.mirror_permutation`): the network also sees the
+    #: partners (:func:`edge_agent.flip.mirror_permutation`): the network also sees the
     #: robot's mirror image (what flip test-time augmentation feeds it)
     mirror: bool = False
     #: stop this leg after so many steps (checkpointed; the same command resumes the schedule,

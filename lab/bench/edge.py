@@ -40,7 +40,8 @@ def main(argv: Sequence[str]) -> int:
     args = parser.parse_args(list(argv))
 
     from edge_agent.far_band import far_band_for_camera
-    from edge_agent.models import ModelError, RobotKeypointPipeline
+    from edge_agent.model_cards import ModelError
+    from edge_agent.models import RobotKeypointPipeline
     from simulation.dataset import SampleGenerator
     from simulation.scenario import load_scenario
 

@@ -211,7 +211,7 @@ def record_evaluation(model_dir: Path | None, name: str, command: str,
     not finite are left out. Returns the cards written."""
     import datetime
 
-    from edge_agent.models import (
+    from edge_agent.model_cards import (
         DetectorCard,
         KeypointCard,
         card_machine,
@@ -343,14 +343,14 @@ def calibrate_keypoints(model_dir: Path | None = None, *, count: int = 300,
     (default: the shipped models; a folder without ``detector.onnx``, e.g. a keypoint training
     run, is paired with the shipped detector). Returns the table."""
     from edge_agent.metrics import sigma_calibration
-    from edge_agent.models import KeypointCard, card_path
+    from edge_agent.model_cards import KeypointCard, card_path
     from simulation.dataset import SampleGenerator
     from simulation.scenario import PAPER_SCENARIO, load_scenario
 
     say = progress or (lambda line: None)
     scenario = load_scenario(scenario_path or PAPER_SCENARIO)
     model = scenario.site.robot_model(scenario.robot_id)
-    from edge_agent.models import model_files
+    from edge_agent.model_cards import model_files
 
     det_path, kp_path = model_files(model_dir)
     pipeline = RobotKeypointPipeline(det_path if det_path.is_file() else None, kp_path,

@@ -3,7 +3,7 @@ IV-C, Fig. 7-8 of the paper) on the simulated site.
 
 1. **Static sensors alone**: every site camera renders a few RGB-D frames (its true pose, so the
    calibration error is in them) that go through the edge's segmentation network and cloud
-   builder (the deployed code: :class:`edge_agent.models.SemanticSegmenter`,
+   builder (the deployed code: :class:`edge_agent.networks.SemanticSegmenter`,
    :func:`edge_agent.semantic_cloud.build_semantic_cloud`) into the mapper's
    :class:`mapper.mapping.SemanticMapping`, which starts from the prior model of the empty room
    (floor and walls, no semantics).
@@ -230,7 +230,7 @@ class _CloudSource:
     """Rendered RGB-D frames → segmentation → semantic clouds (the edge's code path)."""
 
     def __init__(self, scenario: Any, config: MappingExperimentConfig) -> None:
-        from edge_agent.models import SemanticSegmenter
+        from edge_agent.networks import SemanticSegmenter
         from simulation.site_cameras import SiteCameraRenderer
 
         self.scenario = scenario

@@ -31,7 +31,8 @@ cv2 = pytest.importorskip("cv2")
 
 from core.runtime import Outgoing  # noqa: E402
 from edge_agent.frames import Frame, LatestFrameReader  # noqa: E402
-from edge_agent.models import ModelError, RobotKeypointPipeline  # noqa: E402
+from edge_agent.model_cards import ModelError  # noqa: E402
+from edge_agent.models import RobotKeypointPipeline  # noqa: E402
 from edge_agent.pipeline import EdgePipeline, StageLatency  # noqa: E402
 from edge_agent.service import EdgeAgentNode, build_node, build_parser  # noqa: E402
 from edge_agent.sources import CameraFrameSource  # noqa: E402

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from edge_agent.models import RobotObservation
+from edge_agent.networks import RobotObservation
 from lab.evaluation.keypoints import error_breakdown
 
 NAMES = ["front_top", "left_top", "rear_top", "right_top"]

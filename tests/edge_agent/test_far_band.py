@@ -16,12 +16,12 @@ from core.camera import CameraModel
 from core.site import load_site, look_at_T_world_cam
 from edge_agent.boxes import box_iou
 from edge_agent.far_band import FAR_BAND_CHOICES, FarBand, far_band_for_camera, far_rows
-from edge_agent.models import (
+from edge_agent.model_cards import default_model_dir
+from edge_agent.models import RobotKeypointPipeline
+from edge_agent.networks import (
     FAR_BAND_EDGE_PX,
     MAX_BAND_SESSIONS,
     Detector,
-    RobotKeypointPipeline,
-    default_model_dir,
     far_band_to_frame,
     merge_far_band_boxes,
 )

@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edge_agent.models import KeypointEstimator, ModelError, default_model_dir, mirror_permutation
+from edge_agent.flip import mirror_permutation
+from edge_agent.model_cards import ModelError, default_model_dir
+from edge_agent.networks import KeypointEstimator
 
 
 def test_mirror_permutation_pairs_left_and_right() -> None:
@@ -102,7 +104,7 @@ def _shipped_without_flip_field(kind: str, folder: Path) -> Path:
 
 
 def test_fused_boxes_average_both_passes_and_halve_a_one_sided_box() -> None:
-    from edge_agent.models import fuse_flipped_detections
+    from edge_agent.flip import fuse_flipped_detections
 
     direct = np.array([[10.0, 20.0, 50.0, 80.0, 0.8],     # the robot, both passes see it
                        [200.0, 10.0, 230.0, 60.0, 0.5]])  # seen in this orientation only
@@ -124,7 +126,7 @@ def test_fused_boxes_average_both_passes_and_halve_a_one_sided_box() -> None:
 
 def test_mirrored_render_gives_mirrored_boxes_with_the_detectors_flip(site_view) -> None:  # type: ignore[no-untyped-def]
     from edge_agent.boxes import box_iou
-    from edge_agent.models import Detector
+    from edge_agent.networks import Detector
 
     image = site_view.image_rgb
     w = image.shape[1]
@@ -147,7 +149,8 @@ def test_mirrored_render_gives_mirrored_boxes_with_the_detectors_flip(site_view)
 
 
 def test_the_detector_card_decides_its_flip(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from edge_agent.models import Detector, RobotKeypointPipeline
+    from edge_agent.models import RobotKeypointPipeline
+    from edge_agent.networks import Detector
 
     onnx = _shipped_without_flip_field("detector", tmp_path)
     old = Detector(onnx, threads=1)

@@ -17,20 +17,18 @@ import pytest
 pytest.importorskip("onnxruntime")
 
 from edge_agent.crop import to_nchw
-from edge_agent.models import (
-    Detector,
+from edge_agent.model_cards import (
     DetectorCard,
     KeypointCard,
-    KeypointEstimator,
     ModelError,
-    RobotKeypointPipeline,
-    RobotObservation,
     card_path,
     default_model_dir,
     export_differences,
     model_files,
     reference_path,
 )
+from edge_agent.models import RobotKeypointPipeline
+from edge_agent.networks import Detector, KeypointEstimator, RobotObservation
 from protocol.errors import SmartedgeError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -15,12 +15,8 @@ import pytest
 torch = pytest.importorskip("torch", reason="training needs torch (train extra)")
 pytest.importorskip("onnx", reason="reading an ONNX file's weights needs onnx (train extra)")
 
-from edge_agent.models import (  # noqa: E402
-    KeypointCard,
-    default_model_dir,
-    mirror_permutation,
-    reference_path,
-)
+from edge_agent.flip import mirror_permutation  # noqa: E402
+from edge_agent.model_cards import KeypointCard, default_model_dir, reference_path  # noqa: E402
 from tests.edge_agent.conftest import TINY_ARGS  # noqa: E402
 from training.nets import KeypointNet, RobotDetector  # noqa: E402
 from training.onnx_init import (  # noqa: E402

@@ -22,15 +22,16 @@ ort = pytest.importorskip("onnxruntime")
 cv2 = pytest.importorskip("cv2")
 
 from core.site import load_site  # noqa: E402
-from edge_agent import models as models_module  # noqa: E402
-from edge_agent.models import (  # noqa: E402
+from edge_agent import providers as providers_module  # noqa: E402
+from edge_agent.model_cards import ModelError  # noqa: E402
+from edge_agent.models import RobotKeypointPipeline  # noqa: E402
+from edge_agent.networks import SemanticSegmenter  # noqa: E402
+from edge_agent.providers import (  # noqa: E402
     CPU,
     CUDA,
     ENGINE_CACHE_ENV,
     TENSORRT,
     ExecutionProviders,
-    RobotKeypointPipeline,
-    SemanticSegmenter,
     engine_cache_dir,
     execution_providers,
     provider_names,
@@ -123,7 +124,7 @@ def test_engine_cache_is_in_the_state_directory(tmp_path: Path) -> None:
 def test_cache_folder_that_cannot_be_made_is_a_clear_error(tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    with pytest.raises(models_module.ModelError, match="TensorRT engine cache"):
+    with pytest.raises(ModelError, match="TensorRT engine cache"):
         execution_providers("tensorrt", engine_cache=blocker, available=JETSON_BUILD)
 
 
@@ -145,7 +146,7 @@ def test_cli_options_build_the_choice(tmp_path: Path) -> None:
 @pytest.fixture
 def fresh_report_log(monkeypatch: pytest.MonkeyPatch) -> None:
     """The once-per-process asked/got log starts empty."""
-    monkeypatch.setattr(models_module, "_REPORTED", set())
+    monkeypatch.setattr(providers_module, "REPORTED_FALLBACKS", set())
 
 
 def test_asked_tensorrt_every_network_gets_the_cpu_and_the_log_says_so_once(

@@ -24,15 +24,14 @@ pytest.importorskip("onnxruntime")
 from core.site import load_site
 from edge_agent.boxes import box_iou
 from edge_agent.frames import Frame
+from edge_agent.model_cards import KeypointCard, ModelError
 from edge_agent.models import (
-    KeypointCard,
-    ModelError,
     RobotKeypointPipeline,
-    RobotObservation,
     RobotTypesPipeline,
     models_for_site,
     suppress_across_models,
 )
+from edge_agent.networks import RobotObservation
 from edge_agent.pipeline import EdgePipeline
 from protocol import codec
 from protocol.messages import RobotDetections

@@ -16,16 +16,15 @@ pytest.importorskip("onnxruntime")
 
 from edge_agent.crop import downscale_labels, to_nchw
 from edge_agent.metrics import confusion_matrix, segmentation_metrics
-from edge_agent.models import (
+from edge_agent.model_cards import (
     CARD_VERSION,
     ModelError,
-    Segmentation,
     SegmentationCard,
-    SemanticSegmenter,
     card_path,
     export_differences,
     reference_path,
 )
+from edge_agent.networks import Segmentation, SemanticSegmenter
 from protocol.errors import SmartedgeError
 from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
 

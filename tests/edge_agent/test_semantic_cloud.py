@@ -9,7 +9,7 @@ import pytest
 
 from core.camera import CameraModel
 from core.geometry import invert_transform, rotation_from_rpy, undistort_normalized
-from edge_agent.models import Segmentation
+from edge_agent.networks import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
     SemanticCloudConfig,

@@ -15,14 +15,9 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from edge_agent.models import (
-    DetectorCard,
-    KeypointCard,
-    RobotKeypointPipeline,
-    SegmentationCard,
-    SemanticSegmenter,
-    default_model_dir,
-)
+from edge_agent.model_cards import DetectorCard, KeypointCard, SegmentationCard, default_model_dir
+from edge_agent.models import RobotKeypointPipeline
+from edge_agent.networks import SemanticSegmenter
 from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -72,8 +67,8 @@ class Block(importlib.abc.MetaPathFinder):
 sys.meta_path.insert(0, Block())
 import numpy as np
 from edge_agent.crop import to_nchw
-from edge_agent.models import (Detector, KeypointEstimator, SemanticSegmenter,
-                               default_model_dir, export_differences, reference_path)
+from edge_agent.model_cards import default_model_dir, export_differences, reference_path
+from edge_agent.networks import Detector, KeypointEstimator, SemanticSegmenter
 for cls, name in ((Detector, "detector"), (KeypointEstimator, "keypoints"),
                   (SemanticSegmenter, "segmentation")):
     onnx = default_model_dir() / f"{name}.onnx"

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from edge_agent.metrics import sigma_calibration, sigma_from_confidence
-from edge_agent.models import KeypointCard, ModelError, default_model_dir
+from edge_agent.model_cards import KeypointCard, ModelError, default_model_dir
 
 K = 12  # the paper robot's keypoints
 
@@ -326,7 +326,7 @@ class _StubModels:
     model_id = "hsr/stub"
 
     def __init__(self, observations: list) -> None:
-        from edge_agent.models import StageTimes
+        from edge_agent.networks import StageTimes
 
         self.observations = observations
         self.times = StageTimes(1.0, 1.0)
@@ -339,7 +339,7 @@ def test_edge_pipeline_keeps_unusable_sigmas_from_invalidating_the_message() -> 
     """NaN / infinite / zero / huge sigmas become [SIGMA_MIN_PX, SIGMA_MAX_PX]: the keypoint is
     uncertain, the message stays valid."""
     from edge_agent.frames import Frame
-    from edge_agent.models import RobotObservation
+    from edge_agent.networks import RobotObservation
     from edge_agent.pipeline import SIGMA_MAX_PX, SIGMA_MIN_PX, EdgePipeline
 
     sig = np.array([1.0, np.nan, np.inf, 0.0, 1e9, 2.5])

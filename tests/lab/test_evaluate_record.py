@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("onnxruntime")
 pytest.importorskip("moderngl")
 
-from edge_agent.models import DetectorCard, KeypointCard, card_machine, default_model_dir
+from edge_agent.model_cards import DetectorCard, KeypointCard, card_machine, default_model_dir
 from lab.evaluate import main
 
 SHIPPED_CARDS = ("detector.json", "detector.md", "keypoints.json", "keypoints.md")
@@ -80,7 +80,7 @@ def test_record_refuses_with_calibrate_and_names_a_missing_card(tmp_path: Path,
 
 
 def test_a_card_with_malformed_evaluations_is_refused_by_name(tmp_path: Path) -> None:
-    from edge_agent.models import ModelError
+    from edge_agent.model_cards import ModelError
 
     folder = _models(tmp_path)
     doc = json.loads((folder / "detector.json").read_text())

@@ -211,7 +211,7 @@ class _RecordingFeed:
 
 
 def _truth_segmentation(class_id: np.ndarray, scale: int = 2) -> Any:
-    from edge_agent.models import Segmentation
+    from edge_agent.networks import Segmentation
 
     h, w = class_id.shape
     oh, ow = h // scale, w // scale

@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("moderngl")
 
 from core.geometry import se3_from_planar
-from edge_agent.models import Segmentation
+from edge_agent.networks import Segmentation
 from edge_agent.semantic_cloud import (
     ROBOT_BASE_FRAME,
     SemanticCloudConfig,
@@ -328,7 +328,7 @@ def test_the_segmentation_network_feeds_the_cloud_builder() -> None:
     """The real :class:`SemanticSegmenter` (onnxruntime, the shipped model) on a rendered RGB-D
     frame: its output, at its own scale, becomes a valid cloud in the world frame within the
     camera's range, of the legend's classes, without dynamic ones."""
-    from edge_agent.models import SemanticSegmenter
+    from edge_agent.networks import SemanticSegmenter
     from protocol.semantic_classes import NUM_SEMANTIC_CLASSES
     from simulation.live import RenderedCameraFeed
 

@@ -18,13 +18,8 @@ torch = pytest.importorskip("torch", reason="training needs torch (train extra)"
 
 import torch.nn.functional as F  # noqa: E402
 
-from edge_agent.models import (  # noqa: E402
-    CARD_VERSION,
-    DetectorCard,
-    KeypointCard,
-    decode_detections,
-    reference_path,
-)
+from edge_agent.model_cards import CARD_VERSION, DetectorCard, KeypointCard, reference_path  # noqa: E402
+from edge_agent.networks import decode_detections  # noqa: E402
 from tests.edge_agent.conftest import train_tiny  # noqa: E402
 from training.data import Geometry, SetSpec, render_set  # noqa: E402
 from training.nets import KeypointNet, KeypointOutput, RobotDetector  # noqa: E402
@@ -215,7 +210,7 @@ def test_tiny_run_writes_model_cards_and_reference(tiny_models: Path, kind: str)
         assert set(card.onnx_check) == {"peaks", "size", "offset"}
         # a free input size: the edge runs a camera's far band at its own size
         from edge_agent.far_band import FarBand
-        from edge_agent.models import Detector
+        from edge_agent.networks import Detector
 
         det = Detector(onnx, threads=1)
         assert det.runs_far_band and det.spatial_dims == ("height", "width")

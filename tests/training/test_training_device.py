@@ -142,7 +142,7 @@ def test_tiny_mirror_run_asks_for_the_flip_in_its_card(tmp_path: Path) -> None:
     """``smartedge train keypoints --mirror`` (tiny) writes a card that asks the edge for the
     test-time flip and records the mirrored training and the leg's device."""
     pytest.importorskip("moderngl", reason="rendering the training views needs moderngl")
-    from edge_agent.models import KeypointCard
+    from edge_agent.model_cards import KeypointCard
     from smartedge.cli import main
     from tests.edge_agent.conftest import TINY_ARGS
 
