@@ -22,16 +22,17 @@ the single-camera rule, averaging while the robot is static and pose-graph fusio
 - ``fusion``: pose-graph fusion of camera estimates with odometry (GTSAM ISAM2);
 - ``camera_health``: a bumped camera noticed from its residuals;
 - ``areas``: areas of a site: which cameras a backend serves, which area a robot is in;
-- ``ownership``: which backend publishes which robot when several share a site;
+- ``ownership``: which backend publishes which robot when several share a site (the rules,
+  pure);
+- ``ownership_tokens``: the same on the bus: the owner and area tokens, liveliness gets;
 - ``service``: ``smartedge backend``, the node and its ``main``.
 
 The algorithmic modules are pure: they take messages and site data and never touch Zenoh. Two
 modules do, and neither imports ``zenoh`` itself (the sessions come from ``core``):
-``service`` runs the node on Zenoh, and ``ownership`` declares and undeclares the backend's
-owner and area tokens on the session and runs its liveliness gets
-(:class:`~backend_service.ownership.OwnershipTokens`). Imports only the ground floor of the
-project (``protocol`` and ``core``). Heavy dependencies are imported lazily by the modules
-that need them, so ``import backend_service`` stays cheap.
+``service`` runs the node on Zenoh, and ``ownership_tokens`` declares and undeclares the
+backend's owner and area tokens on the session and runs its liveliness gets. Imports only the
+ground floor of the project (``protocol`` and ``core``). Heavy dependencies are imported
+lazily by the modules that need them, so ``import backend_service`` stays cheap.
 """
 
 from __future__ import annotations

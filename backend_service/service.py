@@ -21,7 +21,7 @@ from typing import Final
 
 from backend_service.areas import AreaMap, backend_areas
 from backend_service.fusion import FusionConfig, fusion_config_from_site
-from backend_service.ownership import BackendOwnership
+from backend_service.ownership_tokens import BackendOwnership
 from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
 from core.runtime import Outgoing, ServiceNode, Subscription, service_main
 from core.session import add_session_arguments
@@ -55,7 +55,7 @@ class BackendNode(ServiceNode):
     replay's offset, so replayed poses are not all stale.
 
     Several backends: each backend owns a share of the robots (:class:`~backend_service.
-    ownership.BackendOwnership`: liveliness tokens ``owner/<robot>/<id>``, rendezvous hashing
+    ownership_tokens.BackendOwnership`: liveliness tokens ``owner/<robot>/<id>``, rendezvous hashing
     over the live backends), runs the full pipeline (solve, pose graph) only for those
     (:meth:`~backend_service.pipeline.BackendPipeline.set_active`) and publishes only their
     estimates (others are counted ``ownership.withheld``). Of the other robots it keeps what

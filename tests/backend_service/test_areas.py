@@ -288,7 +288,7 @@ def test_on_zenoh_the_area_tokens_give_a_robot_to_its_areas_backend_and_hand_it_
     import threading
     import time
 
-    from backend_service.ownership import BackendOwnership
+    from backend_service.ownership_tokens import BackendOwnership
     from tests.conftest import wait_until
 
     zenoh = pytest.importorskip("zenoh")

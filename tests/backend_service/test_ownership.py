@@ -24,15 +24,14 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from backend_service.ownership import (
-    BackendOwnership,
     Decision,
     OwnershipTable,
     choose_owner,
     hrw_score,
     parse_liveliness,
     pinned_owners,
-    session_connected,
 )
+from backend_service.ownership_tokens import BackendOwnership, session_connected
 from protocol import keys
 from protocol.errors import ValidationError
 from tests.conftest import wait_until

@@ -23,12 +23,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from backend_service.ownership import (
-    DEFAULT_CONFIRM_S,
-    DEFAULT_JOIN_DELAY_S,
-    DEFAULT_STALL_S,
-    BackendOwnership,
-)
+from backend_service.ownership import DEFAULT_CONFIRM_S, DEFAULT_JOIN_DELAY_S, DEFAULT_STALL_S
+from backend_service.ownership_tokens import BackendOwnership
 from core.runtime import Outgoing, ServiceNode, Subscription, service_main
 from core.session import add_session_arguments
 from protocol import keys

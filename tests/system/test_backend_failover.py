@@ -492,7 +492,8 @@ def test_the_periodic_resync_goes_out_and_comes_back_without_blocking(router: st
     is the one the blocking start-up sync gives."""
     import zenoh
 
-    from backend_service.ownership import OwnershipTable, OwnershipTokens
+    from backend_service.ownership import OwnershipTable
+    from backend_service.ownership_tokens import OwnershipTokens
 
     with zenoh.open(client_config(router)) as other, zenoh.open(client_config(router)) as mine:
         tokens_on_bus = [other.liveliness().declare_token(keys.alive_key("lab", "backend", "b9")),
