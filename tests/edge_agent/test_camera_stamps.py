@@ -22,23 +22,25 @@ import pytest
 cv2 = pytest.importorskip("cv2")
 
 from edge_agent import frames as frames_module  # noqa: E402
-from edge_agent.frames import (  # noqa: E402
+from edge_agent.capture_stamps import (  # noqa: E402
     STAMP_DRIVER,
     STAMP_GRAB,
     DeviceClockMapper,
-    FrameSourceError,
     MonotonicToRealtime,
+    StampFilter,
+    monotonic_realtime_offset_ns,
+    realsense_stamp_ns,
+    v4l2_stamp_clock,
+)
+from edge_agent.frames import (  # noqa: E402
+    FrameSourceError,
     OpenCVGrabber,
     RealSenseGrabber,
-    StampFilter,
     check_gstreamer,
     csi_pipeline,
     expand_device_uri,
     gstreamer_in_opencv,
     is_gstreamer_uri,
-    monotonic_realtime_offset_ns,
-    realsense_stamp_ns,
-    v4l2_stamp_clock,
 )
 from edge_agent.sources import runtime_detail  # noqa: E402
 
