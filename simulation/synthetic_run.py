@@ -121,39 +121,65 @@ class SyntheticRun:
         return out
 
 
+@dataclasses.dataclass(frozen=True)
+class SyntheticRoute:
+    """How the robot drives the waypoint loop: odometry rate, speeds, dwell at each waypoint
+    (x, y, theta in the world frame, m and rad)."""
+
+    odom_hz: float = 30.0
+    speed_m_s: float = 0.3
+    turn_rate_rad_s: float = 0.6
+    dwell_s: float = 4.0
+    waypoints: Sequence[tuple[float, float, float]] = DEFAULT_WAYPOINTS
+    #: waypoints where the cameras see the robot poorly (``CameraNoise``'s poor sigmas)
+    poor_waypoints: Sequence[int] = DEFAULT_POOR_WAYPOINTS
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryDrift:
+    """Wheel odometry's errors while moving (none at rest): a scale error of the speed, a
+    heading bias (rad/s) and white noise on both."""
+
+    scale_error: float = 0.02
+    heading_bias_rad_s: float = 0.005
+    noise_m_s: float = 0.01
+    noise_rad_s: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraNoise:
+    """The camera estimates: ``shots_per_stop`` per dwell (``sigma_good_*``, or ``sigma_poor_*``
+    at the route's poor waypoints), ``moving_camera_hz`` while driving (good), each delivered
+    ``latency_s`` (uniform) after its stamp."""
+
+    sigma_good_m: float = 0.03
+    sigma_good_rad: float = math.radians(1.0)
+    sigma_poor_m: float = 0.15
+    sigma_poor_rad: float = math.radians(5.0)
+    shots_per_stop: int = 1
+    moving_camera_hz: float = 0.0
+    latency_s: tuple[float, float] = (0.05, 0.3)
+
+
 def make_synthetic_run(
     duration_s: float,
     *,
     seed: int = 0,
     robot_id: str = "hsr1",
-    odom_hz: float = 30.0,
-    speed_m_s: float = 0.3,
-    turn_rate_rad_s: float = 0.6,
-    dwell_s: float = 4.0,
-    waypoints: Sequence[tuple[float, float, float]] = DEFAULT_WAYPOINTS,
-    poor_waypoints: Sequence[int] = DEFAULT_POOR_WAYPOINTS,
-    odom_scale_error: float = 0.02,
-    odom_heading_bias_rad_s: float = 0.005,
-    odom_noise_m_s: float = 0.01,
-    odom_noise_rad_s: float = 0.01,
-    sigma_good_m: float = 0.03,
-    sigma_good_rad: float = math.radians(1.0),
-    sigma_poor_m: float = 0.15,
-    sigma_poor_rad: float = math.radians(5.0),
-    shots_per_stop: int = 1,
-    moving_camera_hz: float = 0.0,
-    latency_s: tuple[float, float] = (0.05, 0.3),
+    route: SyntheticRoute = SyntheticRoute(),
+    drift: OdometryDrift = OdometryDrift(),
+    cameras: CameraNoise = CameraNoise(),
     start_stamp_ns: int = 1_700_000_000 * NS_PER_S,
 ) -> SyntheticRun:
-    """Drive the waypoint loop for ``duration_s`` (turn in place, drive straight, turn to the
-    waypoint heading, dwell ``dwell_s``), starting static at waypoint 0.
+    """Drive ``route``'s waypoint loop for ``duration_s`` (turn in place, drive straight, turn
+    to the waypoint heading, dwell), starting static at waypoint 0.
 
-    Odometry integrates ``v (1 + odom_scale_error) + noise`` and
-    ``w + odom_heading_bias_rad_s + noise`` while moving (wheel odometry does not drift at
-    rest). Camera shots: ``shots_per_stop`` per dwell (noise ``sigma_good_*``, or
-    ``sigma_poor_*`` at ``poor_waypoints``) plus ``moving_camera_hz`` while driving (good);
-    latency uniform in ``latency_s``.
+    Odometry integrates ``v (1 + drift.scale_error) + noise`` and
+    ``w + drift.heading_bias_rad_s + noise`` while moving (wheel odometry does not drift at
+    rest). Camera shots as ``cameras`` says.
     """
+    odom_hz, speed_m_s, turn_rate_rad_s = route.odom_hz, route.speed_m_s, route.turn_rate_rad_s
+    dwell_s, waypoints, poor_waypoints = route.dwell_s, route.waypoints, route.poor_waypoints
     rng = np.random.default_rng(seed)
     dt = 1.0 / odom_hz
     n_total = int(duration_s * odom_hz) + 1
@@ -204,18 +230,19 @@ def make_synthetic_run(
 
     truth = integrate(v_cmd, w_cmd, np.array(waypoints[0], dtype=float))
     moving = (v_cmd != 0.0) | (w_cmd != 0.0)
-    v_odom = v_cmd * (1.0 + odom_scale_error) + moving * rng.normal(0, odom_noise_m_s, n_total)
-    w_odom = w_cmd + moving * (odom_heading_bias_rad_s + rng.normal(0, odom_noise_rad_s, n_total))
+    v_odom = v_cmd * (1.0 + drift.scale_error) + moving * rng.normal(0, drift.noise_m_s, n_total)
+    w_odom = w_cmd + moving * (drift.heading_bias_rad_s
+                              + rng.normal(0, drift.noise_rad_s, n_total))
     odom = integrate(v_odom, w_odom, np.zeros(3))
     stamps = start_stamp_ns + np.round(np.arange(n_total) * dt * NS_PER_S).astype(np.int64)
 
     shots: list[CameraShot] = []
 
     def shot(k: int, stamp_ns: int, poor: bool, at_stop: bool) -> None:
-        sig_m = sigma_poor_m if poor else sigma_good_m
-        sig_r = sigma_poor_rad if poor else sigma_good_rad
+        sig_m = cameras.sigma_poor_m if poor else cameras.sigma_good_m
+        sig_r = cameras.sigma_poor_rad if poor else cameras.sigma_good_rad
         noise = rng.normal(0.0, 1.0, 3) * np.array([sig_m, sig_m, sig_r])
-        latency = int(rng.uniform(*latency_s) * NS_PER_S)
+        latency = int(rng.uniform(*cameras.latency_s) * NS_PER_S)
         shots.append(
             CameraShot(stamp_ns, latency, truth[k] + noise, truth[k].copy(), sig_m, sig_r, poor,
                        at_stop)
@@ -231,14 +258,14 @@ def make_synthetic_run(
         while end < n_total and stop_of[end] == stop_of[k]:
             end += 1
         if end < n_total or end - k > 2:
-            for m in range(shots_per_stop):
-                j = k + (m + 1) * (end - k) // (shots_per_stop + 1)
+            for m in range(cameras.shots_per_stop):
+                j = k + (m + 1) * (end - k) // (cameras.shots_per_stop + 1)
                 # stamps between odometry samples (cameras are not synchronized to odometry)
                 shot(j, int(stamps[j]) + int(0.4 * dt * NS_PER_S), stop_of[k] in poor_waypoints,
                      True)
         k = end
-    if moving_camera_hz > 0:
-        step = max(1, round(odom_hz / moving_camera_hz))
+    if cameras.moving_camera_hz > 0:
+        step = max(1, round(odom_hz / cameras.moving_camera_hz))
         for j in range(0, n_total - 1, step):
             if moving[j] and moving[j + 1]:
                 shot(j, int(stamps[j]) + int(0.5 * dt * NS_PER_S), False, False)
@@ -290,8 +317,11 @@ def replay(
 __all__ = [
     "DEFAULT_POOR_WAYPOINTS",
     "DEFAULT_WAYPOINTS",
+    "CameraNoise",
     "CameraShot",
+    "OdometryDrift",
     "PoseFusion",
+    "SyntheticRoute",
     "SyntheticRun",
     "make_synthetic_run",
     "replay",

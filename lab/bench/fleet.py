@@ -346,13 +346,33 @@ class RowResult:
         return max(0, self.missing - self.accounted)
 
 
-def run_row(n_backends: int, n_routers: int, n_robots: int, n_cameras: int, rate_hz: float,
-            odom_rate_hz: float, seconds: float, warmup_s: float, workdir: Path,
-            progress: bool = True, split: str = "none") -> RowResult:
-    """One row: fresh routers and backends, ``warmup_s`` + ``seconds`` of traffic; only the
-    frame-sets stamped after the warm-up are measured. ``split``: ``none`` (every backend
-    receives every camera) or ``area`` (one area per router, see the module doc)."""
+@dataclasses.dataclass(frozen=True)
+class FleetRow:
+    """One row of the benchmark: the facility and its traffic. ``rate_hz``: each camera's
+    frames per second; ``odom_rate_hz``: each robot's odometry; ``warmup_s`` unmeasured, then
+    ``seconds`` measured; ``split``: ``none`` (every backend receives every camera) or
+    ``area`` (one area per router, see the module doc)."""
+
+    backends: int
+    routers: int
+    robots: int
+    cameras: int
+    rate_hz: float
+    odom_rate_hz: float
+    seconds: float
+    warmup_s: float
+    split: str = "none"
+
+
+def run_row(row: FleetRow, workdir: Path, progress: bool = True) -> RowResult:
+    """One row: fresh routers and backends, ``row.warmup_s`` + ``row.seconds`` of traffic;
+    only the frame-sets stamped after the warm-up are measured."""
     import zenoh
+
+    n_backends, n_routers, n_robots, n_cameras = row.backends, row.routers, row.robots, row.cameras
+    rate_hz, odom_rate_hz, seconds, warmup_s = (row.rate_hz, row.odom_rate_hz, row.seconds,
+                                                row.warmup_s)
+    split = row.split
 
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
@@ -748,8 +768,9 @@ def main(argv: Sequence[str]) -> int:
             first: RowResult | None = None
             for b in counts:
                 print(f"row: split {split}, {b} backend(s)", flush=True)
-                r = run_row(b, args.routers, args.robots, args.cameras, args.rate,
-                            args.odom_rate, args.seconds, args.warmup, Path(tmp), split=split)
+                r = run_row(FleetRow(b, args.routers, args.robots, args.cameras, args.rate,
+                                     args.odom_rate, args.seconds, args.warmup, split=split),
+                            Path(tmp))
                 if not rows:
                     print(f"{'split':>6}{'backends':>9}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}"
                           f"{'p50 x':>7}{'p99 x':>7}{'missing':>14}{'silent':>7}{'dup':>6}"

@@ -25,7 +25,7 @@ from backend_service.fusion import FusionConfig, PoseGraphFusion
 from lab.evaluation.metrics import translation_errors
 from lab.launcher import rss_mib
 from protocol.messages import NS_PER_S
-from simulation.synthetic_run import make_synthetic_run
+from simulation.synthetic_run import CameraNoise, SyntheticRoute, make_synthetic_run
 
 
 class _Latencies:
@@ -74,8 +74,8 @@ def main(argv: Sequence[str]) -> int:
     duration_s = args.minutes * 60.0
     t0 = time.perf_counter()
     run = make_synthetic_run(
-        duration_s, seed=args.seed, odom_hz=args.odom_hz, moving_camera_hz=args.camera_hz,
-        shots_per_stop=3,
+        duration_s, seed=args.seed, route=SyntheticRoute(odom_hz=args.odom_hz),
+        cameras=CameraNoise(moving_camera_hz=args.camera_hz, shots_per_stop=3),
     )
     odometry = [run.odometry(i) for i in range(len(run.stamps_ns))]
     deliveries = sorted((s.stamp_ns + s.latency_ns, k) for k, s in enumerate(run.shots))

@@ -10,7 +10,7 @@ import pytest
 
 from backend_service.fusion import FusionConfig, PoseGraphFusion
 from protocol.messages import Odometry, PoseEstimate
-from simulation.synthetic_run import make_synthetic_run, replay
+from simulation.synthetic_run import CameraNoise, SyntheticRoute, make_synthetic_run, replay
 
 ROBOT = "hsr1"
 T0 = 1_700_000_000_000_000_000
@@ -105,7 +105,7 @@ def test_marginal_covariance_on_every_fused_pose():
 
 
 def test_late_estimate_lands_at_its_own_stamp():
-    run = make_synthetic_run(120.0, seed=2, moving_camera_hz=2.0)
+    run = make_synthetic_run(120.0, seed=2, cameras=CameraNoise(moving_camera_hz=2.0))
     grid = run.stamps_ns[::5]
 
     def smoothed(latency_ns: int, stamp_shift_ns: int = 0) -> tuple[np.ndarray, PoseGraphFusion]:
@@ -162,7 +162,8 @@ def test_robust_prior_limits_an_outlier():
 
 def test_bounded_memory_over_a_long_run():
     config = FusionConfig(window_s=30.0, max_keyframes=80, marginalize_batch=20)
-    run = make_synthetic_run(900.0, seed=3, odom_hz=15.0, moving_camera_hz=1.0)
+    run = make_synthetic_run(900.0, seed=3, route=SyntheticRoute(odom_hz=15.0),
+                             cameras=CameraNoise(moving_camera_hz=1.0))
     fusion = PoseGraphFusion(run.robot_id, config)
     n = len(run.stamps_ns)
     checkpoints = {n * k // 6 for k in range(2, 7)} | {n - 1}

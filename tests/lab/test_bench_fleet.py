@@ -49,9 +49,10 @@ def test_every_camera_reports_the_robots_of_its_cell_unnamed(tmp_path: Path) -> 
 @pytest.mark.slow
 def test_two_backends_on_two_routers_split_the_robots_and_measure_latency(
         tmp_path: Path) -> None:
-    from lab.bench.fleet import run_row
+    from lab.bench.fleet import FleetRow, run_row
 
-    r = run_row(2, 2, 2, 6, 10.0, 10.0, 3.0, 3.0, tmp_path, progress=False)
+    r = run_row(FleetRow(backends=2, routers=2, robots=2, cameras=6, rate_hz=10.0,
+                         odom_rate_hz=10.0, seconds=3.0, warmup_s=3.0), tmp_path, progress=False)
     print(r)
     assert r.frame_sets >= 50  # 2 robots x 30 frames, those seen by a camera
     assert r.poses >= 0.8 * r.frame_sets, r

@@ -50,9 +50,11 @@ def test_in_process_each_area_backend_is_handed_only_its_areas_cameras(tmp_path:
 @pytest.mark.slow
 def test_area_split_backends_receive_only_their_areas_cameras_and_never_publish_twice(
         tmp_path: Path) -> None:
-    from lab.bench.fleet import run_row
+    from lab.bench.fleet import FleetRow, run_row
 
-    r = run_row(2, 2, 2, 6, 10.0, 10.0, 3.0, 3.0, tmp_path, progress=False, split="area")
+    r = run_row(FleetRow(backends=2, routers=2, robots=2, cameras=6, rate_hz=10.0,
+                         odom_rate_hz=10.0, seconds=3.0, warmup_s=3.0, split="area"),
+                tmp_path, progress=False)
     print(r)
     assert r.areas == {"b0": "a0", "b1": "a1"}
     assert r.poses >= 0.8 * r.frame_sets and r.duplicates == 0 and r.silent == 0, r
