@@ -8,7 +8,8 @@
 - ``robot_target``: every camera's pose in the robot's map frame, with the robot itself as
   the target;
 - ``robot_problem``: the joint least-squares problem of the robot-as-target calibration
-  (factors, Jacobians, Levenberg-Marquardt);
+  (factors, Jacobians, normal equations);
+- ``least_squares``: the one Levenberg-Marquardt loop both joint adjustments run;
 - ``site_file``: writing calibrated camera poses into a site file (the one writer).
 
 The ``smartedge calibrate`` commands (:mod:`smartedge.commands.calibrate`) read images,

@@ -32,6 +32,7 @@ from calibration.board import (
     CalibrationError,
     CharucoBoardSpec,
 )
+from calibration.least_squares import Damping, Problem, huber_weights, levenberg_marquardt
 from calibration.site_file import pose_node
 from core.camera import CameraModel
 from core.config_file import ConfigReader, join_key, read_yaml_file
@@ -319,8 +320,8 @@ def solve_board_extrinsics(cameras: Mapping[str, CameraModel],
     c_w = np.stack([init_cams[c][:3, 3] for c in cam_ids])
     R_wb = np.stack([init_boards[s][:3, :3] for s in stamps])
     t_wb = np.stack([init_boards[s][:3, 3] for s in stamps])
-    R_wc, c_w, R_wb, t_wb, iterations = _levenberg_marquardt(prob, R_wc, c_w, R_wb, t_wb,
-                                                             huber_px, max_iterations)
+    R_wc, c_w, R_wb, t_wb, iterations = _adjust(prob, R_wc, c_w, R_wb, t_wb, huber_px,
+                                                max_iterations)
     r, J = prob.residuals(R_wc, c_w, R_wb, t_wb, jacobian=True)
     assert J is not None
     dof = max(2 * len(r) - prob.num_params, 1)
@@ -377,59 +378,48 @@ def _schur_solve(A: np.ndarray, g: np.ndarray, num_cam_params: int
     return np.concatenate([x_cam, x_board.ravel()]), S_inv
 
 
-def _levenberg_marquardt(prob: _Problem, R_wc: np.ndarray, c_w: np.ndarray, R_wb: np.ndarray,
-                         t_wb: np.ndarray, huber_px: float, max_iterations: int
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    def weights(r: np.ndarray) -> np.ndarray:
-        e = np.linalg.norm(r, axis=1)
-        return np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
+#: the board adjustment's damping: relaxed tenfold after a kept step, down to 1e-9
+BOARD_DAMPING: Final = Damping(initial=1e-3, down=10.0, floor=1e-9, step_tol=1e-9,
+                               rel_tol=1e-10)
 
-    def cost(r: np.ndarray) -> float:
+
+def _adjust(prob: _Problem, R_wc: np.ndarray, c_w: np.ndarray, R_wb: np.ndarray,
+            t_wb: np.ndarray, huber_px: float, max_iterations: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Every camera's and free board's pose minimising the corners' Huber reprojection cost
+    (:func:`calibration.least_squares.levenberg_marquardt`, the boards eliminated by Schur
+    complement in each step)."""
+    C = len(prob.cam_ids)
+    free_idx = np.flatnonzero(prob.free_board)
+    State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+    def linearize(x: State) -> tuple[np.ndarray, np.ndarray]:
+        r, J = prob.residuals(*x, jacobian=True)
+        assert J is not None
+        return prob.normal_equations(r, J, huber_weights(np.linalg.norm(r, axis=1), huber_px))
+
+    def cost(x: State) -> float:
+        r, _ = prob.residuals(*x, jacobian=False)
+        if not np.all(np.isfinite(r)):
+            return math.inf
         e = np.linalg.norm(r, axis=1)
         return float(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px)).sum())
 
-    C = len(prob.cam_ids)
-    free_idx = np.flatnonzero(prob.free_board)
-    lam = 1e-3
-    r, J = prob.residuals(R_wc, c_w, R_wb, t_wb, jacobian=True)
-    current = cost(r)
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 (reported)
-        assert J is not None
-        H, g = prob.normal_equations(r, J, weights(r))
-        improved = False
-        for _ in range(10):
-            A = H + lam * np.diag(np.maximum(np.diag(H), 1e-9))
-            try:
-                delta = -_schur_solve(A, g, 6 * C)[0]
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            d_cam = delta[:6 * C].reshape(C, 6)
-            n_R_wc = np.stack([rotation_from_rotvec(d[3:]) @ R for d, R in zip(d_cam, R_wc,
-                                                                                 strict=True)])
-            n_c_w = c_w + d_cam[:, :3]
-            n_R_wb, n_t_wb = R_wb.copy(), t_wb.copy()
-            d_board = delta[6 * C:].reshape(-1, 6)
-            for k, j in enumerate(free_idx):
-                n_R_wb[j] = rotation_from_rotvec(d_board[k, 3:]) @ R_wb[j]
-                n_t_wb[j] = t_wb[j] + d_board[k, :3]
-            n_r, _ = prob.residuals(n_R_wc, n_c_w, n_R_wb, n_t_wb, jacobian=False)
-            new = cost(n_r) if np.all(np.isfinite(n_r)) else math.inf
-            if new < current:
-                R_wc, c_w, R_wb, t_wb = n_R_wc, n_c_w, n_R_wb, n_t_wb
-                lam = max(lam / 10, 1e-9)
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            break
-        step = float(np.abs(delta).max())
-        rel = (current - new) / max(current, 1e-12)
-        current = new
-        r, J = prob.residuals(R_wc, c_w, R_wb, t_wb, jacobian=True)
-        if step < 1e-9 or rel < 1e-10:
-            break
+    def step(x: State, A: np.ndarray, g: np.ndarray) -> tuple[State, np.ndarray]:
+        R_wc, c_w, R_wb, t_wb = x
+        delta = -_schur_solve(A, g, 6 * C)[0]
+        d_cam = delta[:6 * C].reshape(C, 6)
+        n_R_wc = np.stack([rotation_from_rotvec(d[3:]) @ R for d, R in zip(d_cam, R_wc,
+                                                                             strict=True)])
+        n_R_wb, n_t_wb = R_wb.copy(), t_wb.copy()
+        d_board = delta[6 * C:].reshape(-1, 6)
+        for k, j in enumerate(free_idx):
+            n_R_wb[j] = rotation_from_rotvec(d_board[k, 3:]) @ R_wb[j]
+            n_t_wb[j] = t_wb[j] + d_board[k, :3]
+        return (n_R_wc, c_w + d_cam[:, :3], n_R_wb, n_t_wb), delta
+
+    (R_wc, c_w, R_wb, t_wb), iterations = levenberg_marquardt(
+        Problem(linearize, cost, step), (R_wc, c_w, R_wb, t_wb), max_iterations, BOARD_DAMPING)
     return R_wc, c_w, R_wb, t_wb, iterations
 
 

@@ -13,10 +13,11 @@ c' = c + dc (world axes); a node is the robot's planar pose (x, y, theta).
 from __future__ import annotations
 
 import dataclasses
-from typing import Protocol
+from typing import Final, Protocol
 
 import numpy as np
 
+from calibration.least_squares import Damping, Problem, huber_weights, levenberg_marquardt
 from core.camera import CameraModel
 from core.geometry import (
     rotation_from_rotvec,
@@ -29,7 +30,7 @@ __all__ = [
     "JointProblem",
     "Observations",
     "ProblemSettings",
-    "levenberg_marquardt",
+    "adjust",
     "project_keypoints",
     "robot_points",
     "subset_observations",
@@ -345,49 +346,37 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def levenberg_marquardt(problem: JointProblem, R_wc: np.ndarray, c_w: np.ndarray,
-                         nodes: np.ndarray, iterations: int, fix_nodes: bool = False,
-                         robust: bool = True
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Minimise the problem's cost from the given state; Huber weights refreshed per step."""
-    lam = 1e-3
-    it = 0
-    while it < iterations:
-        it += 1
+#: the robot-target adjustment's damping: relaxed fivefold after a kept step, down to 1e-7
+ROBOT_DAMPING: Final = Damping(initial=1e-3, down=5.0, floor=1e-7, step_tol=1e-8,
+                               rel_tol=1e-7)
+
+
+def adjust(problem: JointProblem, R_wc: np.ndarray, c_w: np.ndarray, nodes: np.ndarray,
+           iterations: int, fix_nodes: bool = False, robust: bool = True
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Minimise the problem's cost from the given state
+    (:func:`calibration.least_squares.levenberg_marquardt`); Huber weights refreshed at each
+    linearization; ``fix_nodes``: only the cameras move."""
+    State = tuple[np.ndarray, np.ndarray, np.ndarray]
+    idx = (np.arange(3 * problem.K_nodes, problem.n) if fix_nodes else np.arange(problem.n))
+
+    def linearize(x: State) -> tuple[np.ndarray, np.ndarray]:
         if robust:
-            err, _, *_ = problem.reprojection(R_wc, c_w, nodes)
-            e = np.sqrt(np.sum(err * err, axis=1))
-            k = problem.config.huber_px
-            problem.robust = np.where(e <= k, 1.0, k / np.maximum(e, 1e-12))
+            err, _, *_ = problem.reprojection(*x)
+            problem.robust = huber_weights(np.sqrt(np.sum(err * err, axis=1)),
+                                           problem.config.huber_px)
         if fix_nodes:
-            # only the cameras move: their blocks alone
-            Hs, gs = problem.camera_normal_equations(R_wc, c_w, nodes)
-            idx = np.arange(3 * problem.K_nodes, problem.n)
-        else:
-            Hs, gs, _, _ = problem.normal_equations(R_wc, c_w, nodes)
-            idx = np.arange(problem.n)
-        cost0 = problem.cost(R_wc, c_w, nodes)
-        diag = np.maximum(np.diag(Hs), 1e-9)
-        improved = False
-        for _ in range(10):
-            try:
-                step = -np.linalg.solve(Hs + lam * np.diag(diag), gs)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            dx = np.zeros(problem.n)
-            dx[idx] = step
-            R2, c2, n2 = problem.apply(R_wc, c_w, nodes, dx)
-            cost1 = problem.cost(R2, c2, n2)
-            if cost1 < cost0:
-                R_wc, c_w, nodes = R2, c2, n2
-                lam = max(lam / 5, 1e-7)
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            break
-        rel = (cost0 - cost1) / max(cost0, 1e-12)
-        if rel < 1e-7 or float(np.max(np.abs(step))) < 1e-8:
-            break
+            return problem.camera_normal_equations(*x)
+        H, g, _, _ = problem.normal_equations(*x)
+        return H, g
+
+    def step(x: State, A: np.ndarray, g: np.ndarray) -> tuple[State, np.ndarray]:
+        delta = -np.linalg.solve(A, g)
+        dx = np.zeros(problem.n)
+        dx[idx] = delta
+        return problem.apply(*x, dx), delta
+
+    (R_wc, c_w, nodes), it = levenberg_marquardt(
+        Problem(linearize, lambda x: problem.cost(*x), step), (R_wc, c_w, nodes), iterations,
+        ROBOT_DAMPING)
     return R_wc, c_w, nodes, it

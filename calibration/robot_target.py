@@ -56,7 +56,7 @@ import numpy as np
 from calibration.robot_problem import (
     JointProblem,
     Observations,
-    levenberg_marquardt,
+    adjust,
     robot_points,
     subset_observations,
 )
@@ -488,7 +488,7 @@ def calibrate(data: CalibrationData, config: RobotTargetConfig | None = None, *,
 
     # joint adjustment, then gate outliers and re-solve
     nodes = drive.init_nodes.copy()
-    R_wc, c_w, nodes, it1 = levenberg_marquardt(problem, R_wc, c_w, nodes,
+    R_wc, c_w, nodes, it1 = adjust(problem, R_wc, c_w, nodes,
                                                  config.max_iterations)
     err, z, *_ = problem.reprojection(R_wc, c_w, nodes)
     e = np.sqrt(np.sum(err * err, axis=1))
@@ -497,7 +497,7 @@ def calibrate(data: CalibrationData, config: RobotTargetConfig | None = None, *,
     gate = max(config.gate_px, config.gate_sigmas * rms)
     problem.keep = problem.keep & (e <= gate)
     counters["gated_keypoints"] = int(np.count_nonzero(used & (e > gate)))
-    R_wc, c_w, nodes, it2 = levenberg_marquardt(problem, R_wc, c_w, nodes,
+    R_wc, c_w, nodes, it2 = adjust(problem, R_wc, c_w, nodes,
                                                  config.max_iterations)
     say(f"joint adjustment: {it1} + {it2} iterations, {counters['gated_keypoints']} keypoints "
         f"gated (> {gate:.1f} px)")
@@ -712,7 +712,7 @@ def _initialise_camera(problem: JointProblem, cams: list[CameraModel], ci: int, 
     for name, (R, c) in candidates.items():
         Rt, ct = R_wc.copy(), c_w.copy()
         Rt[ci], ct[ci] = R, c
-        Rt, ct, _, _ = levenberg_marquardt(single, Rt, ct, nodes, 15, fix_nodes=True)
+        Rt, ct, _, _ = adjust(single, Rt, ct, nodes, 15, fix_nodes=True)
         err, z, *_ = single.reprojection(Rt, ct, nodes)
         e = np.sqrt(np.sum(err[sel] ** 2, axis=1))
         med = float(np.median(np.where(z[sel] > 0, e, 1e6)))
