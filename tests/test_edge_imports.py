@@ -17,6 +17,7 @@ nor loads another package's.
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 import textwrap
@@ -116,7 +117,10 @@ def test_service_package_loads_no_simulation_top_floor_or_other_service(package:
     assert proc.stdout.strip().endswith("ok")
 
 
+@functools.cache
 def _imported_names(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every absolute import in ``path`` (parsed once per test process: the
+    heavy-dependency checks read every file of the repo once each)."""
     tree = ast.parse(path.read_text(), filename=str(path))
     out = []
     for node in ast.walk(tree):
