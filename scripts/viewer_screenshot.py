@@ -12,13 +12,11 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-from lab.launcher import free_port
+from lab.launcher import LaunchError, free_port, wait_listening
 from smartedge.viewer.rerun_view import rerun_cli
 
 CHROMIUM_ARGS = [
@@ -26,16 +24,6 @@ CHROMIUM_ARGS = [
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
 ]
-
-
-def _wait_for_port(port: int, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.2)
-    raise SystemExit(f"the rerun web viewer did not come up on port {port}")
 
 
 def main(argv: list[str]) -> int:
@@ -63,7 +51,10 @@ def main(argv: list[str]) -> int:
          str(grpc_port), "--renderer", "webgl", str(args.recording)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        _wait_for_port(web_port, 30)
+        try:
+            wait_listening(web_port, timeout_s=30, step_s=0.2)
+        except LaunchError:
+            raise SystemExit(f"the rerun web viewer did not come up on port {web_port}") from None
         url = (f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}"
                "%2Fproxy&renderer=webgl")
         with sync_playwright() as pw:
