@@ -5,6 +5,8 @@ The process helpers (:func:`free_port`, :func:`stop_process`) are the project's 
 
 from __future__ import annotations
 
+import os
+import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -12,9 +14,41 @@ from pathlib import Path
 import pytest
 
 from lab.launcher import free_port, stop_process  # noqa: F401 (re-exported)
+from tests.machine_share import LOCK_DIR_ENV, make_lock_dir, worker_lock
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE_SITE = REPO_ROOT / "deploy" / "site.example.yaml"
+
+
+#: the controller's lock folder (removed when the run ends)
+_LOCK_DIR = pytest.StashKey[Path]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """In the controller of a parallel run: the folder of the machine lock its workers share
+    (:mod:`tests.machine_share`), made before the workers start."""
+    parallel = bool(getattr(config.option, "numprocesses", None))
+    if parallel and not hasattr(config, "workerinput") and LOCK_DIR_ENV not in os.environ:
+        config.stash[_LOCK_DIR] = make_lock_dir()
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    folder = config.stash.get(_LOCK_DIR, None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(LOCK_DIR_ENV, None)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """Setup, call and teardown of a test hold the machine lock: shared, or alone for a test
+    marked ``exclusive`` (real-time end-to-end figures)."""
+    lock = worker_lock() if hasattr(item.config, "workerinput") else None
+    if lock is None:
+        yield
+        return
+    with lock.hold(exclusive=item.get_closest_marker("exclusive") is not None):
+        yield
 
 
 def wait_until(predicate: Callable[[], bool], timeout_s: float = 5.0, step_s: float = 0.02) -> bool:

@@ -30,6 +30,7 @@ def _rrd_entities(stats: str) -> set[str]:
     return set(re.findall(r"^(/\S+): \d+$", stats, flags=re.MULTILINE))
 
 
+@pytest.mark.exclusive  # ten real-time services, four rendering and running the CNN
 def test_demo_with_separate_processes(tmp_path: Path) -> None:
     result = run_demo(
         ["--processes", "--duration", "30", "--out", str(tmp_path), "--progress-s", "10"]
