@@ -92,6 +92,24 @@ def plugin_commands(group: str = COMMAND_ENTRY_POINTS) -> dict[str, Command]:
     return found
 
 
+#: the global options that take a value (the token after them is not the command)
+_VALUED_OPTIONS: Final = ("--log-level", "--log-format")
+
+
+def command_name(argv: Sequence[str]) -> str | None:
+    """The subcommand of a ``smartedge`` command line (the first word that is neither a global
+    option nor its value), ``None`` when there is none."""
+    skip = False
+    for word in argv:
+        if skip:
+            skip = False
+        elif word in _VALUED_OPTIONS:
+            skip = True
+        elif not word.startswith("-"):
+            return word
+    return None
+
+
 def all_commands() -> dict[str, Command]:
     """The app's :data:`COMMANDS` followed by the registered ones (:func:`plugin_commands`)."""
     return {**COMMANDS, **plugin_commands()}
@@ -170,7 +188,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="log lines as text or as one JSON object per line",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    commands = all_commands()
+    # an app command (every service) starts without looking for plug-in commands: reading the
+    # installed packages' entry points costs ~0.14 s per start
+    commands = dict(COMMANDS) if command_name(argv) in COMMANDS else all_commands()
     for name, command in commands.items():
         sub.add_parser(name, help=command.help, add_help=False)
     args, rest = parser.parse_known_args(argv)

@@ -213,3 +213,22 @@ def test_process_defaults_do_not_override_and_say_what_they_set() -> None:
     assert cli.apply_process_defaults(env) == {} and env["OPENBLAS_NUM_THREADS"] == "4"
     env = {}
     assert cli.apply_process_defaults(env) == {"OPENBLAS_NUM_THREADS": "1"} == env
+
+
+def test_the_command_word_skips_global_options_and_their_values() -> None:
+    assert cli.command_name(["--log-level", "DEBUG", "backend", "--site", "x"]) == "backend"
+    assert cli.command_name(["--log-format", "json", "--version"]) is None
+    assert cli.command_name(["--log-level=INFO", "demo"]) == "demo"
+    assert cli.command_name([]) is None
+
+
+def test_an_app_command_starts_without_reading_the_entry_points(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every service start would pay for the scan of the installed packages (~0.14 s)."""
+    def fail(*_args: object, **_kwargs: object) -> dict:
+        raise AssertionError("entry points read for an app command")
+
+    monkeypatch.setattr(cli, "plugin_commands", fail)
+    assert cli.main(["--log-level", "WARNING", "site", "check", str(EXAMPLE_SITE)]) == 0
+    with pytest.raises(AssertionError, match="entry points"):
+        cli.main(["demo", "--help"])
