@@ -21,10 +21,6 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from typing import Final
-
-#: the sources ``smartedge robot-camera`` offers (``--source``)
-ROBOT_CAMERA_SOURCES: Final = ("sim", "ros")
 
 
 def edge_agent_main(argv: Sequence[str]) -> int:

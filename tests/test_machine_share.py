@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import REPO_ROOT
 from tests.machine_share import MachineLock
 
@@ -62,6 +64,6 @@ def test_a_parallel_worker_shares_the_runs_lock_folder(request) -> None:
     from tests.machine_share import worker_lock
 
     if not hasattr(request.config, "workerinput"):
-        return  # a serial run: nothing is shared
+        pytest.skip("a serial run: there is no lock to share (run with -n 2 to check it)")
     lock = worker_lock()
     assert lock is not None and lock.folder.is_dir()
