@@ -10,16 +10,24 @@ the single-camera rule, averaging while the robot is static and pose-graph fusio
 - ``sync``: the frame-set synchronizer: per-camera detections grouped into frame-sets;
 - ``frame_set``: frame-sets, the synchronized multi-view observations one pose solve uses;
 - ``association``: detections to robots: which robot of the site each detection is;
+- ``assignment``: the optimal one-to-one assignment (Hungarian) the association runs;
+- ``detection_router``: the association applied to camera messages, with its counters;
 - ``estimate``: the public entry point of the multi-view pose estimation;
 - ``pose_init``: initialization of the solve, from a prior or by per-view PnP;
-- ``pose_solver``: the multi-view pose solve (the paper's Eq. 2) with CasADi;
+- ``pose_solver``: the multi-view pose solve (the paper's Eq. 2) with CasADi: one cached problem
+  per camera set and its methods;
+- ``pose_symbolic``: Eq. 2 as CasADi expressions and the per-camera kernels compiled from them;
+- ``gauss_newton``: the damped Gauss-Newton loop of the default method;
 - ``compiled_functions``: CasADi functions compiled to C once per machine, kept on disk;
 - ``projection``: the pose problem's projection in plain numpy, vectorized over cameras;
 - ``covariance``: honest covariances of the estimates: the error model propagated through
   the solve;
 - ``single_camera``: the paper's bearing-only heuristic for single-camera estimates;
 - ``multi_frame``: averaging of camera estimates while the robot is static;
-- ``fusion``: pose-graph fusion of camera estimates with odometry (GTSAM ISAM2);
+- ``fusion``: pose-graph fusion of camera estimates with odometry (GTSAM ISAM2): what enters the
+  graph and when, the fused poses out;
+- ``keyframe_graph``: the sliding-window keyframe graph the fusion fills: factor records, ISAM2,
+  marginalization;
 - ``camera_health``: a bumped camera noticed from its residuals;
 - ``areas``: areas of a site: which cameras a backend serves, which area a robot is in;
 - ``ownership``: which backend publishes which robot when several share a site (the rules,

@@ -54,7 +54,6 @@ plain Python, transport-free; :class:`DetectionRouter` applies it to a
 from __future__ import annotations
 
 import collections
-import copy
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
@@ -62,12 +61,11 @@ from typing import Final
 
 import numpy as np
 
-from backend_service.frame_set import image_scale, scale_detection
+from backend_service.assignment import gated_assignment
 from backend_service.projection import pixels_from_camera_frame, stacked_cameras
 from core.camera import CameraModel
 from core.pose import PlanarPose
-from core.site import Site
-from protocol.messages import Detection, RobotDetections
+from protocol.messages import Detection
 
 #: why a detection went (or did not go) to a robot (the router counts ``detections_<reason>``)
 REASONS: Final = ("assigned", "named", "id_contradicted", "unknown_robot", "ambiguous",
@@ -224,77 +222,6 @@ class Association:
 
 
 # -- the assignment ---------------------------------------------------------------------------
-
-
-def hungarian(cost: np.ndarray) -> list[tuple[int, int]]:
-    """Minimum-cost assignment of a finite (n, m) cost matrix: ``min(n, m)`` (row, column)
-    pairs, each row and column at most once, least total cost (the Hungarian method with
-    potentials, O(n² m) for n <= m; the matrix is transposed otherwise). Exact."""
-    c = np.asarray(cost, dtype=np.float64)
-    if c.ndim != 2:
-        raise ValueError(f"hungarian: expected a 2-D cost matrix, got shape {c.shape}")
-    if c.size == 0:
-        return []
-    if not np.all(np.isfinite(c)):
-        raise ValueError("hungarian: costs must be finite (gate with a large finite cost)")
-    if c.shape[0] > c.shape[1]:
-        return [(i, j) for j, i in hungarian(c.T)]
-    n, m = c.shape
-    rows = c.tolist()
-    inf = math.inf
-    u = [0.0] * (n + 1)
-    v = [0.0] * (m + 1)
-    match = [0] * (m + 1)  # column j (1-based) -> row (1-based), 0 = free
-    way = [0] * (m + 1)
-    for i in range(1, n + 1):
-        match[0] = i
-        j0 = 0
-        minv = [inf] * (m + 1)
-        used = [False] * (m + 1)
-        while True:
-            used[j0] = True
-            i0 = match[j0]
-            row = rows[i0 - 1]
-            ui0 = u[i0]
-            delta = inf
-            j1 = 0
-            for j in range(1, m + 1):
-                if not used[j]:
-                    cur = row[j - 1] - ui0 - v[j]
-                    if cur < minv[j]:
-                        minv[j] = cur
-                        way[j] = j0
-                    if minv[j] < delta:
-                        delta = minv[j]
-                        j1 = j
-            for j in range(m + 1):
-                if used[j]:
-                    u[match[j]] += delta
-                    v[j] -= delta
-                else:
-                    minv[j] -= delta
-            j0 = j1
-            if match[j0] == 0:
-                break
-        while j0:
-            j1 = way[j0]
-            match[j0] = match[j1]
-            j0 = j1
-    return [(match[j] - 1, j - 1) for j in range(1, m + 1) if match[j]]
-
-
-def _gated_assignment(costs: np.ndarray, gate: float) -> tuple[list[tuple[int, int]], float]:
-    """The gated optimal assignment of ``costs`` (D, R): pairs costing at most ``gate`` only,
-    as many pairs as possible, then the least total ``cost² / 2``. Returns the pairs and that
-    total plus ``big`` for each row left unassigned (comparable between calls on the same
-    shape)."""
-    d, r = costs.shape
-    nll = 0.5 * np.square(costs)
-    big = (0.5 * gate * gate + 1.0) * (min(d, r) + 1)
-    finite = np.where(costs <= gate, nll, big)
-    pairs = [(i, j) for i, j in hungarian(finite) if costs[i, j] <= gate]
-    total = sum(float(nll[i, j]) for i, j in pairs) + big * (d - len(pairs))
-    return pairs, total
 
 
 # -- the costs --------------------------------------------------------------------------------
@@ -685,7 +612,7 @@ def _assign_rows(costs: np.ndarray, candidates: Sequence[RobotPrediction],
     prediction may be the one seen, or when the best assignment without the pair is within
     ``-ln(ambiguity_ratio)`` of it; rows left out are unassigned (with their least cost)."""
     out: list[DetectionOutcome | None] = [None] * costs.shape[0]
-    pairs, total = _gated_assignment(costs, cfg.gate)
+    pairs, total = gated_assignment(costs, cfg.gate)
     threshold = -math.log(cfg.ambiguity_ratio)
     # candidates per detection (row) and per robot (column): a pair has a rival when either
     # has another one; only then can the assignment without it be as good
@@ -701,7 +628,7 @@ def _assign_rows(costs: np.ndarray, candidates: Sequence[RobotPrediction],
         elif per_row[row] > 1 or per_col[col] > 1:
             blocked = costs.copy()
             blocked[row, col] = np.inf
-            _, alt_total = _gated_assignment(blocked, cfg.gate)
+            _, alt_total = gated_assignment(blocked, cfg.gate)
             if alt_total - total < threshold:
                 reason = "ambiguous"
         out[row] = (DetectionOutcome(pred.robot_id, "assigned", c1) if reason == "assigned"
@@ -725,7 +652,7 @@ def _one_detection(costs: np.ndarray, candidates: Sequence[RobotPrediction],
     within the gate (every other column costs more than any gated one); blocking it, the
     assignment takes the least of the other gated columns, so the pair is ambiguous when a
     second gated column lies within ``-ln(ambiguity_ratio)`` of it. A column has no other row
-    to rival it. The same arithmetic (``0.5 * cost²``) as :func:`_gated_assignment`, so ties
+    to rival it. The same arithmetic (``0.5 * cost²``) as :func:`gated_assignment`, so ties
     and rounding fall the same way (tests/backend_service/test_association.py compares the
     two on random rows)."""
     gated = np.flatnonzero(costs <= cfg.gate)
@@ -749,106 +676,3 @@ def _one_detection(costs: np.ndarray, candidates: Sequence[RobotPrediction],
 # -- on the wire ------------------------------------------------------------------------------
 
 
-class DetectionRouter:
-    """Applies :func:`associate` to camera messages of a site: each message comes back with
-    the detections that go to a robot carrying that robot's id and the others removed (so the
-    synchronizer sees only named detections). Messages of unknown cameras or image sizes that
-    are no exact scale of the calibration pass unchanged (the synchronizer counts them).
-
-    ``counters``: ``detections_<reason>`` for every reason of :data:`REASONS` (a detection
-    of a robot model the site has no robot of: ``detections_unknown_model``), and
-    ``detections_routed.<robot>``; :attr:`last` is the latest :class:`Association` (tests,
-    viewer). Not thread-safe: one worker loop.
-    """
-
-    def __init__(self, site: Site, config: AssociationConfig | None = None) -> None:
-        self.site = site
-        self.config = config or AssociationConfig()
-        self.robot_ids: tuple[str, ...] = tuple(site.robots)
-        self.keypoints_base_m: dict[str, np.ndarray] = {
-            rid: site.robot_model(rid).keypoints_base_m for rid in self.robot_ids}
-        #: robot id → its model's name (typed detections go to robots of their model only)
-        self.robot_models: dict[str, str] = {rid: site.robots[rid] for rid in self.robot_ids}
-        self.counters: collections.Counter[str] = collections.Counter()
-        self.last: Association | None = None
-        #: the robots that had no prediction for the latest routed image
-        self.unpredicted: tuple[str, ...] = ()
-        self.views = ViewCache(tuple(site.cameras.values()), self.config)
-        self._outside_views: frozenset[str] = frozenset()  # cameras not in the view cache
-
-    def serve_cameras(self, camera_ids: Sequence[str] | None) -> None:
-        """Project the predicted views into ``camera_ids`` only (the cameras whose messages
-        reach this router; ``None``: every camera of the site). A message of another camera is
-        still routed, its view projected on its own."""
-        ids = list(self.site.cameras) if camera_ids is None else list(camera_ids)
-        unknown = sorted(set(ids) - set(self.site.cameras))
-        if unknown:
-            raise ValueError(f"cameras {unknown} are not in site {self.site.name!r}")
-        self.views = ViewCache(tuple(self.site.cameras[c] for c in ids), self.config)
-        self._outside_views = frozenset(self.site.cameras) - set(ids)
-
-    def cameras_seeing(self, robot_id: str,
-                       predictions: Mapping[str, RobotPrediction | None]
-                       ) -> frozenset[str] | None:
-        """The site's cameras whose images :meth:`route` can give unnamed detections of
-        ``robot_id`` with ``predictions`` (robot id -> prediction, as for :meth:`route`): the
-        cameras of the view cache in whose image the robot has a keypoint predicted, and every
-        camera outside the cache. ``None``: any camera (the robot has no prediction, or is no
-        robot of the site)."""
-        kp = self.keypoints_base_m.get(robot_id)
-        if kp is None or predictions.get(robot_id) is None:
-            return None
-        # the robots of its model in route's order: the group association_costs projects
-        group = [p for rid in self.robot_ids
-                 if (p := predictions.get(rid)) is not None and self.keypoints_base_m[rid] is kp]
-        row = next(i for i, p in enumerate(group) if p.robot_id == robot_id)
-        return self.views.cameras_seeing(kp, group, row) | self._outside_views
-
-    def route(self, msg: RobotDetections,
-              predictions: Mapping[str, RobotPrediction | None]) -> RobotDetections:
-        """``msg`` with each detection named after the robot it goes to, the rest removed."""
-        if not msg.detections:
-            return msg
-        cam = self.site.cameras.get(msg.camera_id)
-        if cam is None:
-            return msg
-        scale = image_scale(msg.image_width, msg.image_height, cam.width, cam.height)
-        if scale is None:
-            return msg
-        dets = msg.detections if scale == 1.0 else tuple(scale_detection(d, scale)
-                                                         for d in msg.detections)
-        preds = [p for rid in self.robot_ids
-                 if (p := predictions.get(rid)) is not None]
-        if len(preds) < len(self.robot_ids):
-            self.unpredicted = tuple(r for r in self.robot_ids if predictions.get(r) is None)
-        else:
-            self.unpredicted = ()
-        result = associate(cam, dets, preds, self.keypoints_base_m, self.config,
-                           self.robot_ids, self.views, self.robot_models)
-        self.last = result
-        kept: list[Detection] = []
-        for det, outcome in zip(msg.detections, result.outcomes, strict=True):
-            self.counters[f"detections_{outcome.reason}"] += 1
-            if not outcome.used:
-                continue
-            self.counters[f"detections_routed.{outcome.robot_id}"] += 1
-            kept.append(det if det.robot_id == outcome.robot_id
-                        else _renamed(det, outcome.robot_id))
-        return _with_detections(msg, tuple(kept))
-
-
-def _renamed(det: Detection, robot_id: str) -> Detection:
-    """``det`` named ``robot_id`` (a robot of the site, so a valid id): a shallow copy, the
-    validated arrays shared (they are read-only), without validating them again."""
-    out = copy.copy(det)
-    object.__setattr__(out, "robot_id", robot_id)
-    return out
-
-
-def _with_detections(msg: RobotDetections, detections: tuple[Detection, ...]
-                     ) -> RobotDetections:
-    """``msg`` with ``detections`` (a subset of its own, validated ones, renamed): a shallow
-    copy, not validated again."""
-    out = copy.copy(msg)
-    object.__setattr__(out, "detections", detections)
-    return out

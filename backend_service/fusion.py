@@ -21,6 +21,10 @@ keyframes (``Pose2`` variables of the robot base in the map frame):
   (``deferred_marginalization``) to :meth:`PoseGraphFusion.maintain`, which its worker calls when
   no message waits, so it does not delay the poses of the frame-set being solved.
 
+The graph itself (keyframes, factor records, ISAM2, marginalization) is a
+:class:`~backend_service.keyframe_graph.KeyframeGraph`; this module decides what enters it and
+when, and makes the fused poses.
+
 Initialization: the odometry frame has no anchor in the map frame until the first camera
 estimate (or :meth:`PoseGraphFusion.set_initial_pose`). Before that, odometry is only buffered
 (bounded) and no fused pose is produced (``None``, counted as ``uninitialized``).
@@ -45,6 +49,7 @@ from typing import Final, NamedTuple
 import gtsam
 import numpy as np
 
+from backend_service.keyframe_graph import FactorBatch, GraphFactor, Keyframe, KeyframeGraph
 from core.geometry import rotation_z
 from core.history import StampedHistory
 from core.site import ClockPolicy, Site
@@ -226,68 +231,6 @@ def _blend_odometry(a: _OdomSample, b: _OdomSample, alpha: float) -> _OdomSample
     return _OdomSample(_interpolate(a.T_odom_robot, b.T_odom_robot, alpha), cov)
 
 
-@dataclasses.dataclass
-class _Keyframe:
-    key: int
-    stamp_ns: int
-    T_odom_robot: gtsam.Pose2
-    cov_odom: np.ndarray | None
-
-
-@dataclasses.dataclass
-class _Factor:
-    """What a factor in the graph is, so the graph can be rebuilt after marginalization.
-
-    ``kind``: ``between`` (key_from → key_to), ``camera`` / ``initial`` / ``marginal`` (unary on
-    key_to). ``cov_body``: (3, 3) in the body frame of ``measured``. ``index``: slot in ISAM2.
-    """
-
-    kind: str
-    key_from: int
-    key_to: int
-    measured: gtsam.Pose2
-    cov_body: np.ndarray
-    robust: bool
-    index: int = -1
-    #: the GTSAM factor, built once (a marginalization re-adds the kept factors to a new ISAM2)
-    built: gtsam.NonlinearFactor | None = dataclasses.field(default=None, repr=False,
-                                                            compare=False)
-
-    def factor(self, config: FusionConfig) -> gtsam.NonlinearFactor:
-        if self.built is None:
-            self.built = self._build(config)
-        return self.built
-
-    def _build(self, config: FusionConfig) -> gtsam.NonlinearFactor:
-        noise = gtsam.noiseModel.Gaussian.Covariance(self.cov_body)
-        if self.robust:
-            threshold = config.robust_threshold
-            if config.robust_kernel == "cauchy":
-                kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(threshold)
-            else:
-                kernel = gtsam.noiseModel.mEstimator.Huber.Create(threshold)
-            noise = gtsam.noiseModel.Robust.Create(kernel, noise)
-        if self.kind == "between":
-            return gtsam.BetweenFactorPose2(self.key_from, self.key_to, self.measured, noise)
-        return gtsam.PriorFactorPose2(self.key_to, self.measured, noise)
-
-
-@dataclasses.dataclass
-class _Batch:
-    """New factors and values for one ISAM2 update; records get their slot after it."""
-
-    graph: gtsam.NonlinearFactorGraph = dataclasses.field(
-        default_factory=gtsam.NonlinearFactorGraph
-    )
-    values: gtsam.Values = dataclasses.field(default_factory=gtsam.Values)
-    remove: list[int] = dataclasses.field(default_factory=list)
-    records: list[_Factor] = dataclasses.field(default_factory=list)
-
-    def add(self, record: _Factor, config: FusionConfig) -> None:
-        self.graph.add(record.factor(config))
-        self.records.append(record)
-
-
 @dataclasses.dataclass(frozen=True)
 class _PendingPrior:
     stamp_ns: int
@@ -325,7 +268,9 @@ class PoseGraphFusion:
         self._ooo_last_stamp = 0
         self.last_reject_reason = ""
         self._seq = 0
-        self._next_key = 0
+        self._graph = KeyframeGraph(robot_id, robust_kernel=self.config.robust_kernel,
+                                    robust_threshold=self.config.robust_threshold,
+                                    relinearize_threshold=self.config.relinearize_threshold)
         # odometry in stamp order (only newer stamps are accepted): interpolation source for
         # keyframes at any stamp; trimmed at anchoring, marginalization and before the anchor
         self._odom: StampedHistory[_OdomSample] = StampedHistory(out_of_order="drop")
@@ -339,11 +284,11 @@ class PoseGraphFusion:
     @property
     def anchored(self) -> bool:
         """Whether the odometry is anchored in the map frame (a fused pose is available)."""
-        return bool(self._kfs)
+        return bool(self._graph.keyframes)
 
     @property
     def num_keyframes(self) -> int:
-        return len(self._kfs)
+        return len(self._graph)
 
     @property
     def marginalization_due(self) -> int:
@@ -365,20 +310,18 @@ class PoseGraphFusion:
 
     @property
     def oldest_keyframe_stamp_ns(self) -> int | None:
-        return self._kf_stamps[0] if self._kf_stamps else None
+        return self._graph.stamps[0] if self._graph.stamps else None
 
     def graph_size(self) -> tuple[int, int]:
         """(variables, factors) currently held by ISAM2 (removed factor slots not counted)."""
-        factors = self._isam.getFactorsUnsafe()
-        live = sum(1 for i in range(factors.size()) if factors.exists(i))
-        return int(self._isam.size()), live
+        return self._graph.graph_size()
 
     def buffer_sizes(self) -> dict[str, int]:
         """Sizes of the internal buffers (for boundedness checks and status)."""
         return {
-            "keyframes": len(self._kfs),
+            "keyframes": len(self._graph),
             "odometry_samples": len(self._odom),
-            "factor_records": len(self._between) + sum(len(v) for v in self._priors.values()),
+            "factor_records": self._graph.factor_records(),
             "pending_camera": len(self._pending),
         }
 
@@ -461,20 +404,21 @@ class PoseGraphFusion:
         the window or the odometry buffer.
         """
         newest = self._odom.latest()
-        if not self._kfs or stamp_ns < self._kf_stamps[0] or newest is None or (
+        graph = self._graph
+        if not graph.keyframes or stamp_ns < graph.stamps[0] or newest is None or (
                 stamp_ns > newest.stamp_ns):
             return None
-        i = bisect.bisect_right(self._kf_stamps, stamp_ns) - 1
-        kf = self._kfs[i]
+        i = graph.index_at(stamp_ns)
+        kf = graph.keyframes[i]
         T_odom = self._odom_at(stamp_ns)
         if T_odom is None:
             return None
-        T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
+        T_world_kf, cov_kf = graph.estimate_and_cov(kf.key)
         delta = kf.T_odom_robot.between(T_odom.T_odom_robot)
         T_world = T_world_kf.compose(delta)
-        if i + 1 < len(self._kfs):
-            nxt = self._kfs[i + 1]
-            T_world_nxt = self._isam.calculateEstimatePose2(nxt.key)
+        if i + 1 < len(graph):
+            nxt = graph.keyframes[i + 1]
+            T_world_nxt = graph.estimate(nxt.key)
             predicted = T_world_kf.compose(kf.T_odom_robot.between(nxt.T_odom_robot))
             alpha = (stamp_ns - kf.stamp_ns) / max(1, nxt.stamp_ns - kf.stamp_ns)
             residual = gtsam.Pose2.Logmap(predicted.between(T_world_nxt))
@@ -489,14 +433,7 @@ class PoseGraphFusion:
     def keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframes in the window: stamps (K,) int64 ns and optimized poses (K, 3) x, y, theta
         of ``T_world_robot`` (metres, radians)."""
-        stamps = np.array(self._kf_stamps, dtype=np.int64)
-        poses = np.zeros((len(self._kfs), 3))
-        if self._kfs:
-            values = self._isam.calculateEstimate()
-            for i, kf in enumerate(self._kfs):
-                p = values.atPose2(kf.key)
-                poses[i] = (p.x(), p.y(), p.theta())
-        return stamps, poses
+        return np.array(self._graph.stamps, dtype=np.int64), self._graph.poses()
 
     # ----------------------------------------------------------------------------------------
     # input checks
@@ -618,22 +555,17 @@ class PoseGraphFusion:
         )
         return np.diag([var_xy, var_xy, var_theta])
 
-    def _new_key(self) -> int:
-        key = gtsam.symbol("x", self._next_key)
-        self._next_key += 1
-        return key
-
-    def _between_record(self, a: _Keyframe, b: _Keyframe) -> _Factor:
+    def _between_record(self, a: Keyframe, b: Keyframe) -> GraphFactor:
         cov = self._odometry_noise(
             a.T_odom_robot, a.cov_odom, b.T_odom_robot, b.cov_odom,
             (b.stamp_ns - a.stamp_ns) / NS_PER_S,
         )
         measured = a.T_odom_robot.between(b.T_odom_robot)
-        return _Factor("between", a.key, b.key, measured, cov, robust=False)
+        return GraphFactor("between", a.key, b.key, measured, cov, robust=False)
 
     def _apply_keyframe_policy(self, stamp: int, sample: _OdomSample) -> None:
         T_odom = sample.T_odom_robot
-        last = self._kfs[-1]
+        last = self._graph.keyframes[-1]
         if stamp <= last.stamp_ns:
             return
         cfg = self.config
@@ -645,35 +577,23 @@ class PoseGraphFusion:
             or angle_rad >= cfg.keyframe_angle_rad
             or (moved and dt_s >= cfg.keyframe_interval_s)
         ):
-            batch = _Batch()
+            batch = FactorBatch()
             self._insert_keyframe(stamp, T_odom, sample.cov_odom, batch)
             if self._update(batch):
                 self.counters["keyframes_created"] += 1
                 self._maybe_marginalize()
 
     def _insert_keyframe(
-        self, stamp: int, T_odom: gtsam.Pose2, cov_odom: np.ndarray | None, batch: _Batch
+        self, stamp: int, T_odom: gtsam.Pose2, cov_odom: np.ndarray | None, batch: FactorBatch
     ) -> int:
         """Add a keyframe at ``stamp`` (after the first one) to ``batch``: appended to the chain
         or, for a stamp between two keyframes, splitting their between factor in two."""
-        kf = _Keyframe(self._new_key(), stamp, T_odom, cov_odom)
-        i = bisect.bisect_right(self._kf_stamps, stamp) - 1
-        prev = self._kfs[i]
-        before = self._between_record(prev, kf)
-        T_world_prev = self._isam.calculateEstimatePose2(prev.key)
-        batch.values.insert(kf.key, T_world_prev.compose(before.measured))
-        batch.add(before, self.config)
-        if i + 1 < len(self._kfs):
-            nxt = self._kfs[i + 1]
-            old = self._between.pop(prev.key)
-            batch.remove.append(old.index)
-            batch.add(self._between_record(kf, nxt), self.config)
+        kf = Keyframe(self._graph.new_key(), stamp, T_odom, cov_odom)
+        if self._graph.insert(kf, self._between_record, batch):
             self.counters["keyframes_inserted"] += 1
-        self._kfs.insert(i + 1, kf)
-        self._kf_stamps.insert(i + 1, stamp)
         return kf.key
 
-    def _keyframe_for(self, stamp: int, batch: _Batch) -> int | None:
+    def _keyframe_for(self, stamp: int, batch: FactorBatch) -> int | None:
         """Key of the keyframe at ``stamp``: an existing one the robot has not moved away from,
         or a new one interpolated from the odometry. None when the odometry does not cover it."""
         odom = self._odom_at(stamp)
@@ -681,12 +601,13 @@ class PoseGraphFusion:
             return None
         T_odom, cov_odom = odom
         cfg = self.config
-        i = bisect.bisect_right(self._kf_stamps, stamp) - 1
+        keyframes = self._graph.keyframes
+        i = self._graph.index_at(stamp)
         for j in (i, i + 1):
-            if 0 <= j < len(self._kfs):
-                dist_m, angle_rad = _motion(self._kfs[j].T_odom_robot.between(T_odom))
+            if 0 <= j < len(keyframes):
+                dist_m, angle_rad = _motion(keyframes[j].T_odom_robot.between(T_odom))
                 if dist_m <= cfg.static_motion_m and angle_rad <= cfg.static_motion_rad:
-                    return self._kfs[j].key
+                    return keyframes[j].key
         return self._insert_keyframe(stamp, T_odom, cov_odom, batch)
 
     # ----------------------------------------------------------------------------------------
@@ -722,24 +643,24 @@ class PoseGraphFusion:
         stamp = prior.stamp_ns
         if not self.anchored or prior.kind == "initial":
             return self._anchor(prior)
-        if stamp < self._kf_stamps[0]:
+        if stamp < self._graph.stamps[0]:
             self._reject("camera_too_old")
             return False
-        batch = _Batch()
+        batch = FactorBatch()
         key = self._keyframe_for(stamp, batch)
         if key is None:
             self._reject("camera_too_old")
             return False
-        batch.add(self._prior_record(prior, key), self.config)
+        self._graph.add(batch, self._prior_record(prior, key))
         if not self._update(batch, iterations=1 + self.config.extra_iterations):
             return False
         self.counters[f"{prior.kind}_fused"] += 1
         self._maybe_marginalize()
         return True
 
-    def _prior_record(self, prior: _PendingPrior, key: int) -> _Factor:
+    def _prior_record(self, prior: _PendingPrior, key: int) -> GraphFactor:
         cov_body = _cov_world_to_body(prior.cov_world, prior.T_world_robot.theta())
-        return _Factor(prior.kind, -1, key, prior.T_world_robot, cov_body, prior.robust)
+        return GraphFactor(prior.kind, -1, key, prior.T_world_robot, cov_body, prior.robust)
 
     def _anchor(self, prior: _PendingPrior) -> bool:
         """Start the graph at ``prior.stamp_ns`` (first estimate, or an explicit initial pose),
@@ -749,12 +670,10 @@ class PoseGraphFusion:
             self._reject("camera_too_old" if prior.kind == "camera" else "initial_too_old")
             return False
         self._reset_graph()
-        kf = _Keyframe(self._new_key(), prior.stamp_ns, odom[0], odom[1])
-        self._kfs.append(kf)
-        self._kf_stamps.append(kf.stamp_ns)
-        batch = _Batch()
-        batch.values.insert(kf.key, prior.T_world_robot)
-        batch.add(self._prior_record(prior, kf.key), self.config)
+        kf = Keyframe(self._graph.new_key(), prior.stamp_ns, odom[0], odom[1])
+        batch = FactorBatch()
+        self._graph.start(kf, prior.T_world_robot, batch)
+        self._graph.add(batch, self._prior_record(prior, kf.key))
         if not self._update(batch, iterations=1 + self.config.extra_iterations):
             return False
         self.counters[f"{prior.kind}_fused"] += 1
@@ -794,56 +713,19 @@ class PoseGraphFusion:
     # ----------------------------------------------------------------------------------------
 
     def _reset_graph(self) -> None:
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        params.relinearizeSkip = 1
-        # reuse slots of factors removed when splitting between factors (bounded graph)
-        params.findUnusedFactorSlots = True
-        self._isam = gtsam.ISAM2(params)
+        self._graph.reset()
         self._marginalization_deferred = False
-        self._kfs: list[_Keyframe] = []
-        self._kf_stamps: list[int] = []
-        self._between: dict[int, _Factor] = {}
-        self._priors: dict[int, list[_Factor]] = {}
-        self._latest_cache: tuple[int, gtsam.Pose2, np.ndarray] | None = None
 
-    def _update(self, batch: _Batch, iterations: int = 1) -> bool:
-        """One ISAM2 update with ``batch`` (+ ``iterations - 1`` relinearization steps)."""
-        try:
-            result = self._isam.update(batch.graph, batch.values, batch.remove)
-            for _ in range(iterations - 1):
-                self._isam.update()
-        except RuntimeError as exc:
-            # GTSAM raises on indeterminant systems; start over rather than stop the service
-            logger.warning("robot %s: ISAM2 update failed (%s); graph reset", self.robot_id, exc)
-            self._reset_graph()
-            self._reject("optimizer_error")
-            return False
-        for record, index in zip(batch.records, result.getNewFactorsIndices(), strict=True):
-            record.index = int(index)
-            self._register(record)
-        self._latest_cache = None
-        return True
-
-    def _register(self, record: _Factor) -> None:
-        if record.kind == "between":
-            self._between[record.key_from] = record
-        else:
-            self._priors.setdefault(record.key_to, []).append(record)
-
-    def _estimate_and_cov(self, key: int) -> tuple[gtsam.Pose2, np.ndarray]:
-        """Optimized pose of ``key`` and its (3, 3) marginal covariance in its body frame."""
-        cache = self._latest_cache
-        if cache is not None and cache[0] == key:
-            return cache[1], cache[2]
-        pose = self._isam.calculateEstimatePose2(key)
-        cov = np.asarray(self._isam.marginalCovariance(key), dtype=np.float64)
-        if key == self._kfs[-1].key:
-            self._latest_cache = (key, pose, cov)
-        return pose, cov
+    def _update(self, batch: FactorBatch, iterations: int = 1) -> bool:
+        """One ISAM2 update of the graph; a refused one empties it (``optimizer_error``)."""
+        if self._graph.update(batch, iterations):
+            return True
+        self._marginalization_deferred = False
+        self._reject("optimizer_error")
+        return False
 
     def _propagate(
-        self, cov_kf_body: np.ndarray, kf: _Keyframe, odom: tuple, stamp_ns: int
+        self, cov_kf_body: np.ndarray, kf: Keyframe, odom: tuple, stamp_ns: int
     ) -> np.ndarray:
         """Covariance (body frame) of keyframe ∘ odometry increment: Ad(D⁻¹) Σ Ad(D⁻¹)ᵀ + Q."""
         T_odom, cov_odom = odom
@@ -857,8 +739,8 @@ class PoseGraphFusion:
 
     def _fused_at_latest(self) -> PoseEstimate | None:
         stamp, odom = self._odom.latest()  # type: ignore[misc]
-        kf = self._kfs[-1]
-        T_world_kf, cov_kf = self._estimate_and_cov(kf.key)
+        kf = self._graph.keyframes[-1]
+        T_world_kf, cov_kf = self._graph.estimate_and_cov(kf.key)
         T_world = T_world_kf.compose(kf.T_odom_robot.between(odom.T_odom_robot))
         cov_body = self._propagate(cov_kf, kf, odom, stamp)
         return self._make_estimate(stamp, T_world, cov_body)
@@ -892,13 +774,8 @@ class PoseGraphFusion:
 
     def _droppable(self) -> int:
         """Keyframes outside the window (time or count), keeping at least the latest."""
-        if not self._kfs:
-            return 0
-        cfg = self.config
-        n = len(self._kfs)
-        horizon = self._kf_stamps[-1] - int(cfg.window_s * NS_PER_S)
-        too_old = bisect.bisect_left(self._kf_stamps, horizon)
-        return min(max(too_old, n - cfg.max_keyframes), n - 1)
+        return self._graph.droppable(int(self.config.window_s * NS_PER_S),
+                                     self.config.max_keyframes)
 
     def _maybe_marginalize(self) -> None:
         drop = self._droppable()
@@ -913,47 +790,13 @@ class PoseGraphFusion:
         self._marginalize(drop)
 
     def _marginalize(self, drop: int) -> None:
-        """Fold keyframes ``[:drop]`` into a Gaussian prior on keyframe ``drop`` (the new root)
-        and rebuild ISAM2 over the kept keyframes, linearized at the current estimate.
-
-        The prior is what the dropped factors alone say about the root: mean = the root in the
-        optimum of the dropped sub-graph, covariance = the root's marginal there. (Using the
-        full-graph estimate or marginal would count the kept factors twice.)"""
+        """Fold the oldest ``drop`` keyframes into a prior on the oldest kept one
+        (:meth:`KeyframeGraph.marginalize`) and trim the odometry before it."""
         self._marginalization_deferred = False
-        values = self._isam.calculateEstimate()
-        dropped, kept = self._kfs[:drop], self._kfs[drop:]
-        root = kept[0]
-        old_graph = gtsam.NonlinearFactorGraph()
-        old_values = gtsam.Values()
-        for kf in dropped:
-            for record in self._priors.pop(kf.key, []):
-                old_graph.add(record.factor(self.config))
-            old_graph.add(self._between.pop(kf.key).factor(self.config))
-            old_values.insert(kf.key, values.atPose2(kf.key))
-        old_values.insert(root.key, values.atPose2(root.key))
-        try:
-            optimum = gtsam.GaussNewtonOptimizer(old_graph, old_values).optimize()
-            T_world_root = optimum.atPose2(root.key)
-            cov_root = np.asarray(gtsam.Marginals(old_graph, optimum).marginalCovariance(root.key))
-        except RuntimeError as exc:
-            # conservative fallback (over-confident by the kept factors, but never fails)
-            logger.warning("robot %s: marginalization failed (%s)", self.robot_id, exc)
-            T_world_root = values.atPose2(root.key)
-            cov_root = np.asarray(self._isam.marginalCovariance(root.key))
-        marginal = _Factor("marginal", -1, root.key, T_world_root, 0.5 * (cov_root + cov_root.T),
-                           robust=False)
-        batch = _Batch()
-        batch.add(marginal, self.config)
-        for kf in kept:
-            batch.values.insert(kf.key, values.atPose2(kf.key))
-            for record in self._priors.pop(kf.key, []):
-                batch.add(record, self.config)
-            if kf.key in self._between:
-                batch.add(self._between.pop(kf.key), self.config)
-        params = self._isam.params()
-        self._isam = gtsam.ISAM2(params)
-        self._kfs = list(kept)
-        self._kf_stamps = [kf.stamp_ns for kf in kept]
-        self._odom.trim_before(root.stamp_ns)
-        if self._update(batch):
+        root_stamp_ns = self._graph.stamps[drop]
+        ok = self._graph.marginalize(drop)
+        self._odom.trim_before(root_stamp_ns)
+        if ok:
             self.counters["marginalizations"] += 1
+        else:
+            self._reject("optimizer_error")

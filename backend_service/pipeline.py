@@ -55,13 +55,9 @@ from typing import TYPE_CHECKING, Final, Protocol
 
 import numpy as np
 
-from backend_service.association import (
-    AssociationConfig,
-    DetectionRouter,
-    RobotPrediction,
-    predicted_covariance,
-)
+from backend_service.association import AssociationConfig, RobotPrediction, predicted_covariance
 from backend_service.camera_health import CameraHealthConfig, CameraHealthMonitor, NoiseModel
+from backend_service.detection_router import DetectionRouter
 from backend_service.estimate import PoseResult, SolverConfig, estimate_pose, solver_views
 from backend_service.frame_set import FrameSet
 from backend_service.multi_frame import MultiFrameAverager, MultiFrameConfig
@@ -595,7 +591,7 @@ class BackendPipeline:
 
     def _route(self, msg: RobotDetections) -> RobotDetections:
         """``msg`` with its detections named after the robots they go to (several robots:
-        :class:`~backend_service.association.DetectionRouter`, each robot's
+        :class:`~backend_service.detection_router.DetectionRouter`, each robot's
         :meth:`RobotTrack.prediction` at the image's stamp on the common clock)."""
         assert self.router is not None
         cam = self.site.cameras.get(msg.camera_id)

@@ -25,7 +25,7 @@ Methods (pick with :class:`SolverConfig`):
   loss enters as iteratively re-weighted least squares.
 - ``"gauss_newton"``: damped Gauss-Newton (Levenberg-Marquardt with a gain-ratio update) on ONE
   CasADi function that returns the cost, the gradient and the Gauss-Newton normal matrix of
-  Eq. 2 (robust loss included, see :func:`_normal_equations_sym`), so an iteration is one
+  Eq. 2 (robust loss included, see :func:`normal_equations_sym`), so an iteration is one
   CasADi evaluation through a preallocated :meth:`casadi.Function.buffer` plus a 3x3 (6x6)
   solve.
 
@@ -38,6 +38,10 @@ cameras: about 3.5x (normal equations) and 4.5x (residuals) cheaper than CasADi'
 machine at 64 cameras, and a new camera set costs milliseconds instead of a symbolic build of
 a third of a second. No compiler, a failed build or ``SMARTEDGE_POSE_JIT=0`` leave everything
 on the virtual machine, as before.
+
+The expressions and the per-camera kernels are :mod:`backend_service.pose_symbolic`'s, the
+``gauss_newton`` loop :mod:`backend_service.gauss_newton`'s; this module holds the configuration,
+the cached problem of one camera set and its methods.
 
 The default, :data:`DEFAULT_METHOD`, was chosen by measurement (``smartedge bench pose``,
 docs/benchmarks.md).
@@ -65,8 +69,18 @@ from typing import Final
 import casadi as ca
 import numpy as np
 
-from backend_service.compiled_functions import compiled
 from backend_service.covariance import ErrorModel
+from backend_service.gauss_newton import GaussNewtonKernel, SolveOutput
+from backend_service.pose_symbolic import (
+    camera_parameters,
+    normal_equations_kernel,
+    normal_equations_sym,
+    project_cam_sym,
+    project_with_jacobian_sym,
+    residuals_kernel,
+    rho_sym,
+    rotation_sym,
+)
 from core.camera import CameraModel
 
 log = logging.getLogger(__name__)
@@ -85,18 +99,6 @@ DEFAULT_METHOD: Final = "gauss_newton"
 #: 2-5x and no robust loss fails or reaches 25x; on clean data all three are within 10 % of it.
 #: The library and the backend service use the same default.
 DEFAULT_ROBUST_LOSS: Final = "cauchy"
-#: Stopping rules of the ``gauss_newton`` method. ``GN_XTOL``: the estimated remaining error
-#: of q (metres / radians), relative to |q|, from the step norm and the observed contraction
-#: of successive steps (exact for linear convergence, conservative for Gauss-Newton's faster
-#: convergence on small residuals; robust losses and gross outliers converge only linearly).
-#: ``GN_FTOL``: relative cost decrease of an accepted step at rounding-noise level (nothing
-#: left to gain). ``GN_GTOL``: gradient max-norm in px^2 per metre/radian.
-GN_XTOL: Final = 1e-10
-GN_FTOL: Final = 1e-15
-GN_GTOL: Final = 1e-9
-#: Points closer than this to a camera's image plane (or behind it) are clamped in the
-#: symbolic projection so the objective stays finite while the solver walks through them.
-_MIN_DEPTH_M: Final = 1e-3
 _CACHE_SIZE: Final = 64
 
 PROBLEM_CACHE_LOCK: Final = threading.RLock()
@@ -185,186 +187,9 @@ class SolverConfig:
                           self.extrinsic_sigma_m, self.extrinsic_sigma_deg)
 
 
-@dataclasses.dataclass(frozen=True)
-class SolveOutput:
-    """Result of one solve: ``q`` the parameters ((3,) or (6,)), ``success`` as reported by the
-    solver, ``iterations``, ``cost`` the final objective value (px^2)."""
-
-    q: np.ndarray
-    success: bool
-    iterations: int
-    cost: float
-
-
 # --------------------------------------------------------------------------------------------
-# symbolic building blocks
+# robust losses in numpy
 # --------------------------------------------------------------------------------------------
-
-
-def _rotation_sym(q: ca.SX, dof: int) -> tuple[ca.SX, ca.SX]:
-    """(R (3x3), t (3x1)) of T_world_robot(q)."""
-    if dof == 3:
-        c, s = ca.cos(q[2]), ca.sin(q[2])
-        R = ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
-        t = ca.vertcat(q[0], q[1], 0)
-        return R, t
-    roll, pitch, yaw = q[3], q[4], q[5]
-    cr, sr, cp, sp, cy, sy = (ca.cos(roll), ca.sin(roll), ca.cos(pitch), ca.sin(pitch),
-                              ca.cos(yaw), ca.sin(yaw))
-    Rz = ca.vertcat(ca.horzcat(cy, -sy, 0), ca.horzcat(sy, cy, 0), ca.horzcat(0, 0, 1))
-    Ry = ca.vertcat(ca.horzcat(cp, 0, sp), ca.horzcat(0, 1, 0), ca.horzcat(-sp, 0, cp))
-    Rx = ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, cr, -sr), ca.horzcat(0, sr, cr))
-    return Rz @ Ry @ Rx, ca.vertcat(q[0], q[1], q[2])
-
-
-def _project_cam_sym(camera: CameraModel, pc: ca.SX) -> tuple[ca.SX, ca.SX]:
-    """Distorted pixels (M x 2) and depths (M x 1) of camera-frame points (M x 3), OpenCV
-    model (the same maths as :meth:`core.camera.CameraModel.project_cam`)."""
-    z = pc[:, 2]
-    zs = ca.fmax(z, _MIN_DEPTH_M)
-    x = pc[:, 0] / zs
-    y = pc[:, 1] / zs
-    d = np.zeros(8)
-    d[: camera.dist.size] = camera.dist
-    if np.any(d != 0.0):
-        k1, k2, p1, p2, k3, k4, k5, k6 = (float(v) for v in d)
-        r2 = x * x + y * y
-        r4 = r2 * r2
-        r6 = r4 * r2
-        radial = (1 + k1 * r2 + k2 * r4 + k3 * r6)
-        if k4 != 0.0 or k5 != 0.0 or k6 != 0.0:
-            radial = radial / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    else:
-        xd, yd = x, y
-    K = camera.K
-    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-    v = K[1, 1] * yd + K[1, 2]
-    return ca.horzcat(u, v), z
-
-
-def _project_with_jacobian_sym(camera: CameraModel, pc: ca.SX,
-                               dpc_dq: tuple[ca.SX, ca.SX, ca.SX]) -> tuple[ca.SX, ...]:
-    """Distorted pixels of camera-frame points ``pc`` (M x 3) and their Jacobians w.r.t. the
-    pose, given ``dpc_dq`` = (dX, dY, dZ), each (M x dof), by the chain rule: pixel <-
-    distorted normalized <- normalized <- camera point <- pose. Returns u, v (M x 1) and
-    du, dv (M x dof). The same model as :func:`_project_cam_sym` (tested against CasADi's AD);
-    written out because the shared 2x2 distortion Jacobian needs about 30 % fewer
-    instructions than forward AD through the distortion once per pose direction. The
-    camera's coefficients are constants here: terms of zero coefficients are left out."""
-    d = np.zeros(8)
-    d[: camera.dist.size] = camera.dist
-    K = camera.K
-    return _projection_with_jacobian(
-        (float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])),
-        tuple(float(v) for v in d), pc, dpc_dq,
-        distorted=bool(np.any(d != 0.0)), rational=bool(np.any(d[5:] != 0.0)))
-
-
-def _projection_with_jacobian(k: Sequence, dist: Sequence, pc: ca.SX,
-                              dpc_dq: tuple[ca.SX, ca.SX, ca.SX], *, distorted: bool = True,
-                              rational: bool = True) -> tuple[ca.SX, ...]:
-    """:func:`_project_with_jacobian_sym` for intrinsics ``k`` = (fx, skew, cx, fy, cy) and
-    the 8 OpenCV coefficients ``dist`` = (k1, k2, p1, p2, k3, k4, k5, k6), numbers or
-    symbols. ``distorted`` / ``rational``: False leaves out the distortion / its denominator
-    (only right when those coefficients are zero)."""
-    dof = dpc_dq[0].shape[1]
-
-    def cols(e: ca.SX) -> ca.SX:  # (M x 1) -> (M x dof) for elementwise products
-        return ca.repmat(e, 1, dof)
-
-    X, Y, Z = pc[:, 0], pc[:, 1], pc[:, 2]
-    iz = 1.0 / ca.fmax(Z, _MIN_DEPTH_M)
-    x = X * iz
-    y = Y * iz
-    dZ = dpc_dq[2] * cols(Z > _MIN_DEPTH_M)  # the clamp's derivative
-    dx = cols(iz) * (dpc_dq[0] - cols(x) * dZ)
-    dy = cols(iz) * (dpc_dq[1] - cols(y) * dZ)
-    if distorted:
-        k1, k2, p1, p2, k3, k4, k5, k6 = dist
-        r2 = x * x + y * y
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dnum = k1 + r2 * (2 * k2 + r2 * (3 * k3))
-        if rational:
-            den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-            radial = num / den
-            dradial = (dnum - radial * (k4 + r2 * (2 * k5 + r2 * (3 * k6)))) / den
-        else:
-            radial, dradial = num, dnum
-        xy = x * y
-        xd = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
-        d00 = cols(radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x)
-        d01 = cols(2 * xy * dradial + 2 * p1 * x + 2 * p2 * y)
-        d11 = cols(radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x)
-        dxd = d00 * dx + d01 * dy
-        dyd = d01 * dx + d11 * dy
-    else:
-        xd, yd, dxd, dyd = x, y, dx, dy
-    fx, skew, cx, fy, cy = k
-    u = fx * xd + skew * yd + cx
-    v = fy * yd + cy
-    du = fx * dxd + skew * dyd
-    dv = fy * dyd
-    return u, v, du, dv
-
-
-def _rho_sym(s: ca.SX, c: ca.SX, loss: str) -> ca.SX:
-    if loss == "huber":
-        c2 = c * c
-        return ca.if_else(s <= c2, s, 2 * c * ca.sqrt(ca.fmax(s, 1e-300)) - c2)
-    if loss == "cauchy":
-        c2 = c * c
-        return c2 * ca.log1p(s / c2)
-    return s
-
-
-def _rho_derivatives_sym(s: ca.SX, c: ca.SX, loss: str) -> tuple[ca.SX, ca.SX, ca.SX]:
-    """(rho(s), rho'(s), rho''(s)) elementwise."""
-    if loss == "huber":
-        c2 = c * c
-        root = ca.sqrt(ca.fmax(s, 1e-300))
-        inside = s <= c2
-        return (ca.if_else(inside, s, 2 * c * root - c2),
-                ca.if_else(inside, 1.0, c / root),
-                ca.if_else(inside, 0.0, -0.5 * c / (root * s)))
-    if loss == "cauchy":
-        c2 = c * c
-        d = 1.0 / (1.0 + s / c2)
-        return c2 * ca.log1p(s / c2), d, -d * d / c2
-    return s, ca.DM.ones(s.shape), ca.DM.zeros(s.shape)
-
-
-def _normal_equations_sym(ru: ca.SX, rv: ca.SX, Ju: ca.SX, Jv: ca.SX, c: ca.SX, loss: str,
-                          dof: int) -> tuple[ca.SX, ca.SX, ca.SX]:
-    """Cost, gradient and Gauss-Newton normal matrix of ``1/2 sum_k rho(|r_k|^2)``.
-
-    ``ru``, ``rv`` (K,) weighted residuals r_k = (ru_k, rv_k) of the K keypoints, ``Ju``,
-    ``Jv`` (K, dof) their Jacobians w.r.t. the pose (J_k has rows Ju_k, Jv_k).
-    Per keypoint k with s = |r_k|^2 and a = J_k^T r_k: gradient ``rho' a``; normal matrix
-    ``rho' J_k^T J_k + gamma a a^T`` with ``gamma = 2 rho''`` (the exact second-order term of
-    the loss, second derivatives of r dropped as in Gauss-Newton) as long as the keypoint's
-    2x2 curvature ``rho' I + 2 rho'' r r^T`` stays positive semi-definite, else its eigenvalue
-    along r is clamped to 0 (``gamma = -rho'/s``; Huber's linear branch is exactly that).
-    Without a loss this is plain J^T J, J^T r. Returns (cost (1,), gradient (dof,), upper
-    triangle of the normal matrix row-major (dof*(dof+1)/2,)).
-    """
-    s = ru * ru + rv * rv
-    a = Ju * ca.repmat(ru, 1, dof) + Jv * ca.repmat(rv, 1, dof)  # (K, dof) rows J_k^T r_k
-    if loss == "none":
-        cost = 0.5 * ca.sum1(s)
-        grad = ca.sum1(a).T
-        H = Ju.T @ Ju + Jv.T @ Jv
-    else:
-        rho, rho1, rho2 = _rho_derivatives_sym(s, c, loss)
-        gamma = ca.if_else(rho1 + 2 * s * rho2 >= 0, 2 * rho2, -rho1 / ca.fmax(s, 1e-300))
-        cost = 0.5 * ca.sum1(rho)
-        grad = (rho1.T @ a).T
-        R1 = ca.repmat(rho1, 1, dof)
-        H = Ju.T @ (R1 * Ju) + Jv.T @ (R1 * Jv) + a.T @ (ca.repmat(gamma, 1, dof) * a)
-    upper = [H[i, j] for i in range(dof) for j in range(i, dof)]
-    return cost, grad, ca.vertcat(*upper)
 
 
 def robust_weights(s_px2: np.ndarray, loss: str, scale_px: float) -> np.ndarray:
@@ -375,267 +200,6 @@ def robust_weights(s_px2: np.ndarray, loss: str, scale_px: float) -> np.ndarray:
         return 1.0 / (1.0 + s_px2 / scale_px**2)
     return np.ones_like(s_px2)
 
-
-# --------------------------------------------------------------------------------------------
-# damped Gauss-Newton on the CasADi normal equations
-# --------------------------------------------------------------------------------------------
-
-
-def _cholesky_solve(a_upper: list[float], diag_idx: tuple[int, ...], lam: float,
-                    rhs: list[float]) -> list[float] | None:
-    """Solve ``(A + lam diag(A)) x = rhs`` for symmetric ``A`` given as its upper triangle
-    (row-major). Plain Python floats: for n <= 6 this is several times cheaper than a numpy
-    call. ``None`` if the damped matrix is not positive definite."""
-    n = len(rhs)
-    if n == 3:
-        return _cholesky_solve3(a_upper, lam, rhs)
-    A = [[0.0] * n for _ in range(n)]
-    k = 0
-    for i in range(n):
-        for j in range(i, n):
-            A[i][j] = A[j][i] = a_upper[k]
-            k += 1
-    for i in range(n):
-        A[i][i] += lam * max(a_upper[diag_idx[i]], 1e-300)
-    L = [[0.0] * n for _ in range(n)]
-    for j in range(n):
-        d = A[j][j] - sum(L[j][m] * L[j][m] for m in range(j))
-        if not d > 0.0 or not math.isfinite(d):
-            return None
-        L[j][j] = math.sqrt(d)
-        for i in range(j + 1, n):
-            L[i][j] = (A[i][j] - sum(L[i][m] * L[j][m] for m in range(j))) / L[j][j]
-    y = [0.0] * n
-    for i in range(n):
-        y[i] = (rhs[i] - sum(L[i][m] * y[m] for m in range(i))) / L[i][i]
-    x = [0.0] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - sum(L[m][i] * x[m] for m in range(i + 1, n))) / L[i][i]
-    return x
-
-
-def _cholesky_solve3(a: list[float], lam: float, b: list[float]) -> list[float] | None:
-    """:func:`_cholesky_solve` unrolled for the planar problem (the hot path)."""
-    a00, a01, a02, a11, a12, a22 = a
-    a00 += lam * max(a00, 1e-300)
-    a11 += lam * max(a11, 1e-300)
-    a22 += lam * max(a22, 1e-300)
-    if not a00 > 0.0:
-        return None
-    l00 = math.sqrt(a00)
-    l10 = a01 / l00
-    l20 = a02 / l00
-    d1 = a11 - l10 * l10
-    if not d1 > 0.0:
-        return None
-    l11 = math.sqrt(d1)
-    l21 = (a12 - l20 * l10) / l11
-    d2 = a22 - l20 * l20 - l21 * l21
-    if not d2 > 0.0 or not math.isfinite(d2):
-        return None
-    l22 = math.sqrt(d2)
-    y0 = b[0] / l00
-    y1 = (b[1] - l10 * y0) / l11
-    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
-    x2 = y2 / l22
-    x1 = (y1 - l21 * x2) / l11
-    return [(y0 - l10 * x1 - l20 * x2) / l00, x1, x2]
-
-
-class _GaussNewtonKernel:
-    """The normal-equations :class:`casadi.Function` bound to preallocated numpy buffers.
-
-    :meth:`casadi.Function.buffer` evaluates straight from/into numpy memory: no DM
-    conversion, no argument checking, which is most of the cost of ``f(q, p)`` on this small
-    function. Not thread-safe (shared buffers), like the rest of a :class:`PoseProblem`.
-    """
-
-    def __init__(self, function: ca.Function) -> None:
-        self.function = function
-        self.dof = int(function.size1_in(0))
-        self.num_params = int(function.size1_in(1))
-        self._q = np.zeros(self.dof)
-        self._p = np.zeros(self.num_params)
-        self._out = np.zeros(int(function.size1_out(0)))
-        self._buffer, self._eval = function.buffer()
-        self._buffer.set_arg(0, memoryview(self._q))
-        self._buffer.set_arg(1, memoryview(self._p))
-        self._buffer.set_res(0, memoryview(self._out))
-        n = self.dof
-        # index of H[i, i] in the row-major upper triangle, offset by cost and gradient
-        self._diag = tuple(i * n - i * (i - 1) // 2 for i in range(n))
-
-    def evaluate(self, q: Sequence[float]) -> tuple[float, list[float], list[float]]:
-        """(cost, gradient, normal-matrix upper triangle) at ``q`` for the bound parameters."""
-        self._q[:] = q
-        self._eval()
-        out = self._out.tolist()
-        n = self.dof
-        return out[0], out[1:1 + n], out[1 + n:]
-
-    def solve(self, q0: np.ndarray, p: np.ndarray, max_iterations: int) -> SolveOutput:
-        """Levenberg-Marquardt (Marquardt's diagonal scaling, Nielsen's gain-ratio update of
-        the damping) from ``q0``; stops on :data:`GN_GTOL`, :data:`GN_XTOL`, :data:`GN_FTOL`
-        or ``max_iterations`` evaluations."""
-        self._p[:] = p
-        q = [float(v) for v in q0]
-        cost, g, h = self.evaluate(q)
-        if not math.isfinite(cost):
-            return SolveOutput(np.asarray(q), False, 0, cost)
-        lam = 1e-8  # with Marquardt scaling: (almost) a pure Gauss-Newton first step
-        prev_step = 0.0
-        success = False
-        it = 0
-        while it < max_iterations:
-            if max(abs(v) for v in g) <= GN_GTOL:
-                success = True
-                break
-            dq = _cholesky_solve(h, self._diag, lam, [-v for v in g])
-            if dq is None:
-                prev_step = 0.0
-                lam = max(10.0 * lam, 1e-3)
-                if lam > 1e16:
-                    break
-                continue
-            step = math.sqrt(sum(v * v for v in dq))
-            # error left after taking dq: step * theta / (1 - theta) for a contraction theta
-            # per iteration, estimated from the previous accepted step (only if no rejection
-            # since: a step shortened by extra damping says nothing about convergence)
-            if prev_step > 0.0:
-                theta = step / prev_step
-                remaining = step * theta / (1.0 - theta) if theta < 1.0 else math.inf
-            else:
-                remaining = step
-            if remaining <= GN_XTOL * (math.sqrt(sum(v * v for v in q)) + GN_XTOL):
-                # Converged. The step is still applied without re-evaluating: it only
-                # removes error, and its cost change is second order in a tiny step.
-                q = [a + b for a, b in zip(q, dq, strict=True)]
-                success = True
-                break
-            it += 1
-            q_new = [a + b for a, b in zip(q, dq, strict=True)]
-            cost_new, g_new, h_new = self.evaluate(q_new)
-            if math.isfinite(cost_new) and cost_new <= cost:
-                # gain ratio: actual over the damped model's predicted decrease, which for
-                # (H + lam D) dq = -g is (lam dq^T D dq - g^T dq) / 2
-                pred = 0.5 * (lam * sum(max(h[i], 1e-300) * d * d
-                                        for i, d in zip(self._diag, dq, strict=True))
-                              - sum(a * b for a, b in zip(g, dq, strict=True)))
-                decrease = cost - cost_new
-                gain = decrease / pred if pred > 0 else 0.0
-                q, cost, g, h = q_new, cost_new, g_new, h_new
-                prev_step = step
-                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-15)
-                if decrease <= GN_FTOL * cost:
-                    success = True
-                    break
-            else:
-                prev_step = 0.0
-                lam = max(10.0 * lam, 1e-3)
-                if lam > 1e16:
-                    success = True  # no decreasing step at any damping: a (local) minimum
-                    break
-        return SolveOutput(np.asarray(q), success, it, cost)
-
-
-# --------------------------------------------------------------------------------------------
-# the compiled per-camera kernel
-# --------------------------------------------------------------------------------------------
-
-#: camera parameters of the kernel: fx, skew, cx, fy, cy, 8 OpenCV coefficients,
-#: R_cam_world (row-major), t_cam_world
-_CAMERA_PARAMS: Final = 5 + 8 + 9 + 3
-
-
-def camera_parameters(camera: CameraModel) -> np.ndarray:
-    """The (25,) parameter vector of one camera for the compiled kernel."""
-    d = np.zeros(8)
-    d[: camera.dist.size] = camera.dist
-    K, T = camera.K, camera.T_cam_world
-    return np.concatenate([[K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]], d,
-                           T[:3, :3].reshape(-1), T[:3, 3]])
-
-
-def _one_camera_sym(num_keypoints: int, dof: int) -> tuple[list[ca.SX], tuple[ca.SX, ...]]:
-    """The symbolic inputs ``[q, camera (25), observed pixels (2M), weights (M), keypoints
-    (3M)]`` of one camera's kernel and, from them, (ru, rv (M), Ju, Jv (M x dof), depths (M)):
-    the weighted pixel residuals of :meth:`PoseProblem.normal_equations_vm`, per camera, with
-    the camera and the robot model as inputs instead of constants."""
-    M = num_keypoints
-    q = ca.SX.sym("q", dof)
-    cam = ca.SX.sym("camera", _CAMERA_PARAMS)
-    obs = ca.SX.sym("uv", 2 * M)
-    w = ca.SX.sym("w", M)
-    kps = ca.SX.sym("keypoints", 3 * M)
-    R_wr, t_wr = _rotation_sym(q, dof)
-    R_cw = ca.reshape(cam[13:22], 3, 3).T
-    kp = ca.reshape(kps, 3, M).T
-    pts_cam = kp @ (R_cw @ R_wr).T + ca.repmat((R_cw @ t_wr + cam[22:25]).T, M, 1)
-    dpc_dq = tuple(ca.jacobian(pts_cam[:, a], q) for a in range(3))  # AD: rigid motion
-    u, v, du, dv = _projection_with_jacobian(
-        tuple(cam[i] for i in range(5)), tuple(cam[5 + i] for i in range(8)), pts_cam, dpc_dq)
-    o = ca.reshape(obs, 2, M).T
-    sw = ca.sqrt(w)
-    residuals = (sw * (u - o[:, 0]), sw * (v - o[:, 1]), ca.repmat(sw, 1, dof) * du,
-                 ca.repmat(sw, 1, dof) * dv, pts_cam[:, 2])
-    return [q, cam, obs, w, kps], residuals
-
-
-def _camera_kernel_sym(num_keypoints: int, dof: int, loss: str) -> ca.Function:
-    """``(q, camera (25), observed pixels (2M), weights (M), scale, keypoints (3M)) ->
-    [cost, gradient, normal-matrix upper triangle]`` of ONE camera: what
-    :meth:`PoseProblem.normal_equations_vm` sums over the cameras, so one compiled function
-    serves every camera set."""
-    (q, cam, obs, w, kps), (ru, rv, Ju, Jv, _) = _one_camera_sym(num_keypoints, dof)
-    c = ca.SX.sym("c", 1)
-    cost, grad, h_upper = _normal_equations_sym(ru, rv, Ju, Jv, c, loss, dof)
-    return ca.Function(f"pose_camera_kernel_m{num_keypoints}_dof{dof}_{loss}",
-                       [q, cam, obs, w, c, kps], [ca.densify(ca.vertcat(cost, grad, h_upper))],
-                       ["q", "camera", "uv", "w", "c", "keypoints"], ["normal_equations"])
-
-
-def _residual_kernel_sym(num_keypoints: int, dof: int) -> ca.Function:
-    """``(q, camera (25), observed pixels (2M), weights (M), keypoints (3M)) -> [weighted
-    residuals (2M, u/v interleaved), their Jacobian (2M x dof), depths (M)]`` of ONE camera:
-    what :meth:`PoseProblem.evaluate` returns, per camera (the Jacobian by the chain rule of
-    :func:`_projection_with_jacobian`)."""
-    M = num_keypoints
-    (q, cam, obs, w, kps), (ru, rv, Ju, Jv, depth) = _one_camera_sym(M, dof)
-    r = ca.reshape(ca.horzcat(ru, rv).T, 2 * M, 1)
-    J = ca.vertcat(*[ca.vertcat(Ju[j, :], Jv[j, :]) for j in range(M)])
-    return ca.Function(f"pose_residual_kernel_m{M}_dof{dof}", [q, cam, obs, w, kps],
-                       [ca.densify(r), ca.densify(J), ca.densify(depth)],
-                       ["q", "camera", "uv", "w", "keypoints"], ["residuals", "jacobian", "depth"])
-
-
-def _normal_equations_kernel(num_keypoints: int, dof: int, loss: str, wait: bool = False
-                             ) -> tuple[ca.Function | None, bool]:
-    return compiled(("normal_equations", num_keypoints, dof, loss),
-                   lambda: _camera_kernel_sym(num_keypoints, dof, loss), wait)
-
-
-def _residuals_kernel(num_keypoints: int, dof: int, wait: bool = False
-                      ) -> tuple[ca.Function | None, bool]:
-    return compiled(("residuals", num_keypoints, dof),
-                   lambda: _residual_kernel_sym(num_keypoints, dof), wait)
-
-
-def compiled_camera_kernel(num_keypoints: int, dof: int, loss: str, *,
-                           wait: bool = False) -> ca.Function | None:
-    """The compiled per-camera Gauss-Newton kernel (:func:`_camera_kernel_sym`) for this
-    keypoint count, DoF and loss, or ``None``: not built yet (the first call starts the build
-    in the background; ``wait=True`` waits for it), switched off (:data:`JIT_ENV` = ``"0"``),
-    no compiler, a failed build, or a library whose numbers differ from the virtual
-    machine's (never used then). The library is built once per machine, loaded once per
-    process."""
-    return _normal_equations_kernel(num_keypoints, dof, loss, wait)[0]
-
-
-def compiled_residual_kernel(num_keypoints: int, dof: int, *,
-                             wait: bool = False) -> ca.Function | None:
-    """The compiled per-camera residual kernel (:func:`_residual_kernel_sym`), as
-    :func:`compiled_camera_kernel`."""
-    return _residuals_kernel(num_keypoints, dof, wait)[0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -664,7 +228,7 @@ class PoseProblem:
         self.loss = loss
         self._solvers: dict[tuple[str, int], ca.Function] = {}
         self._cameras = tuple(cameras)
-        self._gn: _GaussNewtonKernel | None = None
+        self._gn: GaussNewtonKernel | None = None
         self._residual_buffer: tuple | None = None
         self._residual_current = False  # the buffer's outputs belong to its inputs
         # built on first use: the whole problem as one symbolic expression (the NLP methods,
@@ -696,7 +260,7 @@ class PoseProblem:
         w = ca.SX.sym("w", N * M)
         c = ca.SX.sym("c", 1)
         p = ca.vertcat(uv, w, c)
-        R_wr, t_wr = _rotation_sym(q, dof)
+        R_wr, t_wr = rotation_sym(q, dof)
         res_parts, depth_parts, s_parts = [], [], []
         for i, cam in enumerate(self._cameras):
             # Composite camera<-robot transform first: the model keypoints are constants, so
@@ -705,7 +269,7 @@ class PoseProblem:
             R_cr = R_cw @ R_wr
             t_cr = R_cw @ t_wr + ca.DM(cam.T_cam_world[:3, 3])
             pts_cam = ca.DM(kp_base) @ R_cr.T + ca.repmat(t_cr.T, M, 1)
-            uv_hat, z = _project_cam_sym(cam, pts_cam)
+            uv_hat, z = project_cam_sym(cam, pts_cam)
             obs = ca.reshape(uv[i * M * 2:(i + 1) * M * 2], 2, M).T
             err = uv_hat - obs  # (M, 2)
             w_i = w[i * M:(i + 1) * M]
@@ -717,7 +281,7 @@ class PoseProblem:
         r = ca.vertcat(*res_parts)
         s = ca.vertcat(*s_parts)
         depth = ca.vertcat(*depth_parts)
-        f = 0.5 * ca.sum1(_rho_sym(s, c, loss))
+        f = 0.5 * ca.sum1(rho_sym(s, c, loss))
         residual_fn = ca.Function("pose_residuals", [q, p], [r, ca.jacobian(r, q), depth])
         self._symbolic = (residual_fn, {"x": q, "p": p, "f": f})
         return self._symbolic
@@ -727,7 +291,7 @@ class PoseProblem:
         when there is one, else :attr:`residual_fn` (replaced by the kernel as soon as its
         background build is done)."""
         if self._residual_eval is None or not self._residual_final:
-            kernel, self._residual_final = _residuals_kernel(self.num_keypoints, self.dof)
+            kernel, self._residual_final = residuals_kernel(self.num_keypoints, self.dof)
             if kernel is None:
                 if self._residual_eval is not None:
                     return self._residual_eval
@@ -805,18 +369,18 @@ class PoseProblem:
 
     def normal_equations_function(self) -> ca.Function:
         """``(q, p) -> [cost, gradient (dof), upper triangle of the normal matrix]`` (one flat
-        vector, see :func:`_normal_equations_sym`), built on first use and kept (the virtual
+        vector, see :func:`normal_equations_sym`), built on first use and kept (the virtual
         machine's until the compiled kernel is ready, then the kernel's)."""
         return self._gauss_newton_kernel().function
 
-    def _gauss_newton_kernel(self) -> _GaussNewtonKernel:
+    def _gauss_newton_kernel(self) -> GaussNewtonKernel:
         if self._gn is None or not self._gn_final:
-            kernel, self._gn_final = _normal_equations_kernel(self.num_keypoints, self.dof,
+            kernel, self._gn_final = normal_equations_kernel(self.num_keypoints, self.dof,
                                                               self.loss)
             if kernel is not None:
-                self._gn = _GaussNewtonKernel(self._mapped_normal_equations(kernel))
+                self._gn = GaussNewtonKernel(self._mapped_normal_equations(kernel))
             elif self._gn is None:
-                self._gn = _GaussNewtonKernel(self.normal_equations_vm())
+                self._gn = GaussNewtonKernel(self.normal_equations_vm())
         return self._gn
 
     def _mapped_normal_equations(self, kernel: ca.Function) -> ca.Function:
@@ -840,7 +404,7 @@ class PoseProblem:
         uv = ca.SX.sym("uv", N * M * 2)
         w = ca.SX.sym("w", N * M)
         c = ca.SX.sym("c", 1)
-        R_wr, t_wr = _rotation_sym(q, dof)
+        R_wr, t_wr = rotation_sym(q, dof)
         ru: list[ca.SX] = []
         rv: list[ca.SX] = []
         Ju: list[ca.SX] = []
@@ -850,14 +414,14 @@ class PoseProblem:
             pts_cam = (ca.DM(self.keypoints_base_m) @ (R_cw @ R_wr).T
                        + ca.repmat((R_cw @ t_wr + ca.DM(cam.T_cam_world[:3, 3])).T, M, 1))
             dpc_dq = tuple(ca.jacobian(pts_cam[:, a], q) for a in range(3))  # AD: rigid motion
-            u, v, du, dv = _project_with_jacobian_sym(cam, pts_cam, dpc_dq)
+            u, v, du, dv = project_with_jacobian_sym(cam, pts_cam, dpc_dq)
             obs = ca.reshape(uv[i * M * 2:(i + 1) * M * 2], 2, M).T
             sw = ca.sqrt(w[i * M:(i + 1) * M])
             ru.append(sw * (u - obs[:, 0]))
             rv.append(sw * (v - obs[:, 1]))
             Ju.append(ca.repmat(sw, 1, dof) * du)
             Jv.append(ca.repmat(sw, 1, dof) * dv)
-        cost, grad, h_upper = _normal_equations_sym(
+        cost, grad, h_upper = normal_equations_sym(
             ca.vertcat(*ru), ca.vertcat(*rv), ca.vertcat(*Ju), ca.vertcat(*Jv), c, self.loss, dof)
         return ca.Function("pose_normal_equations", [q, ca.vertcat(uv, w, c)],
                            [ca.densify(ca.vertcat(cost, grad, h_upper))])

@@ -35,7 +35,7 @@ class SimulationViews:
                                robot_model=self.robot_model)
 
     def augment(self, image_rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        from simulation.dataset import augment
+        from simulation.image_effects import augment
 
         return augment(image_rgb, rng)
 

@@ -24,7 +24,8 @@ plug-in of the services (registered into them from the top floor, :mod:`smartedg
   intrinsics as an OpenGL projection and the distorting lens map), ``render_stages`` (time per
   render stage), ``site_cameras`` (images from each camera's true pose), ``board_views``
   (rendered calibration-board views), ``labels`` (training labels from a rendered image),
-  ``dataset`` (rendered, exactly labelled samples and a dataset writer).
+  ``dataset`` (rendered, exactly labelled samples and a dataset writer), ``image_effects``
+  (the camera's and the scene's image-space effects, the photometric augmentation).
 
 Imports only the ground floor of the project (``protocol`` and ``core``), never a service.
 """

@@ -327,7 +327,7 @@ class RandomizationConfig:
     patches with ``dirt_probability``; a contact and cast shadow on the floor with
     ``shadow_probability`` and ``shadow_strength`` (image space, :mod:`simulation.dataset`).
 
-    The camera (image space, :func:`simulation.dataset.camera_effects`): ``exposure_ev``,
+    The camera (image space, :func:`simulation.image_effects.camera_effects`): ``exposure_ev``,
     per-channel ``white_balance`` gain, ``gamma``, ``brightness_offset`` (8-bit levels),
     ``saturation``, ``vignetting`` (corner
     darkening share) with ``vignetting_probability``, defocus (disk of ``defocus_px`` radius)

@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.association import DetectionRouter, RobotPrediction
+from backend_service.association import RobotPrediction
+from backend_service.detection_router import DetectionRouter
 from core.geometry import rotation_z
 from core.pose import PlanarPose
 from core.site import Site, load_site

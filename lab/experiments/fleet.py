@@ -10,7 +10,7 @@ A run drives the robots of :data:`simulation.fleet.CROSSING_ROUTES` (the first `
 them) on the paper lab (:mod:`simulation.fleet`: one camera image of all robots, detections
 merged and stripped of their robot id) through the backend's
 :class:`~backend_service.pipeline.BackendPipeline` (the object ``smartedge backend`` runs: the
-detections go to robots by :class:`~backend_service.association.DetectionRouter`) with
+detections go to robots by :class:`~backend_service.detection_router.DetectionRouter`) with
 correction feedback as experiment 2 of ``evaluate paper`` does it: one real
 :class:`robot_bridge.bridge.RobotBridge` per robot decides corrections from that robot's fused
 poses and pushes them to its simulated robot, which takes them only while static. Then each

@@ -15,16 +15,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from backend_service import association
+from backend_service.assignment import hungarian
 from backend_service.association import (
     AssociationConfig,
-    DetectionRouter,
     RobotPrediction,
     associate,
     association_costs,
-    hungarian,
     predicted_covariance,
     predicted_views,
 )
+from backend_service.detection_router import DetectionRouter
 from backend_service.projection import project_planar, stacked_cameras
 from core.camera import CameraModel
 from core.pose import PlanarPose

@@ -14,11 +14,8 @@ import pytest
 from backend_service import pose_solver
 from backend_service.compiled_functions import JIT_ENV, KERNEL_CACHE_ENV, forget_compiled_kernels
 from backend_service.estimate import SolverConfig, estimate_pose
-from backend_service.pose_solver import (
-    PoseProblem,
-    compiled_camera_kernel,
-    compiled_residual_kernel,
-)
+from backend_service.pose_solver import PoseProblem
+from backend_service.pose_symbolic import compiled_camera_kernel, compiled_residual_kernel
 from core.camera import CameraModel
 from core.pose import PlanarPose
 from tests.backend_service.pose_synth import (

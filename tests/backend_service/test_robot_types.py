@@ -17,11 +17,11 @@ import pytest
 
 from backend_service.association import (
     AssociationConfig,
-    DetectionRouter,
     RobotPrediction,
     associate,
     association_costs,
 )
+from backend_service.detection_router import DetectionRouter
 from backend_service.projection import project_planar, stacked_cameras
 from core.pose import PlanarPose
 from core.site import load_site

@@ -103,7 +103,7 @@ def test_class_weights_balance_rare_classes() -> None:
     """sqrt(median frequency / frequency) over the present classes, clipped to [0.2, 5]; absent
     classes weigh 0."""
     pytest.importorskip("torch")
-    from training.train import class_weights
+    from training.targets import class_weights
 
     # floor 70 %, wall 20 %, robot 9 %, person 1 % (of 1000 pixels)
     labels = np.repeat([1, 2, 12, 11], [700, 200, 90, 10]).reshape(1, 10, 100)
@@ -234,12 +234,7 @@ def test_check_onnxruntime_catches_a_segmentation_mismatch(tmp_path: Path) -> No
     torch = pytest.importorskip("torch")
     from training.data import Geometry, SetSpec
     from training.nets import SemanticSegNet
-    from training.train import (
-        TrainConfig,
-        TrainingError,
-        check_onnxruntime,
-        export_onnx,
-    )
+    from training.train import TrainConfig, TrainingError, check_onnxruntime, export_onnx
 
     geom = Geometry(det_w=IN_W, det_h=IN_H, crops_per_robot=0, seg_w=OUT_W, seg_h=OUT_H)
     cfg = TrainConfig("segmentation", (SetSpec("site", 2, 8),), (SetSpec("site", 1002, 8),),

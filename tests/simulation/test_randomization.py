@@ -137,7 +137,7 @@ def scenario():
 
 
 def test_camera_effects_are_deterministic_and_vignetting_darkens_the_corners() -> None:
-    from simulation.dataset import camera_effects
+    from simulation.image_effects import camera_effects
 
     grey = np.full((60, 100, 3), 160, np.uint8)
     cfg = RandomizationConfig()

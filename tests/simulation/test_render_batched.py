@@ -14,7 +14,8 @@ import pytest
 
 pytest.importorskip("moderngl")
 
-from simulation.dataset import SampleGenerator, SamplePool, augment, sample_summary
+from simulation.dataset import SampleGenerator, SamplePool, sample_summary
+from simulation.image_effects import augment
 from simulation.labels import instance_bbox, keypoint_labels
 from simulation.mesh import (
     Mesh,

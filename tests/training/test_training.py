@@ -23,17 +23,14 @@ from edge_agent.networks import decode_detections  # noqa: E402
 from tests.edge_agent.conftest import train_tiny  # noqa: E402
 from training.data import Geometry, SetSpec, render_set  # noqa: E402
 from training.nets import KeypointNet, KeypointOutput, RobotDetector  # noqa: E402
-from training.train import (  # noqa: E402
-    TrainConfig,
-    TrainingError,
-    check_onnxruntime,
+from training.targets import (  # noqa: E402
     detector_targets,
-    export_onnx,
     focal_loss,
     frame_to_input,
     keypoint_weights,
     simcc_targets,
 )
+from training.train import TrainConfig, TrainingError, check_onnxruntime, export_onnx  # noqa: E402
 
 STRIDE = RobotDetector.stride
 DET_W, DET_H = 128, 96  # the --tiny detector input

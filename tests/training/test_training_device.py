@@ -120,7 +120,7 @@ def test_resumed_run_differs_when_the_random_streams_are_not_restored(tmp_path: 
 def test_mirrored_crops_carry_their_labels() -> None:
     """A crop with a bright dot at each keypoint, mirrored: every keypoint label lands on a
     dot again, each keypoint on its partner's dot, mirrored; unflipped rows are untouched."""
-    from training.train import mirror_crops
+    from training.targets import mirror_crops
 
     data = _data(4)
     x = torch.from_numpy(data.crops).permute(0, 3, 1, 2).float()
