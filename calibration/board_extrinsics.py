@@ -181,7 +181,13 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 @dataclasses.dataclass
-class _Problem:
+class BoardProblem:
+    """The joint adjustment's data: corner ``n`` was seen by camera ``obs_cam[n]`` (index into
+    ``cam_ids``) on the board at ``stamps[obs_board[n]]``, at ``X_board[n]`` on the board (m)
+    and ``uv[n]`` in the image (px). ``free_board``: the board poses being solved (the others
+    are fixed in the map frame). The state is ``(R_wc (C, 3, 3), c_w (C, 3), R_wb (B, 3, 3),
+    t_wb (B, 3))``: each camera's ``R_world_cam`` and position, each board's pose."""
+
     cam_ids: list[str]
     stamps: list[str]  # every board pose, fixed ones included
     free_board: np.ndarray  # (B,) bool
@@ -223,6 +229,16 @@ class _Problem:
         J = np.concatenate([J_cam, J_board], axis=2)  # (N, 2, 12)
         return r, J
 
+    def huber_cost(self, R_wc: np.ndarray, c_w: np.ndarray, R_wb: np.ndarray,
+                   t_wb: np.ndarray, huber_px: float) -> float:
+        """The adjustment's cost: the Huber loss (threshold ``huber_px``) of every corner's
+        reprojection error, summed (``inf`` where a corner cannot be projected)."""
+        r, _ = self.residuals(R_wc, c_w, R_wb, t_wb, jacobian=False)
+        if not np.all(np.isfinite(r)):
+            return math.inf
+        e = np.linalg.norm(r, axis=1)
+        return float(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px)).sum())
+
     def columns(self) -> np.ndarray:
         """(N, 12) parameter column of each entry of :meth:`residuals`' Jacobian (P: none)."""
         board_col = self.board_cols()[self.obs_board]
@@ -246,6 +262,22 @@ class _Problem:
         return H.reshape(P + 1, P + 1)[:P, :P], g[:P]
 
 
+BoardState = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BoardAdjustment:
+    """A joint adjustment ready to run: the :class:`BoardProblem`, the PnP-chained ``initial``
+    state, the ``fixed`` board poses, the PnP-chained ``initial_cameras`` (``T_world_cam``) and
+    the sightings left out (``skipped``, (camera id, stamp) -> why)."""
+
+    problem: BoardProblem
+    initial: BoardState
+    fixed: dict[str, np.ndarray]
+    initial_cameras: dict[str, np.ndarray]
+    skipped: dict[tuple[str, str], str]
+
+
 def solve_board_extrinsics(cameras: Mapping[str, CameraModel],
                            sightings: Sequence[BoardSighting], spec: CharucoBoardSpec,
                            fixed_board_poses: Mapping[str, np.ndarray], *,
@@ -259,6 +291,18 @@ def solve_board_extrinsics(cameras: Mapping[str, CameraModel],
     (logged; the caller names them). Raises :class:`CalibrationError` when no camera saw the
     board at a fixed pose, naming the fixed stamps and the cameras that had sightings.
     """
+    adjustment = prepare_board_adjustment(cameras, sightings, spec, fixed_board_poses)
+    state, iterations = adjust_board(adjustment.problem, adjustment.initial, huber_px,
+                                     max_iterations)
+    return board_result(adjustment, state, iterations)
+
+
+def prepare_board_adjustment(cameras: Mapping[str, CameraModel],
+                             sightings: Sequence[BoardSighting], spec: CharucoBoardSpec,
+                             fixed_board_poses: Mapping[str, np.ndarray]) -> BoardAdjustment:
+    """The joint adjustment of :func:`solve_board_extrinsics` up to the solve: sightings
+    checked (each by its own PnP fit), cameras and boards chained from the fixed board poses
+    outwards, the corners gathered. Raises as :func:`solve_board_extrinsics`."""
     if not fixed_board_poses:
         raise CalibrationError("no fixed board pose: give the board's pose in the map frame "
                                "for one stamp (or the robot's localization for each)")
@@ -312,16 +356,24 @@ def solve_board_extrinsics(cameras: Mapping[str, CameraModel],
     dist8 = np.zeros((len(cam_ids), 8))
     for i, c in enumerate(cam_ids):
         dist8[i, :cameras[c].dist.size] = cameras[c].dist
-    prob = _Problem(cam_ids, stamps, np.array([s not in fixed for s in stamps]),
-                    np.stack([cameras[c].K for c in cam_ids]), dist8,
-                    np.concatenate(obs_cam), np.concatenate(obs_board), np.concatenate(X),
-                    np.concatenate(uv))
+    prob = BoardProblem(cam_ids, stamps, np.array([s not in fixed for s in stamps]),
+                        np.stack([cameras[c].K for c in cam_ids]), dist8,
+                        np.concatenate(obs_cam), np.concatenate(obs_board), np.concatenate(X),
+                        np.concatenate(uv))
     R_wc = np.stack([init_cams[c][:3, :3] for c in cam_ids])
     c_w = np.stack([init_cams[c][:3, 3] for c in cam_ids])
     R_wb = np.stack([init_boards[s][:3, :3] for s in stamps])
     t_wb = np.stack([init_boards[s][:3, 3] for s in stamps])
-    R_wc, c_w, R_wb, t_wb, iterations = _adjust(prob, R_wc, c_w, R_wb, t_wb, huber_px,
-                                                max_iterations)
+    return BoardAdjustment(prob, (R_wc, c_w, R_wb, t_wb), fixed, init_cams, skipped)
+
+
+def board_result(adjustment: BoardAdjustment, state: BoardState, iterations: int
+                 ) -> BoardExtrinsicsResult:
+    """The :class:`BoardExtrinsicsResult` of an adjusted ``state``: each camera's pose, its
+    covariance (the boards marginalized, scaled by the residual variance) and RMS."""
+    prob, fixed, skipped = adjustment.problem, adjustment.fixed, adjustment.skipped
+    cam_ids, stamps = prob.cam_ids, prob.stamps
+    R_wc, c_w, R_wb, t_wb = state
     r, J = prob.residuals(R_wc, c_w, R_wb, t_wb, jacobian=True)
     assert J is not None
     dof = max(2 * len(r) - prob.num_params, 1)
@@ -348,7 +400,8 @@ def solve_board_extrinsics(cameras: Mapping[str, CameraModel],
         T[:3, :3], T[:3, 3] = R_wb[j], t_wb[j]
         boards[stamp] = fixed.get(stamp, T)
     result = BoardExtrinsicsResult(out, boards, tuple(sorted(set(fixed) & set(stamps))),
-                                   float(np.sqrt(err2.mean())), iterations, init_cams, skipped)
+                                   float(np.sqrt(err2.mean())), iterations,
+                                   adjustment.initial_cameras, skipped)
     log.debug("%s", result.report())
     return result
 
@@ -383,29 +436,24 @@ BOARD_DAMPING: Final = Damping(initial=1e-3, down=10.0, floor=1e-9, step_tol=1e-
                                rel_tol=1e-10)
 
 
-def _adjust(prob: _Problem, R_wc: np.ndarray, c_w: np.ndarray, R_wb: np.ndarray,
-            t_wb: np.ndarray, huber_px: float, max_iterations: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+def adjust_board(prob: BoardProblem, state: BoardState, huber_px: float = HUBER_PX,
+                 max_iterations: int = MAX_ITERATIONS) -> tuple[BoardState, int]:
     """Every camera's and free board's pose minimising the corners' Huber reprojection cost
-    (:func:`calibration.least_squares.levenberg_marquardt`, the boards eliminated by Schur
-    complement in each step)."""
+    (:meth:`BoardProblem.huber_cost`) from ``state``, by
+    :func:`calibration.least_squares.levenberg_marquardt` (the boards eliminated by Schur
+    complement in each step); the adjusted state and the iterations run."""
     C = len(prob.cam_ids)
     free_idx = np.flatnonzero(prob.free_board)
-    State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
-    def linearize(x: State) -> tuple[np.ndarray, np.ndarray]:
+    def linearize(x: BoardState) -> tuple[np.ndarray, np.ndarray]:
         r, J = prob.residuals(*x, jacobian=True)
         assert J is not None
         return prob.normal_equations(r, J, huber_weights(np.linalg.norm(r, axis=1), huber_px))
 
-    def cost(x: State) -> float:
-        r, _ = prob.residuals(*x, jacobian=False)
-        if not np.all(np.isfinite(r)):
-            return math.inf
-        e = np.linalg.norm(r, axis=1)
-        return float(np.where(e <= huber_px, 0.5 * e * e, huber_px * (e - 0.5 * huber_px)).sum())
+    def cost(x: BoardState) -> float:
+        return prob.huber_cost(*x, huber_px)
 
-    def step(x: State, A: np.ndarray, g: np.ndarray) -> tuple[State, np.ndarray]:
+    def step(x: BoardState, A: np.ndarray, g: np.ndarray) -> tuple[BoardState, np.ndarray]:
         R_wc, c_w, R_wb, t_wb = x
         delta = -_schur_solve(A, g, 6 * C)[0]
         d_cam = delta[:6 * C].reshape(C, 6)
@@ -418,9 +466,8 @@ def _adjust(prob: _Problem, R_wc: np.ndarray, c_w: np.ndarray, R_wb: np.ndarray,
             n_t_wb[j] = t_wb[j] + d_board[k, :3]
         return (n_R_wc, c_w + d_cam[:, :3], n_R_wb, n_t_wb), delta
 
-    (R_wc, c_w, R_wb, t_wb), iterations = levenberg_marquardt(
-        Problem(linearize, cost, step), (R_wc, c_w, R_wb, t_wb), max_iterations, BOARD_DAMPING)
-    return R_wc, c_w, R_wb, t_wb, iterations
+    return levenberg_marquardt(Problem(linearize, cost, step), state, max_iterations,
+                               BOARD_DAMPING)
 
 
 # ------------------------------------------------------------------------------ files

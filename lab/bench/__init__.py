@@ -11,7 +11,8 @@ over real Zenoh), ``backend_stages`` (CPU per frame-set by pipeline stage), ``fl
 simulated facility on loopback), ``ros_source`` (edge frames/s from a ROS 2 topic), ``render``
 (rendered images per second), ``edge`` (edge pipeline latency with onnxruntime), ``map``
 (semantic map fusion and ICP), ``bridge`` (the robot bridge's ROS output), ``camera_health``
-(bumped-camera detection) and ``camera_health_cnn`` (the same on the shipped CNN's keypoints);
+(bumped-camera detection), ``camera_health_cnn`` (the same on the shipped CNN's keypoints) and
+``calibration_solver`` (the board adjustment's numpy Levenberg-Marquardt against GTSAM);
 ``faults``: the fault harness. Part of the lab wing: may import every other package.
 """
 
@@ -51,6 +52,8 @@ BENCHES: Final[dict[str, Command]] = {
                       "robot bridge ROS output: encoding per flavour, loopback latency"),
     "camera-health": Command("lab.bench.camera_health", "main",
                              "bumped-camera detection: delay, false alarms per hour, CPU"),
+    "calibration-solver": Command("lab.bench.calibration_solver", "main",
+                                  "board adjustment: numpy LM vs a GTSAM factor graph"),
     "reliability": Command("lab.bench.faults", "main",
                            "the fault harness: hostile and faulty input against the running "
                            "services, one verdict per probe"),
