@@ -9,8 +9,9 @@ when the cost falls and relax the damping, else raise the damping and try again.
 
 Why not GTSAM or CasADi here: both problems are solved from vectorized numpy Jacobians of the
 one projection (:mod:`core.projection`, OpenCV's distortion with up to 8 coefficients, which
-GTSAM's ``Cal3DS2`` lacks) and a Schur complement over the boards; the measured comparison
-with a factor-graph solver is still to be done (docs/calibration.md).
+GTSAM's ``Cal3DS2`` lacks) and a Schur complement over the boards. The same board adjustment as
+a GTSAM factor graph (one Python ``CustomFactor`` per corner) reaches the same minimum in 37x
+the time (``smartedge bench calibration-solver``, docs/calibration.md).
 """
 
 from __future__ import annotations
