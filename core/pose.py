@@ -30,6 +30,12 @@ class PlanarPose:
         return se3_from_planar(self.x, self.y, self.theta)
 
     @classmethod
+    def of(cls, obj: object) -> PlanarPose:
+        """The planar pose of anything with ``x``, ``y``, ``theta`` (a
+        :class:`~protocol.messages.PoseEstimate`, a correction, a robot's localization)."""
+        return cls(float(obj.x), float(obj.y), float(obj.theta))  # type: ignore[attr-defined]
+
+    @classmethod
     def from_array(cls, xytheta: np.ndarray | Sequence[float]) -> PlanarPose:
         """From (3,) (x, y, theta)."""
         x, y, theta = (float(v) for v in np.asarray(xytheta, dtype=np.float64).reshape(3))

@@ -30,6 +30,7 @@ from collections.abc import Callable, Mapping
 from typing import Any, Final
 
 from core.geometry import MotionState, StaticDetector, invert_transform, wrap_angle
+from core.pose import PlanarPose
 from core.site import ClockPolicy, Site, Thresholds
 from protocol.errors import ProtocolError
 from protocol.messages import Odometry, PoseCorrection, PoseEstimate, ServiceStatus
@@ -526,8 +527,7 @@ class RobotBridge:
         if loc is not None and not loc.lost and loc.stamp_ns >= correction.stamp_ns:
             tol_m = max(0.02, 0.5 * correction.offset_m)
             tol_rad = max(math.radians(1.0), 0.5 * correction.offset_rad)
-            d_m = math.hypot(loc.x - correction.x, loc.y - correction.y)
-            d_rad = abs(wrap_angle(loc.theta - correction.theta))
+            d_m, d_rad = loc.pose.distance_to(PlanarPose.of(correction))
             if d_m <= tol_m and d_rad <= tol_rad:
                 self._count("corrections_confirmed")
                 self._confirming = None

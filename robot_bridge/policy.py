@@ -48,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 
 from core.geometry import MotionState, angle_diff
+from core.pose import PlanarPose
 from core.site import Thresholds
 from protocol.messages import NS_PER_S, PoseEstimate
 from robot_bridge.adapters.base import LocalizationPose
@@ -117,14 +118,6 @@ def inside_floor_area(x: float, y: float, area: Sequence[float]) -> bool:
         return True
     x_min, y_min, x_max, y_max = area
     return x_min <= x <= x_max and y_min <= y <= y_max
-
-
-def pose_offset(
-    x_a: float, y_a: float, theta_a: float, x_b: float, y_b: float, theta_b: float
-) -> tuple[float, float]:
-    """Distance (m) and absolute heading difference (rad, in [0, pi]) of two planar poses in
-    the same frame."""
-    return math.hypot(x_a - x_b, y_a - y_b), abs(angle_diff(theta_a, theta_b))
 
 
 # --------------------------------------------------------------------------------------------
@@ -253,8 +246,7 @@ class CorrectionPolicy:
         max_rad = math.radians(self.trust.init_agreement_deg)
         n = 0
         for other in reversed(recent):
-            dist, dyaw = pose_offset(estimate.x, estimate.y, estimate.theta,
-                                     other.x, other.y, other.theta)
+            dist, dyaw = PlanarPose.of(estimate).distance_to(PlanarPose.of(other))
             if other.stamp_ns < since_ns or dist > self.trust.init_agreement_m or dyaw > max_rad:
                 break
             n += 1
@@ -314,10 +306,7 @@ class CorrectionPolicy:
                 return CorrectionDecision(AWAITING_AGREEMENT, estimate=estimate)
             return CorrectionDecision(SEND, "initialization", estimate)
         assert localization is not None
-        offset_m, offset_rad = pose_offset(
-            estimate.x, estimate.y, estimate.theta, localization.x, localization.y,
-            localization.theta,
-        )
+        offset_m, offset_rad = PlanarPose.of(estimate).distance_to(localization.pose)
         if offset_m <= th.correction_min_offset_m and offset_rad <= math.radians(
             th.correction_min_offset_deg
         ):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from core.pose import PlanarPose
 from protocol.messages import PoseCorrection, PoseEstimate
 
 if TYPE_CHECKING:
@@ -68,6 +69,11 @@ class LocalizationPose:
     frame_id: str = "map"
 
     @property
+    def pose(self) -> PlanarPose:
+        """The pose as the one planar pose type."""
+        return PlanarPose(self.x, self.y, self.theta)
+
+    @property
     def is_finite(self) -> bool:
         return all(
             isinstance(v, (int, float)) and math.isfinite(v) for v in (self.x, self.y, self.theta)
@@ -90,6 +96,11 @@ class MapToOdom:
     theta: float
     parent_frame: str = "map"
     child_frame: str = "odom"
+
+    @property
+    def pose(self) -> PlanarPose:
+        """``odom`` in the parent frame as the one planar pose type."""
+        return PlanarPose(self.x, self.y, self.theta)
 
 
 class MapMessages(Protocol):

@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.geometry import MotionState, StaticDetector, wrap_angle
+from core.pose import PlanarPose
 from core.site import Thresholds
 from protocol.messages import PoseEstimate
 from robot_bridge.adapters.base import LocalizationPose
@@ -34,7 +35,6 @@ from robot_bridge.policy import (
     floor_area_around,
     floor_covariance,
     inside_floor_area,
-    pose_offset,
     position_std_m,
 )
 
@@ -61,7 +61,7 @@ def test_angle_and_offset_helpers() -> None:
     assert wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
     assert wrap_angle(-math.pi) == -math.pi
     assert wrap_angle(2 * math.pi + 0.1) == pytest.approx(0.1)
-    d, a = pose_offset(0, 0, math.pi - 0.01, 3, 4, -math.pi + 0.01)
+    d, a = PlanarPose(0, 0, math.pi - 0.01).distance_to(PlanarPose(3, 4, -math.pi + 0.01))
     assert d == pytest.approx(5.0) and a == pytest.approx(0.02)
     cov = np.array([[0.04, 0.0, 0], [0, 0.01, 0], [0, 0, 1.0]])
     assert position_std_m(cov) == pytest.approx(0.2)
