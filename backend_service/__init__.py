@@ -7,6 +7,8 @@ the single-camera rule, averaging while the robot is static and pose-graph fusio
 (package ``mapper``), a service of its own.
 
 - ``pipeline``: the per-robot pipeline, messages in, estimates out (transport-free);
+- ``pipeline_config``: the pipeline's parameters from the site file, what it needs of a pose graph;
+- ``robot_track``: the pipeline's state for one robot: prior sources, predictions, averager, graph;
 - ``sync``: the frame-set synchronizer: per-camera detections grouped into frame-sets;
 - ``frame_set``: frame-sets, the synchronized multi-view observations one pose solve uses;
 - ``association``: detections to robots: which robot of the site each detection is;

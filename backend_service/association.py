@@ -349,7 +349,7 @@ def _information(sigma_uv: np.ndarray, var_px2: float | np.ndarray) -> np.ndarra
 class ViewCache:
     """The predicted views of a set of predictions in every camera of a site, computed in one
     projection when the predictions change (they are the same objects for all the images of a
-    frame-set: :meth:`~backend_service.pipeline.RobotTrack.prediction` reuses them) and
+    frame-set: :meth:`~backend_service.robot_track.RobotTrack.prediction` reuses them) and
     reused for each camera's image. The last ``keep`` sets are kept per keypoint model: the
     images of neighbouring frame-sets may arrive interleaved."""
 

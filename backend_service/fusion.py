@@ -21,9 +21,8 @@ keyframes (``Pose2`` variables of the robot base in the map frame):
   (``deferred_marginalization``) to :meth:`PoseGraphFusion.maintain`, which its worker calls when
   no message waits, so it does not delay the poses of the frame-set being solved.
 
-The graph itself (keyframes, factor records, ISAM2, marginalization) is a
-:class:`~backend_service.keyframe_graph.KeyframeGraph`; this module decides what enters it and
-when, and makes the fused poses.
+The graph itself (keyframes, factor records, ISAM2, marginalization) is
+:mod:`backend_service.keyframe_graph`'s; this module decides what enters it and when.
 
 Initialization: the odometry frame has no anchor in the map frame until the first camera
 estimate (or :meth:`PoseGraphFusion.set_initial_pose`). Before that, odometry is only buffered
@@ -708,9 +707,7 @@ class PoseGraphFusion:
             return None
         return self._fused_at_latest()
 
-    # ----------------------------------------------------------------------------------------
-    # ISAM2
-    # ----------------------------------------------------------------------------------------
+    # ------------------------------------------------------------------ the graph, fused poses
 
     def _reset_graph(self) -> None:
         self._graph.reset()

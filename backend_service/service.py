@@ -22,7 +22,8 @@ from typing import Final
 from backend_service.areas import AreaMap, backend_areas
 from backend_service.fusion import FusionConfig, fusion_config_from_site
 from backend_service.ownership_tokens import BackendOwnership
-from backend_service.pipeline import BackendPipeline, PipelineConfig, PipelineOutput
+from backend_service.pipeline import BackendPipeline, PipelineOutput
+from backend_service.pipeline_config import PipelineConfig
 from core.runtime import Outgoing, ServiceNode, Subscription, service_main
 from core.session import add_session_arguments
 from core.site import Site, load_site

@@ -433,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _keypoint_choice(args: argparse.Namespace) -> int:
-    from backend_service.pipeline import PipelineConfig
+    from backend_service.pipeline_config import PipelineConfig
     from lab.evaluation.keypoint_choice import (
         format_budget,
         format_choice,

@@ -75,7 +75,7 @@ def sections() -> list[Section]:
     from backend_service.estimate import SolverConfig
     from backend_service.fusion import FusionConfig
     from backend_service.multi_frame import MultiFrameConfig
-    from backend_service.pipeline import PipelineConfig
+    from backend_service.pipeline_config import PipelineConfig
     from core.site import ClockPolicy, Thresholds
     from mapper.alignment import AlignmentConfig
     from mapper.mapping import MappingConfig

@@ -11,7 +11,7 @@ import yaml
 pytest.importorskip("gtsam")
 
 from backend_service.fusion import fusion_config_from_site
-from backend_service.pipeline import PipelineConfig
+from backend_service.pipeline_config import PipelineConfig
 from core.site import load_site
 from protocol.errors import SiteConfigError, SmartedgeError
 from smartedge.config_reference import field_names, render

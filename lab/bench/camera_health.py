@@ -27,7 +27,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.camera_health import CameraHealthConfig
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 from protocol.messages import Message, Odometry, PoseEstimate, RobotDetections
 from simulation.detections import CameraBump, DetectionSimulator
 from simulation.runner import SimulationRun, TimedMessage

@@ -30,7 +30,8 @@ from typing import Final
 import numpy as np
 
 from backend_service.camera_health import CameraHealthConfig
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 from core.site import Site
 from protocol.messages import Message, RobotDetections
 from simulation.detections import CameraBump

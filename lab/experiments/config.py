@@ -17,7 +17,8 @@ import logging
 
 import numpy as np
 
-from backend_service.pipeline import FusionFactory, PipelineConfig
+from backend_service.pipeline import FusionFactory
+from backend_service.pipeline_config import PipelineConfig
 from core.pose import PlanarPose
 from core.site import Site
 from protocol.messages import PoseEstimate

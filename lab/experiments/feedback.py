@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.pipeline import BackendPipeline, FusionFactory, PipelineConfig
+from backend_service.pipeline import BackendPipeline, FusionFactory
+from backend_service.pipeline_config import PipelineConfig
 from lab.evaluation.metrics import rms, translation_errors, travelled_distance
 from lab.experiments.comparison import (
     PAPER_EXP2_FUSED_CM,

@@ -49,7 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 from lab.evaluation.metrics import rms, translation_errors
 from lab.evaluation.scoring import wrong_robot_corrections
 from lab.experiments.config import LOCALIZATION_RATE_HZ, paper_pipeline_config, pose_array

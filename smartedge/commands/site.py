@@ -21,7 +21,7 @@ def check_sections(site: object) -> None:
     try:
         from backend_service.areas import parse_areas
         from backend_service.fusion import fusion_config_from_site
-        from backend_service.pipeline import PipelineConfig
+        from backend_service.pipeline_config import PipelineConfig
     except ImportError:  # an edge board has no backend packages
         return
     PipelineConfig.from_site(site)  # type: ignore[arg-type]

@@ -273,7 +273,8 @@ def test_router_names_the_detections_of_a_scaled_image_and_counts() -> None:
 
 pytest.importorskip("gtsam")
 
-from backend_service.pipeline import BackendPipeline, PipelineConfig  # noqa: E402
+from backend_service.pipeline import BackendPipeline  # noqa: E402
+from backend_service.pipeline_config import PipelineConfig  # noqa: E402
 
 #: the crossing: two HSRs on lanes 0.48 m apart (centres), driving past each other
 CROSSING = {"hsr_a": [(8.5, 5.76, 0.0), (11.5, 5.76, 0.0)],

@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 
 
 @pytest.fixture

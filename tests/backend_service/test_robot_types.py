@@ -223,7 +223,8 @@ def test_two_types_crossing_each_types_detections_go_to_its_robot(typed: bool) -
     few cm; untyped (identical keypoint counts) the same crossing leaves detections ambiguous,
     so the type is what decides."""
     pytest.importorskip("gtsam")
-    from backend_service.pipeline import BackendPipeline, PipelineConfig
+    from backend_service.pipeline import BackendPipeline
+    from backend_service.pipeline_config import PipelineConfig
 
     messages, truth, fleet = _typed_run(typed)
     config = PipelineConfig.from_site(SITE, association=AssociationConfig(min_sigma_xy_m=0.35))

@@ -11,7 +11,8 @@ import yaml
 
 pytest.importorskip("gtsam")
 
-from backend_service.pipeline import PipelineConfig, PipelineOutput
+from backend_service.pipeline import PipelineOutput
+from backend_service.pipeline_config import PipelineConfig
 from backend_service.service import BackendNode
 from core.runtime import Outgoing, ScriptedRunner
 from core.site import ClockPolicy, Site, load_site

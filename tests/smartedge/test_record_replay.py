@@ -17,7 +17,8 @@ import pytest
 pytest.importorskip("mcap")
 pytest.importorskip("gtsam")
 
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 from core.session import loopback_config
 from lab.launcher import ServiceProcess, start_service
 from protocol import keys

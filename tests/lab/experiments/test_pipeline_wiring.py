@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip("gtsam")
 
-from backend_service.pipeline import BackendPipeline, PipelineConfig
+from backend_service.pipeline import BackendPipeline
+from backend_service.pipeline_config import PipelineConfig
 from backend_service.service import BackendNode
 from core.runtime import ScriptedRunner
 from lab.experiments import LOCALIZATION_RATE_HZ, paper_pipeline_config
