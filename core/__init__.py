@@ -19,7 +19,9 @@ contract (that is :mod:`protocol`).
 - ``acl``: who may put what on the bus: the ``access_control`` block of the site's router;
 - ``plugins``: named plug-ins chosen by a command-line option (``--source``, ``--adapter``);
 - ``pose``: the one planar pose type, ``PlanarPose`` (x, y, theta in a frame);
-- ``trajectory``: the one trajectory type (stamped 3D poses) and its TUM files.
+- ``trajectory``: the one trajectory type (stamped 3D poses) and its TUM files;
+- ``coco``: the one format of labelled camera frames, COCO keypoints files: read (checked),
+  written atomically, matched to a robot model, split by time, merged.
 
 Imports only :mod:`protocol` of the project; of third parties numpy, PyYAML (``config_file``,
 ``site``) and zenoh (inside the functions of ``runtime`` and ``session`` that need it).

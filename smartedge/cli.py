@@ -44,6 +44,8 @@ COMMANDS: Final[dict[str, Command]] = {
     "site": Command("smartedge.commands.site", "main",
                     "check a site file or a camera calibration file"),
     "map": Command("smartedge.commands.map", "main", "semantic map files: info, export to PLY"),
+    "dataset": Command("smartedge.commands.dataset", "main",
+                       "labelled frames (COCO keypoints): info, show, split, merge, import"),
     "status": Command("smartedge.commands.status", "status_main",
                       "the live services: state, rates, latencies, problem counters"),
     "echo": Command("smartedge.commands.status", "echo_main",

@@ -18,7 +18,8 @@ The operator's commands, one module per command:
 - ``status``: ``smartedge status`` and ``smartedge echo``: what is live on the network;
 - ``record``: ``smartedge record`` / ``smartedge replay``: the traffic into MCAP and back;
 - ``export``: ``smartedge export``: data out of a recording (TUM trajectories);
-- ``map``: ``smartedge map``: the semantic map files the mapper keeps.
+- ``map``: ``smartedge map``: the semantic map files the mapper keeps;
+- ``dataset``: ``smartedge dataset``: labelled camera frames in COCO keypoints files.
 
 Part of the app wing (:mod:`smartedge`): never imports the lab.
 """
