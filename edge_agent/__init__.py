@@ -5,6 +5,7 @@ detections and semantic clouds and publishes them; a service (``smartedge edge-a
 - ``sources``: the frame sources and the registry the ``--source`` option is built from;
 - ``frames``: grabbers (devices, streams, files, folders) behind one interface and the reader
   thread that always hands over the newest frame;
+- ``capture``: the processed frames saved for a lab's own dataset (``--capture``), bounded disk;
 - ``capture_stamps``: the driver's capture stamps (V4L2, RealSense) in the sensor clock;
 - ``ros_source``: ``--source ros``: camera images from ROS 2 topics on the Zenoh bus;
 - ``ros_tf``: ``/tf`` and ``/tf_static`` from the bus into a :class:`core.tf_buffer.TfBuffer`;

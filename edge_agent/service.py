@@ -25,6 +25,10 @@ becomes a :class:`protocol.SemanticCloud` in the site's world frame
 (:mod:`edge_agent.semantic_cloud`), published reliably on
 ``smartedge/<site>/edge/<camera_id>/cloud``. The status counts ``clouds_published`` and
 ``clouds_skipped_*`` and reports ``segmentation`` / ``cloud`` latencies.
+
+Frame capture (``--capture DIR``, :mod:`edge_agent.capture`): the processed frames saved as
+``DIR/<camera_id>/<stamp_ns>.png`` at ``--capture-rate``, within ``--capture-budget-mb``, for a
+lab's own dataset (``smartedge dataset``).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ import edge_agent.ros_source  # noqa: F401 (registers --source ros)
 from core.runtime import Outgoing, ServiceNode, service_main
 from core.session import add_session_arguments
 from core.site import Site, load_site
+from edge_agent.capture import FrameCapture
 from edge_agent.semantic_cloud import SemanticCloudMaker
 from edge_agent.sources import FrameSource, add_source_arguments, get_source, source_names
 from protocol import keys
@@ -62,6 +67,7 @@ class EdgeAgentNode(ServiceNode):
     def __init__(
         self, site: Site, camera_id: str, source: FrameSource, tick_period_s: float = 0.01,
         preview_rate_hz: float = 0.0, clouds: SemanticCloudMaker | None = None,
+        capture: FrameCapture | None = None,
     ) -> None:
         super().__init__(site.name, camera_id)
         site.camera(camera_id)  # raises a clear KeyError for an unknown camera
@@ -78,6 +84,10 @@ class EdgeAgentNode(ServiceNode):
             bind(self.stats)
         self.clouds = clouds
         self._cloud_key = keys.edge_cloud_key(site.name, camera_id)
+        self.capture = capture
+        if capture is not None and capture.stats is None:
+            capture.stats = self.stats
+        self._last_offered_stamp: int | None = None
 
     def tick(self, now_ns: int) -> Iterable[Outgoing]:
         out = []
@@ -91,7 +101,18 @@ class EdgeAgentNode(ServiceNode):
             out.extend(self._preview(now_ns))
         if self.clouds is not None and out:
             out.extend(self._cloud())
+        if self.capture is not None and out:
+            self._capture()
         return out
+
+    def _capture(self) -> None:
+        """Offer the last processed frame to the capture (it keeps its own rate and budget)."""
+        assert self.capture is not None
+        frame = getattr(self.source, "last_frame", None)
+        if frame is None or frame.stamp_ns == self._last_offered_stamp:
+            return
+        self._last_offered_stamp = frame.stamp_ns
+        self.capture.offer(frame.image_rgb, frame.stamp_ns)
 
     def _cloud(self) -> list[Outgoing]:
         """The last processed RGB-D frame as a semantic cloud, when one is due. Runs the
@@ -127,9 +148,10 @@ class EdgeAgentNode(ServiceNode):
 
     def state(self) -> tuple[str, str]:
         health = getattr(self.source, "health", None)
-        if health is not None:
-            return health()  # type: ignore[no-any-return]
-        return "ok", f"source={self.source.label}"
+        state, detail = health() if health is not None else ("ok", f"source={self.source.label}")
+        if self.capture is not None:
+            detail = f"{detail}; {self.capture.status()}"
+        return state, detail
 
     def attach(self, session: Any) -> None:
         """A source that reads the bus itself (``--source ros``) subscribes on the service's
@@ -142,6 +164,8 @@ class EdgeAgentNode(ServiceNode):
         closer = getattr(self.source, "close", None)
         if closer is not None:
             closer()
+        if self.capture is not None:
+            self.capture.close()
         super().close()
 
 
@@ -163,6 +187,18 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{DEFAULT_CLOUD_RATE_HZ:g} where the source has depth; 0: none)")
     parser.add_argument("--segmentation-model", metavar="ONNX",
                         help="segmentation network for the clouds (default: the shipped one)")
+    cap = parser.add_argument_group("frame capture (a lab's own dataset, edge_agent/capture.py)")
+    cap.add_argument("--capture", metavar="DIR",
+                     help="save processed frames to DIR/<camera>/<stamp_ns>.<png|jpg>")
+    cap.add_argument("--capture-rate", type=float, default=1.0, metavar="HZ",
+                     help="frames per second of capture time at most (1)")
+    cap.add_argument("--capture-budget-mb", type=float, default=1000.0, metavar="MB",
+                     help="disk this camera's capture may use, files already there included; "
+                     "the capture stops there, detecting goes on (1000)")
+    cap.add_argument("--capture-format", choices=("png", "jpg"), default="png",
+                     help="png: lossless (default); jpg: --capture-jpeg-quality")
+    cap.add_argument("--capture-jpeg-quality", type=int, default=95, metavar="Q",
+                     help="JPEG quality 1-100 (95)")
     add_session_arguments(parser)
     add_source_arguments(parser, default="camera")
     return parser
@@ -217,13 +253,28 @@ def build_node(args: argparse.Namespace) -> EdgeAgentNode:
     if args.cloud_rate is not None and not args.cloud_rate >= 0:
         raise UsageError(f"--cloud-rate {args.cloud_rate}: must be >= 0")
     site = load_site(args.site) if args.site else None
-    source = get_source(args.source).build(args, site)
-    site = site or getattr(source, "site", None)
-    if site is None:
-        raise UsageError(f"--site is required with --source {args.source}")
-    clouds = build_cloud_maker(args, site, args.camera, source)
+    capture = None
+    if getattr(args, "capture", None):  # checked before a source starts its threads
+        try:
+            capture = FrameCapture(args.capture, args.camera, rate_hz=args.capture_rate,
+                                   budget_mb=args.capture_budget_mb, fmt=args.capture_format,
+                                   jpeg_quality=args.capture_jpeg_quality)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from exc
+        except OSError as exc:
+            raise UsageError(f"--capture {args.capture}: {exc}") from exc
+    try:
+        source = get_source(args.source).build(args, site)
+        site = site or getattr(source, "site", None)
+        if site is None:
+            raise UsageError(f"--site is required with --source {args.source}")
+        clouds = build_cloud_maker(args, site, args.camera, source)
+    except BaseException:
+        if capture is not None:
+            capture.close()
+        raise
     return EdgeAgentNode(site, args.camera, source, preview_rate_hz=args.preview_rate,
-                         clouds=clouds)
+                         clouds=clouds, capture=capture)
 
 
 def main(argv: Sequence[str]) -> int:
