@@ -66,7 +66,8 @@ class FrameCapture:
         self.stopped = ""  # why the capture stopped ("": capturing)
         self._next_stamp_ns: int | None = None
         self._last_size = 0
-        self._queue: queue.Queue[tuple[int, np.ndarray] | None] = queue.Queue(QUEUE_FRAMES)
+        self._queue: queue.Queue[tuple[int, np.ndarray | bytes, str] | None] = queue.Queue(
+            QUEUE_FRAMES)
         self._thread = threading.Thread(target=self._run, name=f"capture {camera_id}",
                                         daemon=True)
         self._thread.start()
@@ -85,8 +86,18 @@ class FrameCapture:
             log.warning("%s: capture stopped: %s (%d frames captured); detecting goes on",
                         self.camera_id, why, self.captured)
 
-    def offer(self, image_rgb: np.ndarray, stamp_ns: int) -> bool:
-        """Capture this frame if one is due by its stamp and the capture runs; True if queued."""
+    def offer(self, image_rgb: np.ndarray, stamp_ns: int, *, wait: bool = False) -> bool:
+        """Capture this frame if one is due by its stamp and the capture runs; True if queued.
+        ``wait``: wait for room in the writer's queue (offline extraction) instead of skipping."""
+        return self._offer(stamp_ns, image_rgb, self.fmt, wait)
+
+    def offer_encoded(self, data: bytes, ext: str, stamp_ns: int, *, wait: bool = False
+                      ) -> bool:
+        """As :meth:`offer` for an image already encoded (a ROS ``CompressedImage``'s JPEG, kept
+        byte for byte as ``<stamp_ns>.<ext>``)."""
+        return self._offer(stamp_ns, bytes(data), ext, wait)
+
+    def _offer(self, stamp_ns: int, item: np.ndarray | bytes, ext: str, wait: bool) -> bool:
         if self.stopped:
             return False
         if self._next_stamp_ns is not None and stamp_ns < self._next_stamp_ns:
@@ -96,7 +107,7 @@ class FrameCapture:
             self._stop(f"budget of {self.budget_bytes / 2**20:g} MB reached")
             return False
         try:
-            self._queue.put_nowait((int(stamp_ns), image_rgb))
+            self._queue.put((int(stamp_ns), item, ext), block=wait)
         except queue.Full:
             self._count("capture_skipped_busy")
             return False
@@ -119,12 +130,12 @@ class FrameCapture:
             raise ValueError(f"OpenCV could not encode a {bgr.shape} frame as {self.fmt}")
         return data.tobytes()
 
-    def _write(self, stamp_ns: int, image_rgb: np.ndarray) -> None:
-        data = self._encode(image_rgb)
+    def _write(self, stamp_ns: int, item: np.ndarray | bytes, ext: str) -> None:
+        data = item if isinstance(item, bytes) else self._encode(item)
         if self.used_bytes + len(data) > self.budget_bytes:
             self._stop(f"budget of {self.budget_bytes / 2**20:g} MB reached")
             return
-        path = self.folder / f"{stamp_ns}.{self.fmt}"
+        path = self.folder / f"{stamp_ns}.{ext}"
         tmp = path.with_name(f".{path.name}.tmp")
         try:
             with open(tmp, "wb") as f:

@@ -1,5 +1,9 @@
 """``smartedge dataset``: labelled camera frames in COCO keypoints files (:mod:`core.coco`).
 
+- ``capture --recording REC.mcap --out DIR [--camera TOPIC=ID ...] [--rate HZ]``: the frames of
+  the ``sensor_msgs/Image`` and ``CompressedImage`` topics of a ROS 2 MCAP (a lab's bag of its
+  cameras) as ``DIR/<camera_id>/<stamp_ns>.<png|jpg>``, named by their header stamps, the
+  layout ``smartedge edge-agent --capture`` writes; JPEG and PNG messages kept byte for byte;
 - ``info DATASET.json``: images, robots, per camera and robot model, where the labels come from,
   keypoints labelled and visible, the time span;
 - ``show DATASET.json --out SHEET.png [--images DIR] [--count N]``: a contact sheet, the labels
@@ -200,10 +204,112 @@ def _show(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ from a bag
+
+
+def _topic_camera(topic: str) -> str:
+    """A camera id for an image topic nobody named: its tokens joined (``/cam1/image_raw`` ->
+    ``cam1_image_raw``)."""
+    return "_".join(t for t in topic.replace("-", "_").split("/") if t) or "camera"
+
+
+def _capture(args: argparse.Namespace) -> int:
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from edge_agent.capture import FrameCapture
+    from edge_agent.ros_source import (
+        COMPRESSED_IMAGE_TYPE,
+        IMAGE_TYPE,
+        compressed_to_rgb,
+        decode_compressed_image,
+        decode_image,
+        image_to_rgb,
+    )
+
+    named = {}
+    for pair in args.camera:
+        topic, sep, cam = pair.partition("=")
+        if not sep or not topic or not cam:
+            raise DatasetError(f"--camera {pair!r}: give TOPIC=CAMERA_ID")
+        named[topic] = cam
+    path = Path(args.recording)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such recording")
+    captures: dict[str, FrameCapture] = {}
+    bad: dict[str, int] = {}
+    read = 0
+    try:
+        with path.open("rb") as f:
+            for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+                if schema is None or schema.name not in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE) or (
+                        channel.message_encoding != "cdr"):
+                    continue
+                topic = channel.topic
+                if named and topic not in named:
+                    continue
+                read += 1
+                cam = named.get(topic) or _topic_camera(topic)
+                if cam not in captures:
+                    captures[cam] = FrameCapture(args.out, cam, rate_hz=args.rate,
+                                                 budget_mb=args.budget_mb, fmt=args.format)
+                capture = captures[cam]
+                try:
+                    if schema.name == IMAGE_TYPE:
+                        img = decode_image(message.data, f"{topic} message {message.sequence}")
+                        capture.offer(image_to_rgb(img), img.stamp_ns, wait=True)
+                    else:
+                        comp = decode_compressed_image(message.data,
+                                                       f"{topic} message {message.sequence}")
+                        rgb = compressed_to_rgb(comp)  # checks that it decodes
+                        fmt = comp.format.lower()
+                        ext = "png" if "png" in fmt else "jpg"
+                        if args.keep_encoded:
+                            capture.offer_encoded(bytes(comp.data), ext, comp.stamp_ns,
+                                                  wait=True)
+                        else:
+                            capture.offer(rgb, comp.stamp_ns, wait=True)
+                except SmartedgeError as exc:  # RosImageError: truncated, bad encoding, ...
+                    bad[topic] = bad.get(topic, 0) + 1
+                    print(f"skipped {topic} message {message.sequence}: {exc}", file=sys.stderr)
+                    continue
+    except (McapError, ValueError, EOFError, OSError, KeyError) as exc:
+        raise DatasetError(f"{path}: not a complete MCAP recording ({type(exc).__name__}: "
+                           f"{exc}); {read} image messages read before the damage") from None
+    finally:
+        for capture in captures.values():
+            capture.close()
+    if not captures:
+        raise DatasetError(f"{path}: no sensor_msgs/Image or CompressedImage topic"
+                           + (f" among {sorted(named)}" if named else ""))
+    for _cam, capture in sorted(captures.items()):
+        print(f"{capture.folder}: {capture.captured} frames"
+              + (f"; {capture.status()}" if capture.stopped else ""))
+    if bad:
+        print(f"{sum(bad.values())} messages skipped (named above): {bad}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="smartedge dataset",
                                      description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="verb", required=True)
+    p = sub.add_parser("capture", help="frames of a ROS 2 MCAP's image topics, as the edge "
+                                       "agent's --capture writes them")
+    p.add_argument("--recording", required=True, help="MCAP file (a ROS 2 bag's storage)")
+    p.add_argument("--out", required=True, help="DIR: frames go to DIR/<camera_id>/")
+    p.add_argument("--camera", action="append", default=[], metavar="TOPIC=ID",
+                   help="an image topic and its camera id in the site file (default: every "
+                   "image topic, named after the topic)")
+    p.add_argument("--rate", type=float, default=1000.0, metavar="HZ",
+                   help="frames per second of capture time per camera at most (all)")
+    p.add_argument("--budget-mb", type=float, default=10000.0, help="disk per camera (10000)")
+    p.add_argument("--format", choices=("png", "jpg"), default="png",
+                   help="raw images saved as (png: lossless)")
+    p.add_argument("--reencode", dest="keep_encoded", action="store_false",
+                   help="decode CompressedImage messages and save them in --format (default: "
+                   "their JPEG or PNG bytes as they are)")
+    p.set_defaults(run=_capture)
     p = sub.add_parser("info", help="counts of a dataset")
     p.add_argument("dataset")
     p.set_defaults(run=_info)
