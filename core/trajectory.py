@@ -1,5 +1,6 @@
 """The one trajectory type and its files: stamped 3D poses (:class:`Trajectory`), made from
-planar poses (x, y, theta) or read from and written to TUM files (one pose per line,
+planar poses (x, y, theta) or read from and written to TUM files (planar poses interpolated at
+any stamps with a gap limit, :meth:`Trajectory.planar_at`) (one pose per line,
 ``stamp_s tx ty tz qx qy qz qw``; blank lines and ``#`` comments ignored; errors name the file
 and the line).
 
@@ -64,6 +65,43 @@ class Trajectory:
         R = self.rotations()
         yaw = wrap_angle_array(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
         return np.column_stack([self.positions_m[:, :2], yaw])
+
+    def planar_at(self, stamps_s: np.ndarray | Sequence[float], max_gap_s: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Planar poses interpolated at ``stamps_s`` (M,): ((M, 3) x, y, yaw, (M,) bool ``ok``).
+        A stamp is interpolated linearly (yaw along the shorter way) between the poses just
+        before and just after it, or taken as is where a pose has that stamp. ``ok`` is False
+        (poses NaN) outside the trajectory, or where those two poses are more than
+        ``max_gap_s`` apart (the pose between them is not known well enough). The stamps must
+        be increasing (a :class:`TrajectoryError` says where not)."""
+        t = np.asarray(self.stamps_s, dtype=np.float64)
+        q = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+        if len(t) > 1 and not np.all(np.diff(t) > 0):
+            i = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise TrajectoryError(f"stamps not increasing at pose {i + 1} ({t[i + 1]!r} after "
+                                  f"{t[i]!r})")
+        out = np.full((len(q), 3), np.nan)
+        ok = np.zeros(len(q), bool)
+        if len(t) == 0:
+            return out, ok
+        p = self.planar()
+        hi = np.searchsorted(t, q, side="left")  # first pose at or after each stamp
+        exact = (hi < len(t)) & (t[np.minimum(hi, len(t) - 1)] == q)
+        out[exact] = p[hi[exact]]
+        ok[exact] = True
+        between = ~exact & (hi > 0) & (hi < len(t))
+        a, b = hi[between] - 1, hi[between]
+        gap = t[b] - t[a]
+        good = gap <= max_gap_s
+        a, b = a[good], b[good]
+        idx = np.flatnonzero(between)[good]
+        alpha = ((q[idx] - t[a]) / (t[b] - t[a]))[:, None]
+        d = p[b] - p[a]
+        d[:, 2] = wrap_angle_array(d[:, 2])
+        out[idx] = p[a] + alpha * d
+        out[idx, 2] = wrap_angle_array(out[idx, 2])
+        ok[idx] = True
+        return out, ok
 
     def subset(self, idx: np.ndarray | Sequence[int]) -> Trajectory:
         i = np.asarray(idx, dtype=np.int64)
