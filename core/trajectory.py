@@ -1,8 +1,8 @@
 """The one trajectory type and its files: stamped 3D poses (:class:`Trajectory`), made from
-planar poses (x, y, theta) or read from and written to TUM files (planar poses interpolated at
-any stamps with a gap limit, :meth:`Trajectory.planar_at`) (one pose per line,
+planar poses (x, y, theta) or read from and written to TUM files (one pose per line,
 ``stamp_s tx ty tz qx qy qz qw``; blank lines and ``#`` comments ignored; errors name the file
-and the line).
+and the line); planar poses interpolated at any stamps with a gap limit
+(:meth:`Trajectory.planar_at`).
 
 Pure numpy; the metrics over trajectories (alignment, APE) live in :mod:`lab.evaluation.metrics`.
 """
