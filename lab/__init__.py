@@ -16,6 +16,7 @@
 - ``rendered_detections``: the closed loop in simulated time: rendered images through the
   edge's ONNX pipeline as a detection source;
 - ``training_views``: the simulation's renderer as the training data's view source;
+- ``coco_renders``: rendered samples as a COCO keypoints dataset with the renderer's exact labels;
 - ``commands``: the lab's commands, which reach the CLI through the ``smartedge.commands``
   entry point (pyproject.toml).
 

@@ -7,6 +7,7 @@
     smartedge evaluate paper --out DIR [--runs N] [--seed S] [--trajectories 1,2,3]
                              [--experiments 1,2,3,4] [--feedback-seeds K] [--robustness-runs R]
                              [--detections noise|cnn] [--camera-rate HZ] [--model DIR] [--jobs N]
+    smartedge evaluate keypoints --dataset LABELS.json [--images DIR] [--count N]
     smartedge evaluate keypoints [--model DIR] [--seed S] [--count N] [--calibrate] [--flip]
                                  [--detector-flip] [--breakdown] [--held-out-variations]
                                  [--far-band] [--record]
@@ -167,6 +168,8 @@ def _keypoints(args: argparse.Namespace) -> int:
     from edge_agent.model_cards import ModelError
     from lab.evaluation.keypoints import evaluate_keypoints
 
+    if args.dataset:
+        return _keypoints_on_dataset(args)
     if args.count < 1:
         print("smartedge evaluate keypoints: --count must be >= 1", file=sys.stderr)
         return 2
@@ -219,6 +222,51 @@ def _keypoints(args: argparse.Namespace) -> int:
     print(f"({result.views} views in {result.wall_s:.0f} s)")
     if args.record:
         return _record(args, result.figures, result.views)
+    return 0
+
+
+def _keypoints_on_dataset(args: argparse.Namespace) -> int:
+    """``--dataset``: the figures on a lab's labelled frames, beside the same on ``--count``
+    rendered views of the site's cameras (0: none)."""
+    from pathlib import Path
+
+    from core.coco import DatasetError
+    from edge_agent.model_cards import ModelError
+    from lab.evaluation.keypoints import evaluate_keypoints, evaluate_on_dataset, format_figure
+
+    if args.count < 0 or args.record or args.calibrate or args.held_out_variations:
+        print("smartedge evaluate keypoints: --dataset takes --count >= 0 (rendered views "
+              "beside it) and none of --record, --calibrate, --held-out-variations",
+              file=sys.stderr)
+        return 2
+    try:
+        figures, skipped, frames = evaluate_on_dataset(
+            Path(args.dataset), args.model, image_root=Path(args.images) if args.images else None,
+            category=args.category, threads=args.threads, flip=args.flip,
+            detector_flip=args.detector_flip)
+        rendered: dict[str, float] = {}
+        if args.count:
+            print(f"rendering {args.count} held-out views of the site's cameras (seed "
+                  f"{args.seed}) for comparison", flush=True)
+            rendered = evaluate_keypoints(args.model, seed=args.seed, count=args.count,
+                                          modes=("site",), scenario_path=args.scenario,
+                                          threads=args.threads, flip=args.flip,
+                                          detector_flip=args.detector_flip).figures["site"]
+    except (DatasetError, ModelError, OSError, ValueError) as exc:
+        print(f"smartedge evaluate keypoints: {exc}", file=sys.stderr)
+        return 1
+    for why, names in skipped.items():
+        for name in names:
+            print(f"skipped ({why}): {name}", file=sys.stderr)
+    print(f"{'figure':58s} {'dataset':>10s}" + (f" {'rendered':>10s}" if rendered else ""))
+    for name in dict.fromkeys([*figures, *rendered]):
+        row = f"{name:58s} {format_figure(figures.get(name, float('nan'))):>10s}"
+        if rendered:
+            row += f" {format_figure(rendered.get(name, float('nan'))):>10s}"
+        print(row)
+    left_out = sum(len(v) for v in skipped.values())
+    print(f"({frames} dataset frames{f', {left_out} left out (named above)' if left_out else ''}"
+          f"{f'; {args.count} rendered views' if rendered else ''})")
     return 0
 
 
@@ -346,6 +394,13 @@ def build_parser() -> argparse.ArgumentParser:
     p_kp = sub.add_parser("keypoints", help="detector AP and keypoint errors of the ONNX "
                           "models on fresh held-out renders")
     p_kp.add_argument("--model", help="model folder (default: the shipped models)")
+    p_kp.add_argument("--dataset", metavar="DATASET.json",
+                      help="instead: a lab's labelled frames (COCO keypoints, smartedge "
+                      "dataset), beside --count rendered views of the site's cameras (0: none)")
+    p_kp.add_argument("--images", metavar="DIR", help="with --dataset: the folder its file "
+                      "names are relative to (default: the dataset file's)")
+    p_kp.add_argument("--category", help="with --dataset: the robot model to score (default: "
+                      "the file's only one)")
     p_kp.add_argument("--seed", type=int, default=4242,
                       help="held-out seed (default 4242; the shipped models trained on 1-2)")
     p_kp.add_argument("--count", type=int, default=300,

@@ -43,13 +43,13 @@ class KeypointEvaluation:
         out = []
         for set_name, figs in self.figures.items():
             for name, value in figs.items():
-                out.append(f"{set_name} {name} {_fmt(value)}")
+                out.append(f"{set_name} {name} {format_figure(value)}")
         for set_name, b in self.breakdown.items():
             out += [f"{set_name} {line}" for line in b.lines()]
         return out
 
 
-def _fmt(value: float) -> str:
+def format_figure(value: float) -> str:
     if not np.isfinite(value):
         return "n/a"
     if float(value).is_integer() and abs(value) >= 1:
@@ -88,7 +88,7 @@ def evaluate_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
         hidden.append(not measurable)
         if robot.bbox_xyxy is None:
             continue
-        if measurable:
+        if measurable and s.camera is not None:  # a dataset's frame has no simulated pose
             dist = robot_distance_m(s.camera, s.robot_pose)
             hit = any(o.score >= OPERATING_SCORE and box_iou(o.bbox_xyxy, gt) >= 0.5
                       for o in found)
@@ -152,6 +152,87 @@ class CameraFarBands:
 
 def _far_bands(pipeline: RobotKeypointPipeline, scenario: Any) -> CameraFarBands:
     return CameraFarBands(pipeline, scenario.site.robot_model(scenario.robot_id).height_m)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LabelledRobot:
+    """A robot's labels in a dataset frame, as :func:`evaluate_set` reads them: ``bbox_xyxy``
+    (``None``: no robot), ``keypoints_px`` (K, 2), ``visible`` (K,) labelled visible,
+    ``in_image`` (K,) labelled at all."""
+
+    bbox_xyxy: np.ndarray | None
+    keypoints_px: np.ndarray
+    visible: np.ndarray
+    in_image: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LabelledFrame:
+    """A dataset frame for :func:`evaluate_set` (no simulated camera or pose: no distance
+    bands)."""
+
+    image_rgb: np.ndarray
+    robots: list[LabelledRobot]
+    camera: Any = None
+    robot_pose: Any = None
+
+
+def dataset_frames(dataset: Any, image_root: Path, category: str
+                   ) -> tuple[list[LabelledFrame], dict[str, list[str]]]:
+    """The frames of a COCO keypoints dataset (:class:`core.coco.CocoDataset`) with their labels
+    of robot model ``category``, and what was left out: ``unreadable`` images (named) and
+    images with ``several robots`` (the detection AP here scores one robot per frame)."""
+    import cv2
+
+    cat = dataset.category(category)
+    skipped: dict[str, list[str]] = {"unreadable": [], "several robots": []}
+    frames = []
+    k = len(cat.keypoints)
+    for im in dataset.images:
+        anns = [a for a in dataset.annotations_of(im.id) if a.category_id == cat.id]
+        if len(anns) > 1:
+            skipped["several robots"].append(im.file_name)
+            continue
+        bgr = cv2.imread(str(image_root / im.file_name), cv2.IMREAD_COLOR)
+        if bgr is None:
+            skipped["unreadable"].append(str(image_root / im.file_name))
+            continue
+        if anns:
+            a = anns[0]
+            x, y, w, h = a.bbox
+            robot = LabelledRobot(np.array([x, y, x + w, y + h]), a.keypoints[:, :2].copy(),
+                                  a.keypoints[:, 2] == 2, a.keypoints[:, 2] > 0)
+        else:
+            robot = LabelledRobot(None, np.zeros((k, 2)), np.zeros(k, bool), np.zeros(k, bool))
+        frames.append(LabelledFrame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [robot]))
+    return frames, skipped
+
+
+def evaluate_on_dataset(dataset_path: Path, model_dir: Path | None = None, *,
+                        image_root: Path | None = None, category: str | None = None,
+                        threads: int = 2, flip: bool | None = None,
+                        detector_flip: bool | None = None
+                        ) -> tuple[dict[str, float], dict[str, list[str]], int]:
+    """:func:`evaluate_set`'s figures on a COCO keypoints dataset (a lab's own labelled frames,
+    ``smartedge dataset``): (figures, what was left out, frames evaluated). ``image_root``: the
+    folder the file names are relative to (default: the dataset file's); ``category``: the
+    robot model (default: the file's only one). The keypoint network must know the category's
+    keypoint names (its card is matched by name)."""
+    from core.coco import read_dataset
+
+    dataset = read_dataset(dataset_path)
+    if category is None:
+        if len(dataset.categories) != 1:
+            raise ValueError(f"{dataset_path}: {len(dataset.categories)} categories "
+                             f"{[c.name for c in dataset.categories]}: name one")
+        category = dataset.categories[0].name
+    names = dataset.category(category).keypoints
+    pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads, keypoint_names=names,
+                                                 flip=flip, detector_flip=detector_flip)
+    frames, skipped = dataset_frames(dataset, image_root or Path(dataset_path).parent, category)
+    if not frames:
+        raise ValueError(f"{dataset_path}: no frame could be evaluated ({skipped})")
+    return evaluate_set(pipeline, frames), skipped, len(frames)
 
 
 def _deployed_pipeline(scenario: Any, model_dir: Path | None, threads: int,
@@ -403,9 +484,11 @@ class ErrorBreakdown:
     def lines(self) -> list[str]:
         out = []
         for name, figs in self.per_keypoint.items():
-            out.append(f"keypoint {name}: " + ", ".join(f"{k} {_fmt(v)}" for k, v in figs.items()))
+            out.append(f"keypoint {name}: "
+                       + ", ".join(f"{k} {format_figure(v)}" for k, v in figs.items()))
         for name, figs in self.per_distance.items():
-            out.append(f"distance {name}: " + ", ".join(f"{k} {_fmt(v)}" for k, v in figs.items()))
+            out.append(f"distance {name}: "
+                       + ", ".join(f"{k} {format_figure(v)}" for k, v in figs.items()))
         return out
 
 
@@ -497,7 +580,7 @@ class HeldOutEvaluation:
     wall_s: float
 
     def lines(self) -> list[str]:
-        return [f"held-out {name} {_fmt(value)}" for name, value in self.figures.items()]
+        return [f"held-out {name} {format_figure(value)}" for name, value in self.figures.items()]
 
 
 def evaluate_held_out_set(pipeline: RobotKeypointPipeline, samples: Sequence[Any],
