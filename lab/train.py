@@ -85,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-amp", action="store_true", help="train in float32 on a GPU too "
                    "(default: bf16 autocast where the GPU supports it; never on a CPU)")
     p.add_argument("--workers", type=int, default=2, help="render processes (default 2)")
+    p.add_argument("--real", metavar="DATASET.json", help="a lab's labelled frames (COCO "
+                   "keypoints, smartedge dataset) trained on beside the renders (detector, "
+                   "keypoints)")
+    p.add_argument("--real-val", metavar="DATASET.json", help="held-out labelled frames, "
+                   "validated on as the set 'real' (split by time: smartedge dataset split)")
+    p.add_argument("--real-weight", type=int, default=1, metavar="N",
+                   help="each labelled frame counts N times among the rendered ones (1)")
     p.add_argument("--init-from", metavar="CKPT|ONNX|shipped", help="fine-tune: start from "
                    "the weights of an earlier run's <kind>.ckpt (same kind and image sizes) or "
                    "of an exported <kind>.onnx with its card (`shipped`: the model smartedge "
@@ -191,7 +198,10 @@ def main(argv: Sequence[str]) -> int:
                           minutes=args.minutes, batch=batch, lr=args.lr, threads=args.threads,
                           workers=args.workers, init_from=init_from,
                           device=args.device, amp=False if args.no_amp else None,
-                          leg_steps=args.leg_steps, mirror=args.mirror)
+                          leg_steps=args.leg_steps, mirror=args.mirror,
+                          real_train=Path(args.real) if args.real else None,
+                          real_val=Path(args.real_val) if args.real_val else None,
+                          real_weight=args.real_weight)
         mesh_name = (Path(args.robot_mesh).name if args.robot_mesh else
                      "built-in box base" if model.name == "box_base" else
                      "built-in HSR-like mesh")  # simulation.robot_mesh.builtin_robot_mesh

@@ -181,7 +181,8 @@ class ViewSource(Protocol):
 
 
 #: modes whose renders are clean (no image-space augmentation yet)
-CLEAN_MODES = ("site", "robot")
+#: views augmented like the site's (the renders without randomization, a lab's real frames)
+CLEAN_MODES = ("site", "robot", "real")
 
 
 def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
@@ -232,6 +233,93 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
         crop_view=np.zeros(m, np.int64),
         seg_labels=seg,
     )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _RealRobot:
+    bbox_xyxy: np.ndarray | None
+    keypoints_px: np.ndarray
+    visible: np.ndarray
+    in_image: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _RealView:
+    image_rgb: np.ndarray
+    robots: list[_RealRobot]
+    mode: str = "real"
+
+
+@dataclasses.dataclass(frozen=True)
+class RealData:
+    """What a set of a lab's labelled frames was (for the model card): the dataset file, its
+    content hash, frames used, per camera, where the labels came from, frames left out."""
+
+    path: str
+    sha256: str
+    frames: int
+    cameras: dict[str, int]
+    label_sources: dict[str, int]
+    left_out: dict[str, int]
+
+
+def real_set(dataset_path: Path, geometry: Geometry, keypoint_names: Sequence[str],
+             rng: np.random.Generator,
+             augment: Callable[[np.ndarray, np.random.Generator], np.ndarray] | None = None,
+             image_root: Path | None = None) -> tuple[RenderedSet, RealData]:
+    """A lab's labelled frames (a COCO keypoints file, :mod:`core.coco`) as training rows, the
+    same pre-processing as the renders (:func:`view_records`, ``augment`` as for the clean
+    rendered views). Its category must name the robot model's keypoints in the model's order
+    (``smartedge dataset import`` makes it so); a frame with several robots or an unreadable
+    image is left out (counted, logged with its name)."""
+    import collections
+    import hashlib
+
+    import cv2
+
+    from core.coco import read_dataset
+
+    dataset = read_dataset(dataset_path)
+    root = image_root or Path(dataset_path).parent
+    names = tuple(keypoint_names)
+    cats = [c for c in dataset.categories if c.keypoints == names]
+    if len(cats) != 1:
+        raise UsageError(f"{dataset_path}: no category with the robot model's keypoints "
+                         f"{list(names)} in that order (categories: "
+                         f"{[(c.name, list(c.keypoints)) for c in dataset.categories]}); "
+                         f"smartedge dataset import matches a file to the model")
+    cat = cats[0]
+    parts, cameras, sources = [], collections.Counter(), collections.Counter()
+    left_out = collections.Counter()
+    k = len(names)
+    for im in dataset.images:
+        anns = [a for a in dataset.annotations_of(im.id) if a.category_id == cat.id]
+        if len(anns) > 1:
+            left_out["several robots"] += 1
+            log.warning("%s: %s has %d robots; left out", dataset_path, im.file_name, len(anns))
+            continue
+        bgr = cv2.imread(str(root / im.file_name), cv2.IMREAD_COLOR)
+        if bgr is None:
+            left_out["unreadable"] += 1
+            log.warning("%s: %s cannot be read; left out", dataset_path, root / im.file_name)
+            continue
+        if anns:
+            a = anns[0]
+            x, y, w, h = a.bbox
+            robot = _RealRobot(np.array([x, y, x + w, y + h]), a.keypoints[:, :2].copy(),
+                               a.keypoints[:, 2] == 2, a.keypoints[:, 2] > 0)
+            sources[a.label_source] += 1
+        else:
+            robot = _RealRobot(None, np.zeros((k, 2)), np.zeros(k, bool), np.zeros(k, bool))
+        view = _RealView(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [robot])
+        parts.append(view_records(view, geometry, rng, augment, num_keypoints=k))
+        cameras[im.camera_id or "?"] += 1
+    if not parts:
+        raise UsageError(f"{dataset_path}: no frame could be used ({dict(left_out)})")
+    digest = hashlib.sha256(Path(dataset_path).read_bytes()).hexdigest()
+    info = RealData(str(dataset_path), digest, len(parts), dict(cameras), dict(sources),
+                    dict(left_out))
+    return RenderedSet.concatenate(parts), info
 
 
 _WORKER: dict[str, Any] = {}

@@ -44,7 +44,7 @@ from edge_agent.model_cards import (
 from edge_agent.networks import decode_detections
 from protocol.errors import SmartedgeError
 from protocol.semantic_classes import NUM_SEMANTIC_CLASSES, SEMANTIC_CLASSES
-from training.data import Geometry, RenderedSet, SetSpec, ViewSource, render_set
+from training.data import Geometry, RenderedSet, SetSpec, ViewSource, real_set, render_set
 from training.nets import PEAK_TIE, KeypointNet, RobotDetector, SemanticSegNet
 from training.onnx_init import OnnxInitError, init_from_onnx
 from training.targets import (
@@ -101,6 +101,11 @@ class TrainConfig:
     #: stop this leg after so many steps (checkpointed; the same command resumes the schedule,
     #: here or on another machine); None: run to the end
     leg_steps: int | None = None
+    #: a lab's labelled frames (COCO keypoints) trained on beside the renders, each row
+    #: ``real_weight`` times; ``real_val``: held-out labelled frames validated on (``real``)
+    real_train: Path | None = None
+    real_val: Path | None = None
+    real_weight: int = 1
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -111,6 +116,11 @@ class TrainConfig:
             raise TrainingError(f"held-out sets reuse training seed(s) {sorted(clash)}")
         if self.device != "auto" and self.device.split(":")[0] not in ("cpu", "cuda"):
             raise TrainingError(f"device {self.device!r}: expected auto, cpu or cuda[:N]")
+        if self.real_weight < 1:
+            raise TrainingError(f"real weight {self.real_weight}: must be >= 1")
+        if self.kind == "segmentation" and (self.real_train or self.real_val):
+            raise TrainingError("labelled frames (--real) train the detector and the keypoint "
+                                "network; the segmentation network needs class images")
         if self.steps < 1 or self.batch < 1:
             raise TrainingError(f"steps {self.steps}, batch {self.batch}: both must be >= 1")
         if self.kind == "segmentation":
@@ -661,6 +671,18 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
     val = {s.name: render_set(views, [s], eval_geom, cache, workers=cfg.workers,
                               augment_clean=False, progress=say)
            for s in cfg.val_sets}
+    real: dict[str, Any] = {}
+    if cfg.real_train is not None:
+        rows, info = real_set(cfg.real_train, cfg.geometry, model_def.keypoint_names,
+                              np.random.default_rng(cfg.seed), views.augment)
+        data = RenderedSet.concatenate([data, *[rows] * cfg.real_weight])
+        real["train"] = {**dataclasses.asdict(info), "weight": cfg.real_weight}
+        say(f"{cfg.kind}: {info.frames} labelled frames of {cfg.real_train} x "
+            f"{cfg.real_weight} beside the renders (left out: {info.left_out or 'none'})")
+    if cfg.real_val is not None:
+        val["real"], info = real_set(cfg.real_val, eval_geom, model_def.keypoint_names,
+                                     np.random.default_rng(cfg.seed + 1))
+        real["val"] = dataclasses.asdict(info)
     render_s = time.perf_counter() - t_start
     torch.manual_seed(cfg.seed)  # the initial weights too
     model = _build(cfg, model_def.num_keypoints)
@@ -690,7 +712,7 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
     first_render_s = state.get("render_wall_s")
     total_s = (first_render_s or 0.0) + state["wall_s"] + (time.perf_counter() - t_eval)
     card = _card(cfg, model_def, robot_mesh_name, state, metrics, diffs, n_params,
-                 first_render_s, total_s, onnx_path)
+                 first_render_s, total_s, onnx_path, real)
     card.write(out_dir)
     say(f"wrote {onnx_path} ({onnx_path.stat().st_size / 1e6:.2f} MB) and its model card")
     return onnx_path
@@ -698,7 +720,8 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
 
 def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any],
           metrics: dict[str, dict[str, float]], diffs: dict[str, float], n_params: int,
-          render_s: float | None, total_s: float, onnx_path: Path
+          render_s: float | None, total_s: float, onnx_path: Path,
+          real: dict[str, Any] | None = None
           ) -> DetectorCard | KeypointCard | SegmentationCard:
     g = cfg.geometry
     training = {
@@ -719,6 +742,10 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
         "parameters": n_params, "robot_mesh": mesh_name,
         "history": list(state.get("history", [])),
     }
+    if real:
+        # a lab's labelled frames beside the renders: file, content hash, frames, cameras,
+        # where the labels came from
+        training["real_data"] = real
     if cfg.kind == "segmentation":
         training["class_weights"] = [round(w, 3) for w in state.get("class_weights", [])]
         training.pop("sigma_px")
