@@ -295,13 +295,15 @@ def _resident_images(cfg: TrainConfig, data: RenderedSet, device: torch.device,
 
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
                  say: Callable[[str], None], render_s: float | None = None,
-                 mirror_perm: np.ndarray | None = None, robot_model: Any = None
-                 ) -> dict[str, Any]:
+                 mirror_perm: np.ndarray | None = None, robot_model: Any = None,
+                 real_data: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists, on any device (the
     checkpoint holds CPU tensors and the random generators' states). Returns the run's record
     (steps, training wall time, the first run's render time, losses, ``phases``: where and how
     long each leg trained). ``robot_model`` (keypoints, ``--init-from`` an ONNX file): the
-    keypoints' names and positions, to match the file's keypoints by name."""
+    keypoints' names and positions, to match the file's keypoints by name. ``real_data``: the
+    labelled frames trained on (content hash and weight); a checkpoint resumes only with the
+    same ones."""
     device = resolve_device(cfg.device)
     amp = _use_amp(cfg, device)
     torch.set_num_threads(cfg.threads)
@@ -315,7 +317,8 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
         raise TrainingError(f"{rows} training rows for batch {cfg.batch}: render more views")
     identity = {"kind": cfg.kind, "geometry": _geometry_identity(cfg.geometry)}
     state: dict[str, Any] = {"step": 0, "total_steps": cfg.steps, "wall_s": 0.0, "losses": [],
-                             "identity": identity, "render_wall_s": render_s}
+                             "identity": identity, "render_wall_s": render_s,
+                             "real_data": real_data}
     if cfg.init_from and not ckpt.exists() and Path(cfg.init_from).suffix == ".onnx":
         state["history"] = _init_from_onnx(cfg, model, data, robot_model, say)
     elif cfg.init_from and not ckpt.exists():
@@ -336,6 +339,10 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
         if state.get("identity", identity) != identity:
             raise TrainingError(f"{ckpt}: checkpoint of another configuration "
                                 f"({state['identity']}, now {identity}); use another --out")
+        if state.get("real_data") != real_data:  # checkpoints from before it: None
+            raise TrainingError(f"{ckpt}: checkpoint trained on other labelled frames "
+                                f"({state.get('real_data')}, now {real_data}); use another "
+                                "--out")
         if cfg.minutes is None and cfg.steps != state["total_steps"]:
             say(f"{ckpt}: --steps {cfg.steps} replaces the checkpoint's {state['total_steps']}")
             state["total_steps"] = cfg.steps
@@ -691,8 +698,10 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
         f"device {device_description(resolve_device(cfg.device))}")
     perm = (mirror_permutation(model_def.keypoint_names)
             if cfg.mirror and cfg.kind == "keypoints" else None)
+    real_identity = ({"sha256": real["train"]["sha256"], "weight": cfg.real_weight}
+                     if "train" in real else None)
     state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s, perm,
-                         robot_model=model_def)
+                         robot_model=model_def, real_data=real_identity)
     t_eval = time.perf_counter()
     metrics = validate(cfg, model, val)
     for name, figures in metrics.items():

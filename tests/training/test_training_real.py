@@ -29,7 +29,7 @@ def _labelled(tmp_path: Path, seed: int, n: int = 6) -> Path:
                            model.keypoint_names)
 
 
-def test_labelled_frames_beside_the_renders_and_in_the_card(tmp_path: Path) -> None:
+def test_labelled_frames_beside_the_renders_and_in_the_card(tmp_path: Path, capsys) -> None:
     train, val = _labelled(tmp_path, 101), _labelled(tmp_path, 202)
     out = tmp_path / "model"
     assert main(["train", "detector", "--out", str(out), *TINY_ARGS, "--real", str(train),
@@ -41,6 +41,10 @@ def test_labelled_frames_beside_the_renders_and_in_the_card(tmp_path: Path) -> N
     assert real["train"]["label_sources"].get("render", 0) >= 1
     assert real["val"]["frames"] == 6
     assert "real" in card["metrics"]  # validated on the labelled frames too
+    # the checkpoint resumes only with the same labelled frames
+    assert main(["train", "detector", "--out", str(out), *TINY_ARGS, "--real", str(val),
+                 "--real-val", str(val)]) == 1
+    assert "checkpoint trained on other labelled frames" in capsys.readouterr().err
 
 
 def test_a_file_of_other_keypoints_is_refused(tmp_path: Path, capsys) -> None:
