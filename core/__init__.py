@@ -20,6 +20,8 @@ contract (that is :mod:`protocol`).
 - ``plugins``: named plug-ins chosen by a command-line option (``--source``, ``--adapter``);
 - ``pose``: the one planar pose type, ``PlanarPose`` (x, y, theta in a frame);
 - ``trajectory``: the one trajectory type (stamped 3D poses) and its TUM files;
+- ``pose_labels``: a robot's keypoints, visibility, box and expected pixel error in a camera's
+  image from its pose (the system labelling its own frames);
 - ``coco``: the one format of labelled camera frames, COCO keypoints files: read (checked),
   written atomically, matched to a robot model, split by time, merged.
 
