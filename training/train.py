@@ -296,14 +296,17 @@ def _resident_images(cfg: TrainConfig, data: RenderedSet, device: torch.device,
 def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ckpt: Path,
                  say: Callable[[str], None], render_s: float | None = None,
                  mirror_perm: np.ndarray | None = None, robot_model: Any = None,
-                 real_data: dict[str, Any] | None = None) -> dict[str, Any]:
+                 real_data: dict[str, Any] | None = None,
+                 select: Callable[[torch.nn.Module], float] | None = None) -> dict[str, Any]:
     """Train ``model`` on ``data``; resumes from ``ckpt`` when it exists, on any device (the
     checkpoint holds CPU tensors and the random generators' states). Returns the run's record
     (steps, training wall time, the first run's render time, losses, ``phases``: where and how
     long each leg trained). ``robot_model`` (keypoints, ``--init-from`` an ONNX file): the
     keypoints' names and positions, to match the file's keypoints by name. ``real_data``: the
     labelled frames trained on (content hash and weight); a checkpoint resumes only with the
-    same ones."""
+    same ones. ``select(model)``: a score on held-out data (lower is better), taken at every
+    checkpoint; a finished run keeps the weights of the best one (early stopping without
+    cutting the schedule short), recorded as ``state["best"]``."""
     device = resolve_device(cfg.device)
     amp = _use_amp(cfg, device)
     torch.set_num_threads(cfg.threads)
@@ -373,6 +376,21 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
         _save_checkpoint(ckpt, model, opt, state, {"torch": gen.get_state(),
                                                    "numpy": rng.bit_generator.state})
 
+    def score_now() -> None:
+        assert select is not None
+        score = float(select(model))
+        model.to(device)
+        model.train()
+        best = state.get("best")
+        if not math.isfinite(score):
+            score = math.inf
+        if best is None or score < best["score"]:
+            state["best"] = {"step": state["step"], "score": score}
+            state["best_weights"] = {k: v.detach().cpu().clone()  # a copy, not the live ones
+                                     for k, v in model.state_dict().items()}
+        say(f"step {state['step']}: held-out selection score {score:.4g} (best "
+            f"{state['best']['score']:.4g} at step {state['best']['step']})")
+
     while state["step"] < state["total_steps"] and (
             cfg.leg_steps is None or state["step"] - first_step < cfg.leg_steps):
         step = state["step"]
@@ -408,6 +426,9 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
             rate = cfg.batch / max(float(np.median(step_times[-25:])), 1e-9)
             eta = (state["total_steps"] - state["step"]) * cfg.batch / rate
             say(_progress_line(state["step"], state["total_steps"], mean, rate, eta))
+        if select is not None and (state["step"] % cfg.checkpoint_every == 0
+                                   or state["step"] == state["total_steps"]):
+            score_now()
         if state["step"] % cfg.checkpoint_every == 0 or time.perf_counter() - t_last > 300:
             save()
             t_last = time.perf_counter()
@@ -420,9 +441,17 @@ def run_training(cfg: TrainConfig, model: torch.nn.Module, data: RenderedSet, ck
                        f"cosine schedule on {where}"
                        f"{', bf16 autocast' if amp else ''}, {cfg.threads} thread(s), "
                        f"{leg_s:.0f} s")
+    best = state.get("best")
+    if (select is not None and best is not None and state["step"] >= state["total_steps"]
+            and best["step"] != state["step"] and state.get("best_weights") is not None):
+        model.load_state_dict(state["best_weights"])
+        history.append(f"kept the weights of step {best['step']}: the best held-out selection "
+                       f"score ({best['score']:.4g}) of the run's checkpoints")
+        say(f"keeping the weights of step {best['step']} (best held-out score "
+            f"{best['score']:.4g})")
     save()
     model.eval()
-    return state
+    return {k: v for k, v in state.items() if k != "best_weights"}
 
 
 def _geometry_identity(geometry: Geometry) -> dict[str, Any]:
@@ -700,8 +729,16 @@ def train(cfg: TrainConfig, views: ViewSource, out_dir: Path, *,
             if cfg.mirror and cfg.kind == "keypoints" else None)
     real_identity = ({"sha256": real["train"]["sha256"], "weight": cfg.real_weight}
                      if "train" in real else None)
+    select = None
+    if "real" in val:  # keep the weights that do best on the lab's held-out frames
+        def select(m: torch.nn.Module) -> float:
+            figures = validate(cfg, m, {"real": val["real"]})["real"]
+            if cfg.kind == "detector":
+                return -float(figures.get("AP@0.5", float("nan")))
+            return float(figures.get("median error px", float("nan")))
+
     state = run_training(cfg, model, data, out_dir / f"{cfg.kind}.ckpt", say, render_s, perm,
-                         robot_model=model_def, real_data=real_identity)
+                         robot_model=model_def, real_data=real_identity, select=select)
     t_eval = time.perf_counter()
     metrics = validate(cfg, model, val)
     for name, figures in metrics.items():
@@ -751,6 +788,10 @@ def _card(cfg: TrainConfig, model_def: Any, mesh_name: str, state: dict[str, Any
         "parameters": n_params, "robot_mesh": mesh_name,
         "history": list(state.get("history", [])),
     }
+    if state.get("best"):
+        # the checkpoint kept: the best on the labelled held-out frames ("real")
+        training["selected"] = {"step": state["best"]["step"],
+                                "score": round(state["best"]["score"], 5)}
     if real:
         # a lab's labelled frames beside the renders: file, content hash, frames, cameras,
         # where the labels came from

@@ -6,6 +6,7 @@ recorded with where and how long it trained."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -153,3 +154,26 @@ def test_tiny_mirror_run_asks_for_the_flip_in_its_card(tmp_path: Path) -> None:
     assert card.training["device"] == "cpu"
     assert card.training["phases"][0]["where"].startswith("cpu (")
     assert "Test-time flip" in (tmp_path / "keypoints.md").read_text()
+
+
+def test_a_finished_run_keeps_the_weights_its_selection_scored_best(tmp_path: Path) -> None:
+    """``select`` scores every checkpoint (here: 3, 1, 2 at steps 2, 4, 6): the finished run
+    keeps step 4's weights, says so in its history, and its checkpoint resumes with them."""
+    scores = iter([3.0, 1.0, 2.0])
+    weights: dict[int, dict] = {}
+    model = KeypointNet(K, GEOM.crop_w, GEOM.crop_h, hidden=32)
+
+    def select(m: torch.nn.Module) -> float:
+        step = 2 * (len(weights) + 1)
+        weights[step] = {k: v.detach().clone() for k, v in m.state_dict().items()}
+        return next(scores)
+
+    cfg = dataclasses.replace(_cfg(6, "cpu"), checkpoint_every=2)
+    torch.manual_seed(0)
+    state = run_training(cfg, model, _data(), tmp_path / "keypoints.ckpt", say=lambda line: None,
+                         select=select)
+    assert state["best"] == {"step": 4, "score": 1.0} and "best_weights" not in state
+    assert any("kept the weights of step 4" in line for line in state["history"])
+    for name, tensor in model.state_dict().items():
+        assert torch.equal(tensor, weights[4][name]), name
+    assert not all(torch.equal(model.state_dict()[n], weights[6][n]) for n in weights[6])

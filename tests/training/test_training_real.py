@@ -41,6 +41,7 @@ def test_labelled_frames_beside_the_renders_and_in_the_card(tmp_path: Path, caps
     assert real["train"]["label_sources"].get("render", 0) >= 1
     assert real["val"]["frames"] == 6
     assert "real" in card["metrics"]  # validated on the labelled frames too
+    assert card["training"]["selected"]["step"] == 5  # scored on them at the (only) checkpoint
     # the checkpoint resumes only with the same labelled frames
     assert main(["train", "detector", "--out", str(out), *TINY_ARGS, "--real", str(val),
                  "--real-val", str(val)]) == 1
