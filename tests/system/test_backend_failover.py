@@ -39,7 +39,12 @@ from tests.system.ownership_probe import FLAG_PREFIX, OwnershipProbe
 
 zenoh = pytest.importorskip("zenoh")
 
-pytestmark = pytest.mark.slow
+# exclusive: real-time ownership on a 2-core machine. In one parallel run (2026-12-08, another
+# worker's tests beside it) the frozen-backend test's monitor saw b2 take over four robots whose
+# b1 owner tokens it still saw standing: their deletions reached the monitor 1.5 s after b2's
+# first poses, the other two at once. Not seen alone on the machine; not yet explained (is it
+# the monitor's delivery or b2 claiming early?): the closing note of that session says so.
+pytestmark = [pytest.mark.slow, pytest.mark.exclusive]
 
 SITE = "lab"
 ROBOTS = tuple(f"robot_{i}" for i in range(6))
