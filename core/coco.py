@@ -22,19 +22,21 @@ a keypoint list of the wrong length, a visibility other than 0/1/2, a non-finite
 outside its image); :func:`write_dataset` writes atomically (a temporary file renamed over the
 target: never half a file after a crash). :func:`match_keypoints` maps an external file's
 category onto a robot model by keypoint name (CVAT exports keep the names a person typed, in the
-order they were made). :func:`split_by_time` and :func:`merge_datasets` are the tools' verbs.
+order they were made). :func:`split_by_time` and :func:`merge_datasets` are the tools' verbs;
+:func:`labelled_frames` reads a dataset's frames with their labels for scoring and training.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import os
 import tempfile
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -91,6 +93,12 @@ class CocoAnnotation:
     iscrowd: int = 0
 
     @property
+    def bbox_xyxy(self) -> np.ndarray:
+        """(4,) the box as edges (x0, y0, x1, y1)."""
+        x, y, w, h = self.bbox
+        return np.array([x, y, x + w, y + h])
+
+    @property
     def num_visible(self) -> int:
         """Keypoints labelled visible (visibility 2)."""
         return int((self.keypoints[:, 2] == 2).sum())
@@ -117,8 +125,15 @@ class CocoDataset:
         raise DatasetError(f"no category {name!r} (categories: "
                            f"{[c.name for c in self.categories]})")
 
+    @functools.cached_property
+    def _by_image(self) -> dict[int, list[CocoAnnotation]]:
+        index: dict[int, list[CocoAnnotation]] = {}
+        for a in self.annotations:
+            index.setdefault(a.image_id, []).append(a)
+        return index
+
     def annotations_of(self, image_id: int) -> list[CocoAnnotation]:
-        return [a for a in self.annotations if a.image_id == image_id]
+        return list(self._by_image.get(image_id, ()))
 
     def to_json(self) -> dict[str, Any]:
         """The COCO document (plain JSON types)."""
@@ -405,6 +420,69 @@ def conform_to_model(dataset: CocoDataset, category_name: str, model_name: str,
     return CocoDataset(images, tuple(annotations), (cat,), dict(dataset.info)), match
 
 
+# ------------------------------------------------------------------------------ frames
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RobotLabels:
+    """One robot's labels as the networks' code reads them (the fields of a rendered sample's
+    robot): ``bbox_xyxy`` box edges (``None``: no robot in the frame), ``keypoints_px`` (K, 2),
+    ``visible`` (K,) labelled visible, ``in_image`` (K,) labelled at all."""
+
+    bbox_xyxy: np.ndarray | None
+    keypoints_px: np.ndarray
+    visible: np.ndarray
+    in_image: np.ndarray
+
+    @classmethod
+    def of(cls, annotation: CocoAnnotation | None, num_keypoints: int) -> RobotLabels:
+        if annotation is None:
+            k = num_keypoints
+            return cls(None, np.zeros((k, 2)), np.zeros(k, bool), np.zeros(k, bool))
+        kp = annotation.keypoints
+        return cls(annotation.bbox_xyxy, kp[:, :2].copy(), kp[:, 2] == 2, kp[:, 2] > 0)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LabelledFrame:
+    """A dataset frame read for scoring or training, shaped as a rendered sample (``mode``
+    ``"real"``; no simulated ``camera`` or ``robot_pose``): the image, its robot's labels
+    (one: none or one robot), and the COCO entries it came from."""
+
+    image: CocoImage
+    image_rgb: np.ndarray
+    robots: list[RobotLabels]
+    annotation: CocoAnnotation | None
+    mode: str = "real"
+    camera: Any = None
+    robot_pose: Any = None
+
+
+def labelled_frames(dataset: CocoDataset, category: CocoCategory, image_root: Path,
+                    read_rgb: Callable[[Path], np.ndarray | None]
+                    ) -> tuple[list[LabelledFrame], dict[str, list[str]]]:
+    """The frames of ``dataset`` with at most one robot of ``category`` each, read with
+    ``read_rgb(path)`` (an (H, W, 3) RGB image or ``None``), and what was left out, named:
+    ``several robots`` (the scorers and trainers here take one robot per frame) and
+    ``unreadable`` images."""
+    skipped: dict[str, list[str]] = {"several robots": [], "unreadable": []}
+    frames = []
+    k = len(category.keypoints)
+    for im in dataset.images:
+        anns = [a for a in dataset.annotations_of(im.id) if a.category_id == category.id]
+        if len(anns) > 1:
+            skipped["several robots"].append(im.file_name)
+            continue
+        path = image_root / im.file_name
+        rgb = read_rgb(path)
+        if rgb is None:
+            skipped["unreadable"].append(str(path))
+            continue
+        ann = anns[0] if anns else None
+        frames.append(LabelledFrame(im, rgb, [RobotLabels.of(ann, k)], ann))
+    return frames, skipped
+
+
 # ------------------------------------------------------------------------------ verbs
 
 
@@ -493,6 +571,6 @@ def summary(dataset: CocoDataset) -> dict[str, Any]:
 
 
 __all__ = ["BOX_TOLERANCE_PX", "VISIBILITIES", "CocoAnnotation", "CocoCategory", "CocoDataset",
-           "CocoImage", "DatasetError", "KeypointMatch", "conform_to_model", "dataset_from_json",
-           "match_keypoints", "merge_datasets", "read_dataset", "split_by_time", "summary",
-           "write_dataset"]
+           "CocoImage", "DatasetError", "KeypointMatch", "LabelledFrame", "RobotLabels",
+           "conform_to_model", "dataset_from_json", "labelled_frames", "match_keypoints",
+           "merge_datasets", "read_dataset", "split_by_time", "summary", "write_dataset"]

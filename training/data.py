@@ -235,21 +235,6 @@ def view_records(sample: Any, geometry: Geometry, rng: np.random.Generator,
     )
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class _RealRobot:
-    bbox_xyxy: np.ndarray | None
-    keypoints_px: np.ndarray
-    visible: np.ndarray
-    in_image: np.ndarray
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class _RealView:
-    image_rgb: np.ndarray
-    robots: list[_RealRobot]
-    mode: str = "real"
-
-
 @dataclasses.dataclass(frozen=True)
 class RealData:
     """What a set of a lab's labelled frames was (for the model card): the dataset file, its
@@ -277,7 +262,7 @@ def real_set(dataset_path: Path, geometry: Geometry, keypoint_names: Sequence[st
 
     import cv2
 
-    from core.coco import read_dataset
+    from core.coco import labelled_frames, read_dataset
 
     dataset = read_dataset(dataset_path)
     root = image_root or Path(dataset_path).parent
@@ -288,37 +273,25 @@ def real_set(dataset_path: Path, geometry: Geometry, keypoint_names: Sequence[st
                          f"{list(names)} in that order (categories: "
                          f"{[(c.name, list(c.keypoints)) for c in dataset.categories]}); "
                          f"smartedge dataset import matches a file to the model")
-    cat = cats[0]
-    parts, cameras, sources = [], collections.Counter(), collections.Counter()
-    left_out = collections.Counter()
-    k = len(names)
-    for im in dataset.images:
-        anns = [a for a in dataset.annotations_of(im.id) if a.category_id == cat.id]
-        if len(anns) > 1:
-            left_out["several robots"] += 1
-            log.warning("%s: %s has %d robots; left out", dataset_path, im.file_name, len(anns))
-            continue
-        bgr = cv2.imread(str(root / im.file_name), cv2.IMREAD_COLOR)
-        if bgr is None:
-            left_out["unreadable"] += 1
-            log.warning("%s: %s cannot be read; left out", dataset_path, root / im.file_name)
-            continue
-        if anns:
-            a = anns[0]
-            x, y, w, h = a.bbox
-            robot = _RealRobot(np.array([x, y, x + w, y + h]), a.keypoints[:, :2].copy(),
-                               a.keypoints[:, 2] == 2, a.keypoints[:, 2] > 0)
-            sources[a.label_source] += 1
-        else:
-            robot = _RealRobot(None, np.zeros((k, 2)), np.zeros(k, bool), np.zeros(k, bool))
-        view = _RealView(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [robot])
-        parts.append(view_records(view, geometry, rng, augment, num_keypoints=k))
-        cameras[im.camera_id or "?"] += 1
-    if not parts:
-        raise UsageError(f"{dataset_path}: no frame could be used ({dict(left_out)})")
+
+    def read_rgb(path: Path) -> np.ndarray | None:
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    frames, skipped = labelled_frames(dataset, cats[0], root, read_rgb)
+    left_out = {why: len(names_) for why, names_ in skipped.items() if names_}
+    for why, names_ in skipped.items():
+        for name in names_:
+            log.warning("%s: %s left out (%s)", dataset_path, name, why)
+    if not frames:
+        raise UsageError(f"{dataset_path}: no frame could be used ({left_out})")
+    parts = [view_records(f, geometry, rng, augment, num_keypoints=len(names)) for f in frames]
+    cameras = collections.Counter(f.image.camera_id or "?" for f in frames)
+    sources = collections.Counter(f.annotation.label_source for f in frames
+                                  if f.annotation is not None)
     digest = hashlib.sha256(Path(dataset_path).read_bytes()).hexdigest()
     info = RealData(str(dataset_path), digest, len(parts), dict(cameras), dict(sources),
-                    dict(left_out))
+                    left_out)
     return RenderedSet.concatenate(parts), info
 
 

@@ -154,58 +154,11 @@ def _far_bands(pipeline: RobotKeypointPipeline, scenario: Any) -> CameraFarBands
     return CameraFarBands(pipeline, scenario.site.robot_model(scenario.robot_id).height_m)
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class LabelledRobot:
-    """A robot's labels in a dataset frame, as :func:`evaluate_set` reads them: ``bbox_xyxy``
-    (``None``: no robot), ``keypoints_px`` (K, 2), ``visible`` (K,) labelled visible,
-    ``in_image`` (K,) labelled at all."""
-
-    bbox_xyxy: np.ndarray | None
-    keypoints_px: np.ndarray
-    visible: np.ndarray
-    in_image: np.ndarray
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class LabelledFrame:
-    """A dataset frame for :func:`evaluate_set` (no simulated camera or pose: no distance
-    bands)."""
-
-    image_rgb: np.ndarray
-    robots: list[LabelledRobot]
-    camera: Any = None
-    robot_pose: Any = None
-
-
-def dataset_frames(dataset: Any, image_root: Path, category: str
-                   ) -> tuple[list[LabelledFrame], dict[str, list[str]]]:
-    """The frames of a COCO keypoints dataset (:class:`core.coco.CocoDataset`) with their labels
-    of robot model ``category``, and what was left out: ``unreadable`` images (named) and
-    images with ``several robots`` (the detection AP here scores one robot per frame)."""
+def _read_rgb(path: Path) -> np.ndarray | None:
     import cv2
 
-    cat = dataset.category(category)
-    skipped: dict[str, list[str]] = {"unreadable": [], "several robots": []}
-    frames = []
-    k = len(cat.keypoints)
-    for im in dataset.images:
-        anns = [a for a in dataset.annotations_of(im.id) if a.category_id == cat.id]
-        if len(anns) > 1:
-            skipped["several robots"].append(im.file_name)
-            continue
-        bgr = cv2.imread(str(image_root / im.file_name), cv2.IMREAD_COLOR)
-        if bgr is None:
-            skipped["unreadable"].append(str(image_root / im.file_name))
-            continue
-        if anns:
-            a = anns[0]
-            x, y, w, h = a.bbox
-            robot = LabelledRobot(np.array([x, y, x + w, y + h]), a.keypoints[:, :2].copy(),
-                                  a.keypoints[:, 2] == 2, a.keypoints[:, 2] > 0)
-        else:
-            robot = LabelledRobot(None, np.zeros((k, 2)), np.zeros(k, bool), np.zeros(k, bool))
-        frames.append(LabelledFrame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), [robot]))
-    return frames, skipped
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    return None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def evaluate_on_dataset(dataset_path: Path, model_dir: Path | None = None, *,
@@ -218,7 +171,7 @@ def evaluate_on_dataset(dataset_path: Path, model_dir: Path | None = None, *,
     folder the file names are relative to (default: the dataset file's); ``category``: the
     robot model (default: the file's only one). The keypoint network must know the category's
     keypoint names (its card is matched by name)."""
-    from core.coco import read_dataset
+    from core.coco import labelled_frames, read_dataset
 
     dataset = read_dataset(dataset_path)
     if category is None:
@@ -229,7 +182,8 @@ def evaluate_on_dataset(dataset_path: Path, model_dir: Path | None = None, *,
     names = dataset.category(category).keypoints
     pipeline = RobotKeypointPipeline.from_folder(model_dir, threads=threads, keypoint_names=names,
                                                  flip=flip, detector_flip=detector_flip)
-    frames, skipped = dataset_frames(dataset, image_root or Path(dataset_path).parent, category)
+    frames, skipped = labelled_frames(dataset, dataset.category(category),
+                                      image_root or Path(dataset_path).parent, _read_rgb)
     if not frames:
         raise ValueError(f"{dataset_path}: no frame could be evaluated ({skipped})")
     return evaluate_set(pipeline, frames), skipped, len(frames)

@@ -60,20 +60,21 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rel(path: Path, start: Path) -> str:
-    return Path(os.path.relpath(path, start)).as_posix()
+def _root_for(dataset_file: str | Path, out_file: str | Path) -> str:
+    """The folder of ``dataset_file`` relative to ``out_file``'s ("" when the same): what the
+    file names of a dataset written elsewhere are prefixed with."""
+    rel = Path(os.path.relpath(Path(dataset_file).resolve().parent,
+                               Path(out_file).resolve().parent)).as_posix()
+    return "" if rel == "." else rel
 
 
 def _split(args: argparse.Namespace) -> int:
     ds = read_dataset(args.dataset)
     train, val = split_by_time(ds, args.val_share, block_s=args.block_s, seed=args.seed)
-    src = Path(args.dataset).resolve().parent
     for part, out in ((train, args.train), (val, args.val)):
-        out_path = Path(out)
-        root = _rel(src, out_path.resolve().parent)
-        moved = merge_datasets([part], roots=[root if root != "." else ""])
+        moved = merge_datasets([part], roots=[_root_for(args.dataset, out)])
         write_dataset(CocoDataset(moved.images, moved.annotations, moved.categories,
-                                  dict(ds.info)), out_path)
+                                  dict(ds.info)), Path(out))
     print(f"train {args.train}: {len(train.images)} images, {len(train.annotations)} robots; "
           f"validation {args.val}: {len(val.images)} images, {len(val.annotations)} robots "
           f"(blocks of {args.block_s:g} s)")
@@ -83,11 +84,7 @@ def _split(args: argparse.Namespace) -> int:
 def _merge(args: argparse.Namespace) -> int:
     out = Path(args.out)
     datasets = [read_dataset(p) for p in args.datasets]
-    roots = []
-    for p in args.datasets:
-        root = _rel(Path(p).resolve().parent, out.resolve().parent)
-        roots.append("" if root == "." else root)
-    merged = merge_datasets(datasets, roots=roots)
+    merged = merge_datasets(datasets, roots=[_root_for(p, out) for p in args.datasets])
     write_dataset(merged, out)
     print(f"wrote {out}: {len(merged.images)} images, {len(merged.annotations)} robots from "
           f"{len(datasets)} files")
@@ -125,8 +122,7 @@ def _import(args: argparse.Namespace) -> int:
         allow_missing=args.allow_missing, drop_extra=args.drop_extra,
         label_source=args.label_source)
     out = Path(args.out)
-    root = _rel(Path(args.external).resolve().parent, out.resolve().parent)
-    moved = merge_datasets([conformed], roots=[root if root != "." else ""])
+    moved = merge_datasets([conformed], roots=[_root_for(args.external, out)])
     info = {**dict(ds.info), "imported_from": str(args.external), "robot_model": model.name}
     write_dataset(CocoDataset(moved.images, moved.annotations, moved.categories, info), out)
     print(f"{args.external}: category {category!r} as robot model {model.name!r}: "
